@@ -78,13 +78,24 @@ def test_vicpark_200_has_299_features_200_poses_and_199_single_minimum_joins(dat
     assert result.stderr == ""
 
 
+@pytest.mark.parametrize("strategy", ["sequential", "tree"])
 @pytest.mark.parametrize("name", ["DLR_200_local_maps", "535_data_5_local_maps", "8240_data_50_local_maps",
                                   "VicPark_6898_local_maps"])
-def test_every_real_dataset_joins(data_dir, name, tmp_path):
+def test_every_real_dataset_joins(data_dir, name, strategy, tmp_path):
     out = tmp_path / "g.csv"
-    result = run("join", str(data_dir / name), "-o", str(out))
+    result = run("join", str(data_dir / name), "-o", str(out), "--strategy", strategy)
     assert result.exit_code == 0, result.output
+    assert f"{strategy}, " in result.stderr
     assert out.exists()
+
+
+def test_tree_join_with_jobs_prints_the_same_map(simulated_folder):
+    one = run("-q", "join", simulated_folder, "--strategy", "tree")
+    two = run("-q", "join", simulated_folder, "--strategy", "tree", "--jobs", "2")
+    assert one.exit_code == two.exit_code == 0
+    assert one.stdout == two.stdout and one.stdout.startswith("kind,id,x,y,phi")
+    refused = run("join", simulated_folder, "--jobs", "2")
+    assert refused.exit_code == 2 and "add --strategy tree" in refused.output
 
 
 def test_check_minima_paper_case_is_unique():

@@ -29,6 +29,7 @@ from theorem_oracles import Dense, my_wrap, rot
 
 from mapjoin.onestep import (
     OneStepProblem,
+    batch_constants,
     constants,
     cost,
     recover,
@@ -109,6 +110,26 @@ FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthChe
 
 
 # --------------------------------------------------------------------------- 1. Theorem 1
+
+
+@FAST
+@given(st.lists(raw_problems(n_min=0), min_size=1, max_size=5), st.randoms(use_true_random=False))
+def test_batch_constants_equal_dense_formulas_problem_by_problem(problems, random):
+    """Several problems at once, features interleaved in any order, some with none: each as Dense."""
+    owner = np.concatenate([np.full(len(p.z0), i) for i, p in enumerate(problems)]).astype(np.intp)
+    order = np.array(random.sample(range(len(owner)), len(owner)), dtype=np.intp)
+    stack = lambda name: np.concatenate([getattr(p, name) for p in problems])[order]  # noqa: E731
+    k = batch_constants(owner[order], len(problems), stack("z0").reshape(-1, 2), stack("var0"),
+                        stack("z1").reshape(-1, 2), stack("var1"),
+                        np.array([p.odometry[:2] for p in problems]),
+                        np.array([p.odometry_variances for p in problems]))
+    for i, problem in enumerate(problems):
+        dense = Dense(problem)
+        c0, a0, phi0 = dense.constants()
+        tol = 1e-9 * dense.scale
+        assert abs(k.c0[i] - c0) <= tol and abs(k.a0[i] - a0) <= tol
+        if a0 > 1e-5 * dense.scale:
+            assert angle_diff(k.phi0[i], phi0) <= 1e-9 * dense.scale / a0
 
 
 @FAST

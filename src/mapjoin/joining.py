@@ -1,49 +1,65 @@
 """Joining a chain of local maps into a global map, one one-step problem per join.
 
-Join k treats the global map built so far as map 0 (its features and its end pose, the
-start pose of local map k, in the global frame) and local map k as map 1 (method.md,
-"Sequential joining"). Only the common features enter the one-step problem; the
-features seen only by the incoming map and its end pose are placed afterwards,
-``x = t* + R(phi*) z``.
+A join takes two consecutive pieces of the chain, ``left`` (a map or a joined run of maps,
+in the frame of its start pose) and ``right`` (the same, starting at left's end pose),
+and treats left as map 0 and right as map 1 of the one-step problem (method.md,
+"Sequential joining"): only the common features enter it, with left's end pose as the
+odometry. The features seen only by right, and right's poses, are placed afterwards,
+``x = t* + R(phi*) z``. Two strategies order the joins:
 
-Spherical variances are propagated so that the next join weighs the global map
-correctly (first order, each 2x2 covariance summarised by half its trace):
+- ``sequential``: the global map so far is left, local map k is right (k = 2 .. N);
+- ``tree``: neighbouring pieces are joined pairwise, level by level, until one is left
+  (the paper's Remark 8). The joins of a level are independent: they are computed
+  together, as arrays, and ``jobs > 1`` splits the lower levels into aligned subtrees
+  joined in parallel processes (the result does not depend on ``jobs``).
+
+Spherical variances are propagated so that later joins weigh the estimates correctly
+(first order, each 2x2 covariance summarised by half its trace):
 
 - a common feature fuses both estimates: ``1 / (1/var0 + 1/var1)``;
-- the joined pose r1 gets ``var_phi = 1 / (f''(phi*)/2)`` and
+- the joined pose r1 (left's end) gets ``var_phi = 1 / (f''(phi*)/2)`` and
   ``var_t = 1/W + |m1|^2 var_phi / 2`` (W, m1 from Theorem 1's reduction);
-- a point ``z`` of the incoming map placed in the global frame gets
-  ``var_t + var_z + |z|^2 var_phi / 2``, its end pose orientation ``var_phi + p_phi``.
+- a point ``z`` of right placed in left's frame gets ``var_t + var_z + |z|^2 var_phi / 2``,
+  a pose orientation ``var_phi + p_phi``.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 
 from .errors import JoinError
-from .maps import CovarianceMode, GlobalMap, LocalMap, Provenance, spherical_variances
-from .onestep import OneStepProblem, Solver, rotation, solve, wrap
+from .maps import CovarianceMode, GlobalMap, LocalMap, Provenance, batch_spherical_variances
+from .onestep import Constants, Solver, batch_constants, global_orientation, linked_cost, wrap
 
-__all__ = ["DEFAULT_COVARIANCE", "JoinRecord", "JoinResult", "certify_pair", "check_chain",
-           "join_sequential"]
+__all__ = ["DEFAULT_COVARIANCE", "STRATEGIES", "JoinRecord", "JoinResult", "Strategy", "certify_pair",
+           "check_chain", "join", "join_sequential", "join_tree"]
 
 log = logging.getLogger("mapjoin")
 
 # Measured against the exact least-squares joins (README, "Covariance modes"): closest on
 # VicPark 200 and both simulations; "marginal" is closer on DLR 200 only.
 DEFAULT_COVARIANCE: CovarianceMode = "information"
+Strategy = Literal["sequential", "tree"]
+STRATEGIES: tuple[str, ...] = ("sequential", "tree")
 
 
 @dataclass(frozen=True)
 class JoinRecord:
     """One join of the report: what came in, Theorem 2's certificate, and the optimum found.
 
-    ``phi`` is phi*, the global orientation of the incoming map's start pose, ``cost``
-    f_1(phi*); ``phi2``/``cost2`` the other local minimum when ``minima`` is 2.
+    ``map`` names the right piece (its first and last local map when it is a run of them),
+    ``start_id``/``end_id`` its first and last pose; ``level`` is the join's depth (the
+    join number for the sequential strategy). ``phi`` is phi*, the orientation of right's
+    start pose in left's frame, ``cost`` f_1(phi*); ``phi2``/``cost2`` the other local
+    minimum when ``minima`` is 2.
     """
 
     join: int
@@ -60,6 +76,7 @@ class JoinRecord:
     phi2: float | None
     cost2: float | None
     iterations: int
+    level: int
 
 
 @dataclass(frozen=True)
@@ -87,81 +104,337 @@ def check_chain(maps: Sequence[LocalMap]) -> None:
         seen.add(local_map.end_id)
 
 
+@dataclass
+class _Pieces:
+    """Consecutive pieces of the chain as flat arrays, each in the frame of its own start pose.
+
+    Feature rows are grouped by piece (``feature_piece`` non-decreasing) and sorted by
+    compact id within a piece; pose rows are the end poses of the piece's maps, in chain
+    order, so a piece's last pose row is its end pose. ``first``/``last`` are the indices
+    of each piece's first and last local map.
+    """
+
+    feature_piece: np.ndarray
+    feature_ids: np.ndarray
+    features: np.ndarray
+    feature_variances: np.ndarray
+    pose_piece: np.ndarray
+    poses: np.ndarray
+    pose_variances: np.ndarray
+    first: np.ndarray
+    last: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.first)
+
+    def block(self, start: int, stop: int) -> _Pieces:
+        """Pieces ``start .. stop-1``, renumbered from 0."""
+        f = slice(*np.searchsorted(self.feature_piece, [start, stop]))
+        p = slice(*np.searchsorted(self.pose_piece, [start, stop]))
+        return _Pieces(self.feature_piece[f] - start, self.feature_ids[f], self.features[f],
+                       self.feature_variances[f], self.pose_piece[p] - start, self.poses[p],
+                       self.pose_variances[p], self.first[start:stop], self.last[start:stop])
+
+
+@dataclass(frozen=True)
+class _Joins:
+    """The outcome of ``count`` independent joins (left i + right i), as arrays over the joins."""
+
+    phi: np.ndarray
+    t: np.ndarray
+    phi_variance: np.ndarray
+    t_variance: np.ndarray
+    records: list[JoinRecord]
+
+
+def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
+                 var1: np.ndarray, odometry: np.ndarray, odometry_variances: np.ndarray, solver: Solver,
+                 describe: Callable[[int], tuple[str, int, int, int]], level: int) -> _Joins:
+    """Algorithm 1 for ``count`` joins at once: Theorem 1's constants as arrays, then the 1-D solve of each.
+
+    Common feature j belongs to join ``pair[j]``; ``odometry``/``odometry_variances`` are the
+    end pose of each left piece and its spherical variances. ``describe(i)`` names join i's
+    right piece (name, start id, end id, its number of features) for the report.
+    """
+    k = batch_constants(pair, count, z0, var0, z1, var1, odometry[:, :2], odometry_variances)
+    z_phi, p_phi = odometry[:, 2], odometry_variances[:, 1]
+    found = [global_orientation(*args, solver) for args in zip(k.a0.tolist(), k.phi0.tolist(),
+                                                                 z_phi.tolist(), p_phi.tolist())]
+    phi = np.array([f.phi for f in found])
+    information = k.a0 * np.cos(phi - k.phi0) + 1.0 / p_phi  # f_1''(phi*) / 2
+    phi_variance = np.where(information > 0, 1.0 / np.where(information > 0, information, 1.0), p_phi)
+    rotated = _rotate(k.mean1, phi)
+    t = k.mean0 - rotated
+    t_variance = 1.0 / k.weight + (k.mean1 * k.mean1).sum(axis=1) * phi_variance / 2
+    costs = linked_cost(k, z_phi, p_phi, phi)
+    common = np.bincount(pair, minlength=count)
+    records = []
+    for i, f in enumerate(found):
+        name, start_id, end_id, size = describe(i)
+        if not common[i]:
+            log.warning("%s shares no feature with the maps joined before it: it is placed by its "
+                        "start pose alone (no correction of the map so far)", name)
+        other_cost = None
+        if f.other_phi is not None:
+            other_cost = float(linked_cost(_one(k, i), z_phi[i], p_phi[i], f.other_phi))
+        records.append(JoinRecord(
+            join=0, map=name, start_id=start_id, end_id=end_id, common=int(common[i]), new=size - int(common[i]),
+            a=f.minima.a, c_phi=f.minima.c_phi, minima=f.minima.count, phi=f.phi, cost=float(costs[i]),
+            phi2=f.other_phi, cost2=other_cost, iterations=f.iterations, level=level))
+    return _Joins(phi, t, phi_variance, t_variance, records)
+
+
+def _one(k: Constants, i: int) -> Constants:
+    """Join i's constants out of a batch."""
+    return Constants(k.c0[i], k.a0[i], k.phi0[i], k.mean0[i], k.mean1[i], k.weight[i])
+
+
+def _rotate(points: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """R(phi_i) p_i for each row (phi broadcast against the rows)."""
+    c, s = np.cos(phi), np.sin(phi)
+    return np.stack([c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1]], axis=1)
+
+
+def _place(joins: _Joins, pair: np.ndarray, points: np.ndarray, variances: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Points of right pieces (join ``pair[j]``) in left's frame, ``t + R(phi) z``, with their spherical variances."""
+    placed = _rotate(points, joins.phi[pair]) + joins.t[pair]
+    spread = joins.t_variance[pair] + variances + (points * points).sum(axis=1) * joins.phi_variance[pair] / 2
+    return placed, spread
+
+
+def _place_poses(joins: _Joins, pair: np.ndarray, poses: np.ndarray, variances: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of right pieces in left's frame, with their (var_xy, var_phi)."""
+    xy, var_xy = _place(joins, pair, poses[:, :2], variances[:, 0])
+    phi = wrap(joins.phi[pair] + poses[:, 2])
+    return np.column_stack([xy, phi]), np.column_stack([var_xy, joins.phi_variance[pair] + variances[:, 1]])
+
+
+def _fuse(z0: np.ndarray, var0: np.ndarray, placed: np.ndarray, var1: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Theorem 1's X_L: each common feature as the information-weighted mean of both estimates."""
+    w0, w1 = 1.0 / var0, 1.0 / var1
+    return (w0[:, None] * z0 + w1[:, None] * placed) / (w0 + w1)[:, None], 1.0 / (w0 + w1)
+
+
+def _prepare(maps: Sequence[LocalMap], covariance: CovarianceMode) -> tuple[np.ndarray, _Pieces]:
+    """Check the chain; every map as a piece, with compact feature ids (and the global ids they stand for)."""
+    check_chain(maps)
+    feature_variances, pose_variances = batch_spherical_variances(maps, covariance)
+    sizes = np.array([m.size for m in maps], dtype=np.intp)
+    ids = np.concatenate([m.feature_ids for m in maps])
+    feature_ids, compact = np.unique(ids, return_inverse=True)
+    piece = np.repeat(np.arange(len(maps)), sizes)
+    order = np.lexsort((compact, piece))  # maps' ids are unique but not necessarily sorted
+    index = np.arange(len(maps))
+    pieces = _Pieces(piece, compact[order], np.concatenate([m.features for m in maps])[order],
+                     feature_variances[order], index, np.array([m.end_pose for m in maps]), pose_variances,
+                     index, index)
+    return feature_ids, pieces
+
+
+def _global_map(maps: Sequence[LocalMap], feature_ids: np.ndarray, pieces: _Pieces, covariance: str,
+                solver: str, strategy: str) -> GlobalMap:
+    return GlobalMap(
+        feature_ids=feature_ids[pieces.feature_ids], features=pieces.features,
+        feature_variances=pieces.feature_variances, pose_ids=np.array([m.end_id for m in maps]),
+        poses=pieces.poses, pose_variances=pieces.pose_variances,
+        provenance=Provenance(tuple(m.name for m in maps), covariance, solver, strategy))
+
+
+@dataclass(frozen=True)
+class _Labels:
+    """What the report says about the local maps (the workers get this, not the maps)."""
+
+    names: list[str]
+    start_ids: list[int]
+    end_ids: list[int]
+
+    @classmethod
+    def of(cls, maps: Sequence[LocalMap]) -> _Labels:
+        return cls([m.name for m in maps], [m.start_id for m in maps], [m.end_id for m in maps])
+
+    def run(self, first: int, last: int) -> str:
+        """The name of maps first .. last."""
+        return self.names[first] if first == last else f"{self.names[first]}..{self.names[last]}"
+
+
 def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
                     solver: Solver = "bisection",
                     progress: Callable[[int], None] | None = None) -> JoinResult:
     """Join ``maps`` (a connected chain) one after the other; the global frame is the first map's start.
 
-    ``progress`` is called with the number of maps joined so far after each join.
+    The global map lives in arrays indexed by compact feature id, so join k reads and
+    writes only the rows of map k. ``progress`` is called with the number of maps joined.
     """
-    check_chain(maps)
-    variances = [spherical_variances(m, covariance) for m in maps]
-    feature_ids, compact = np.unique(np.concatenate([m.feature_ids for m in maps]), return_inverse=True)
-    offsets = np.cumsum([0] + [m.size for m in maps])
+    feature_ids, pieces = _prepare(maps, covariance)
+    offsets = np.searchsorted(pieces.feature_piece, np.arange(len(maps) + 1))
+    # a feature is common in join k iff a map before k saw it: its first row is in an earlier map
+    first_row = np.unique(pieces.feature_ids, return_index=True)[1]  # compact ids are 0 .. n-1
+    seen_before = first_row[pieces.feature_ids] < offsets[pieces.feature_piece]
 
     positions = np.zeros((len(feature_ids), 2))
     position_variances = np.zeros(len(feature_ids))
-    placed = np.zeros(len(feature_ids), dtype=bool)
-    poses = np.zeros((len(maps), 3))
-    pose_variances = np.zeros((len(maps), 2))
-
-    first = maps[0]
-    rows = compact[offsets[0]:offsets[1]]
-    positions[rows], position_variances[rows], placed[rows] = first.features, variances[0][0], True
-    poses[0], pose_variances[0] = first.end_pose, variances[0][1]
+    poses, pose_variances = pieces.poses.copy(), pieces.pose_variances.copy()
+    rows = pieces.feature_ids[:offsets[1]]
+    positions[rows], position_variances[rows] = pieces.features[:offsets[1]], pieces.feature_variances[:offsets[1]]
     report: list[JoinRecord] = []
     if progress:
         progress(1)
-
     for k in range(1, len(maps)):
+        span = slice(offsets[k], offsets[k + 1])
+        ids, z, var = pieces.feature_ids[span], pieces.features[span], pieces.feature_variances[span]
+        common = seen_before[span]
+        shared, new = ids[common], ~common
         local_map = maps[k]
-        feature_variances, end_variances = variances[k]
-        rows = compact[offsets[k]:offsets[k + 1]]
-        common = placed[rows]
-        shared = rows[common]
-        if not common.any():
-            log.warning("%s shares no feature with the maps joined before it: it is placed by its "
-                        "start pose alone (no correction of the map so far)", local_map.name)
-        problem = OneStepProblem(
-            z0=positions[shared], var0=position_variances[shared],
-            z1=local_map.features[common], var1=feature_variances[common],
-            odometry=poses[k - 1], odometry_variances=pose_variances[k - 1])
-        solution = solve(problem, solver)
-
-        phi_variance = 1.0 / solution.phi_information if solution.phi_information > 0 else end_variances[1]
-        mean1 = solution.constants.mean1
-        t_variance = 1.0 / solution.constants.weight + (mean1 @ mean1) * phi_variance / 2
-        positions[shared] = solution.features
-        position_variances[shared] = 1.0 / (1.0 / problem.var0 + 1.0 / problem.var1)
-        poses[k - 1] = (*solution.t, solution.phi)
-        pose_variances[k - 1] = (t_variance, phi_variance)
-
-        rot = rotation(solution.phi)
-        new = rows[~common]
-        local_new = local_map.features[~common]
-        positions[new] = local_new @ rot.T + solution.t
-        position_variances[new] = (t_variance + feature_variances[~common]
-                                   + np.einsum("ij,ij->i", local_new, local_new) * phi_variance / 2)
-        placed[new] = True
-        end_xy = local_map.end_pose[:2]
-        poses[k] = (*(rot @ end_xy + solution.t), wrap(solution.phi + local_map.end_pose[2]))
-        pose_variances[k] = (t_variance + end_variances[0] + (end_xy @ end_xy) * phi_variance / 2,
-                             phi_variance + end_variances[1])
-
-        analysis = solution.minima
-        report.append(JoinRecord(
-            join=k, map=local_map.name, start_id=local_map.start_id, end_id=local_map.end_id,
-            common=int(common.sum()), new=int((~common).sum()), a=analysis.a, c_phi=analysis.c_phi,
-            minima=analysis.count, phi=solution.phi, cost=solution.cost, phi2=solution.other_phi,
-            cost2=solution.other_cost, iterations=solution.iterations))
+        joins = _solve_joins(np.zeros(len(shared), dtype=np.intp), 1, positions[shared],
+                             position_variances[shared], z[common], var[common], poses[k - 1:k],
+                             pose_variances[k - 1:k], solver,
+                             lambda _: (local_map.name, local_map.start_id, local_map.end_id, local_map.size), k)
+        pair = np.zeros(len(ids), dtype=np.intp)
+        placed, spread = _place(joins, pair, z, var)
+        positions[shared], position_variances[shared] = _fuse(positions[shared], position_variances[shared],
+                                                              placed[common], var[common])
+        positions[ids[new]], position_variances[ids[new]] = placed[new], spread[new]
+        poses[k - 1] = (*joins.t[0], joins.phi[0])
+        pose_variances[k - 1] = (joins.t_variance[0], joins.phi_variance[0])
+        poses[k:k + 1], pose_variances[k:k + 1] = _place_poses(joins, np.zeros(1, dtype=np.intp), poses[k:k + 1],
+                                                               pose_variances[k:k + 1])
+        report.append(replace(joins.records[0], join=k))
         if progress:
             progress(k + 1)
+    pieces = replace(pieces, feature_piece=np.zeros(len(feature_ids), dtype=np.intp),
+                     feature_ids=np.arange(len(feature_ids)), features=positions,
+                     feature_variances=position_variances, poses=poses, pose_variances=pose_variances)
+    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"), tuple(report))
 
-    global_map = GlobalMap(
-        feature_ids=feature_ids, features=positions, feature_variances=position_variances,
-        pose_ids=np.array([m.end_id for m in maps]), poses=poses, pose_variances=pose_variances,
-        provenance=Provenance(tuple(m.name for m in maps), covariance, solver, "sequential"))
-    return JoinResult(global_map, tuple(report))
+
+def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
+                ) -> tuple[_Pieces, list[JoinRecord]]:
+    """Join pieces 2i and 2i+1 for every i (an odd last piece passes through): one level of the tree."""
+    count = pieces.count // 2
+    parent = pieces.feature_piece // 2
+    right = (pieces.feature_piece % 2 == 1) & (parent < count)
+    left_rows, right_rows = np.flatnonzero(~right), np.flatnonzero(right)
+    span = int(pieces.feature_ids.max(initial=0)) + 1
+    left_keys = parent[left_rows] * span + pieces.feature_ids[left_rows]  # sorted: pieces in order, ids sorted
+    right_keys = parent[right_rows] * span + pieces.feature_ids[right_rows]
+    position = np.minimum(np.searchsorted(left_keys, right_keys), max(len(left_keys) - 1, 0))
+    common = left_keys[position] == right_keys if len(left_keys) else np.zeros(len(right_keys), dtype=bool)
+    lc, rc = left_rows[position[common]], right_rows[common]
+
+    ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1  # each piece's end row
+    left_end = ends[0:2 * count:2]
+    right_pieces = np.arange(1, 2 * count, 2)
+    sizes = np.bincount(pieces.feature_piece, minlength=pieces.count)
+
+    def describe(i: int) -> tuple[str, int, int, int]:
+        first, last = int(pieces.first[2 * i + 1]), int(pieces.last[2 * i + 1])
+        return labels.run(first, last), labels.start_ids[first], labels.end_ids[last], int(sizes[2 * i + 1])
+
+    joins = _solve_joins(parent[rc], count, pieces.features[lc], pieces.feature_variances[lc],
+                         pieces.features[rc], pieces.feature_variances[rc], pieces.poses[left_end],
+                         pieces.pose_variances[left_end], solver, describe, level)
+
+    features, feature_variances = pieces.features.copy(), pieces.feature_variances.copy()
+    placed, spread = _place(joins, parent[right_rows], pieces.features[right_rows],
+                            pieces.feature_variances[right_rows])
+    features[right_rows], feature_variances[right_rows] = placed, spread
+    features[lc], feature_variances[lc] = _fuse(features[lc], feature_variances[lc], placed[common],
+                                                pieces.feature_variances[rc])
+    keep = np.ones(len(features), dtype=bool)
+    keep[rc] = False  # common features live on in the left piece's rows
+    kept = np.flatnonzero(keep)
+    order = kept[np.argsort(parent[kept] * span + pieces.feature_ids[kept], kind="stable")]
+
+    poses, pose_variances = pieces.poses.copy(), pieces.pose_variances.copy()
+    moved = np.flatnonzero(np.isin(pieces.pose_piece, right_pieces))
+    poses[moved], pose_variances[moved] = _place_poses(joins, pieces.pose_piece[moved] // 2, poses[moved],
+                                                       pose_variances[moved])
+    poses[left_end, :2], poses[left_end, 2] = joins.t, joins.phi
+    pose_variances[left_end] = np.column_stack([joins.t_variance, joins.phi_variance])
+    joined = _Pieces(parent[order], pieces.feature_ids[order], features[order], feature_variances[order],
+                     pieces.pose_piece // 2, poses, pose_variances, pieces.first[0::2],
+                     np.append(pieces.last[1::2], pieces.last[-1:]) if pieces.count % 2 else pieces.last[1::2])
+    return joined, joins.records
+
+
+def _join_levels(pieces: _Pieces, labels: _Labels, solver: Solver, level: int,
+                 progress: Callable[[int], None] | None = None) -> tuple[_Pieces, list[JoinRecord]]:
+    """Join levels from ``level`` on until one piece is left."""
+    records: list[JoinRecord] = []
+    while pieces.count > 1:
+        level += 1
+        pieces, joined = _join_level(pieces, labels, solver, level)
+        records += joined
+        if progress:
+            progress(len(records) + 1)
+    return pieces, records
+
+
+def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[JoinRecord]]:
+    """A worker process's share: one aligned block of pieces joined into one."""
+    pieces, labels, solver = job
+    return _join_levels(pieces, labels, solver, 0)
+
+
+def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
+              solver: Solver = "bisection", jobs: int = 1,
+              progress: Callable[[int], None] | None = None) -> JoinResult:
+    """Join ``maps`` pairwise, level by level (Remark 8); ``jobs`` processes share the lower levels.
+
+    With ``jobs > 1`` the maps are cut into aligned blocks of 2^L maps (at least ``jobs``
+    of them), each joined to one piece in a worker, exactly as the single-process tree
+    would; the parent joins the blocks' results. Join numbers follow the levels.
+    """
+    if jobs < 1:
+        raise ValueError(f"jobs must be at least 1, got {jobs}")
+    feature_ids, pieces = _prepare(maps, covariance)
+    labels = _Labels.of(maps)
+    records: list[JoinRecord] = []
+    depth = 0
+    if jobs > 1 and len(maps) >= 2 * jobs:
+        depth = int(math.floor(math.log2(len(maps) / jobs)))
+        size = 2**depth
+        blocks = [pieces.block(start, min(start + size, len(maps))) for start in range(0, len(maps), size)]
+        with ProcessPoolExecutor(max_workers=min(jobs, os.cpu_count() or jobs)) as pool:
+            results = list(pool.map(_subtree, [(b, labels, solver) for b in blocks]))
+        for _, block_records in results:
+            records += block_records
+        pieces = _concatenate([(start // size, block) for start, (block, _) in
+                               zip(range(0, len(maps), size), results)])
+        if progress:
+            progress(len(records) + 1)
+    pieces, upper = _join_levels(pieces, labels, solver, depth,
+                                 (lambda done: progress(done + len(records))) if progress else None)
+    records += upper
+    records.sort(key=lambda r: r.level)  # stable: chain order within a level
+    report = tuple(replace(r, join=number) for number, r in enumerate(records, start=1))
+    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"), report)
+
+
+def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:
+    """Single pieces (block b's result becomes piece b) as one _Pieces."""
+    def stack(name: str) -> np.ndarray:
+        return np.concatenate([getattr(p, name) for _, p in blocks])
+
+    return _Pieces(np.concatenate([np.full(len(p.feature_ids), b) for b, p in blocks]), stack("feature_ids"),
+                   stack("features"), stack("feature_variances"),
+                   np.concatenate([np.full(len(p.poses), b) for b, p in blocks]), stack("poses"),
+                   stack("pose_variances"), stack("first"), stack("last"))
+
+
+def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection",
+         strategy: Strategy = "sequential", jobs: int = 1,
+         progress: Callable[[int], None] | None = None) -> JoinResult:
+    """Join ``maps`` with ``strategy`` (``jobs`` only matters for the tree)."""
+    if strategy == "sequential":
+        return join_sequential(maps, covariance, solver, progress)
+    if strategy == "tree":
+        return join_tree(maps, covariance, solver, jobs, progress)
+    raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
 
 
 def certify_pair(first: LocalMap, second: LocalMap, covariance: CovarianceMode = DEFAULT_COVARIANCE,

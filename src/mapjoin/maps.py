@@ -11,6 +11,7 @@ derives them from a map in one of the documented ``COVARIANCE_MODES``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -25,6 +26,7 @@ __all__ = [
     "GlobalMap",
     "GroundTruth",
     "Provenance",
+    "batch_spherical_variances",
     "spherical_variances",
 ]
 
@@ -136,7 +138,7 @@ class LocalMap:
                         features, covariance) -> "LocalMap":
         """A map whose spherical variances are the ``marginal`` summary of its full covariance."""
         covariance = np.asarray(covariance, dtype=float)
-        feature_variances, pose_variances = _marginal(covariance)
+        feature_variances, pose_variances = _summary(np.diagonal(covariance), 1.0)
         return cls(name, start_id, end_id, end_pose, feature_ids, features,
                    feature_variances, pose_variances, covariance)
 
@@ -144,13 +146,6 @@ class LocalMap:
     def size(self) -> int:
         """Number of features."""
         return len(self.feature_ids)
-
-
-def _marginal(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of each 2x2 block's diagonal (x/y), and the orientation variance as is."""
-    diagonal = np.diagonal(covariance)
-    features = diagonal[3:].reshape(-1, 2).mean(axis=1)
-    return features, np.array([diagonal[:2].mean(), diagonal[2]])
 
 
 def spherical_variances(local_map: LocalMap, mode: CovarianceMode) -> tuple[np.ndarray, np.ndarray]:
@@ -165,18 +160,45 @@ def spherical_variances(local_map: LocalMap, mode: CovarianceMode) -> tuple[np.n
     A map without a full covariance is block-diagonal spherical already, so
     ``marginal`` and ``information`` both return its stored variances.
     """
-    if mode == "identity":
-        return np.ones(local_map.size), np.ones(2)
+    features, poses = batch_spherical_variances([local_map], mode)
+    return features, poses[0]
+
+
+def _summary(diagonal: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of each x/y pair of ``diagonal`` (the last axis: pose x, y, phi, then features), the phi entry as is; ``**power``."""
+    features = diagonal[..., 3:].reshape(*diagonal.shape[:-1], -1, 2).mean(axis=-1)
+    poses = np.stack([diagonal[..., :2].mean(axis=-1), diagonal[..., 2]], axis=-1)
+    return features**power, poses**power
+
+
+def batch_spherical_variances(maps: Sequence[LocalMap], mode: CovarianceMode) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`spherical_variances` of many maps: all feature variances concatenated, and (len(maps), 2) pose ones.
+
+    Maps with full covariances of one size are summarised together (one batched inverse
+    per size for ``information``), so the cost is not a Python loop of matrix calls.
+    """
     if mode not in COVARIANCE_MODES:
         raise ValueError(f"unknown covariance mode {mode!r}; expected one of {', '.join(COVARIANCE_MODES)}")
-    if local_map.covariance is None:
-        return np.array(local_map.feature_variances), np.array(local_map.pose_variances)
-    if mode == "marginal":
-        return _marginal(local_map.covariance)
-    information = np.linalg.inv(local_map.covariance)
-    diagonal = np.diagonal(information)
-    features = 2.0 / diagonal[3:].reshape(-1, 2).sum(axis=1)
-    return features, np.array([2.0 / diagonal[:2].sum(), 1.0 / diagonal[2]])
+    sizes = np.array([m.size for m in maps], dtype=np.intp)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    if mode == "identity":
+        return np.ones(offsets[-1]), np.ones((len(maps), 2))
+    features = np.concatenate([m.feature_variances for m in maps]) if maps else np.zeros(0)
+    poses = np.array([m.pose_variances for m in maps]).reshape(-1, 2)
+    full = [i for i, m in enumerate(maps) if m.covariance is not None]
+    by_size: dict[int, list[int]] = {}
+    for i in full:
+        by_size.setdefault(int(sizes[i]), []).append(i)
+    for size, group in by_size.items():
+        stacked = np.stack([maps[i].covariance for i in group])
+        if mode == "information":  # sigma^2 = 2 / trace of each block of P^-1 = 1 / its mean
+            feature_part, pose_part = _summary(np.diagonal(np.linalg.inv(stacked), axis1=1, axis2=2), -1.0)
+        else:
+            feature_part, pose_part = _summary(np.diagonal(stacked, axis1=1, axis2=2), 1.0)
+        rows = (offsets[group][:, None] + np.arange(size)).ravel()
+        features[rows] = feature_part.ravel()
+        poses[group] = pose_part
+    return features, poses
 
 
 @dataclass(frozen=True)

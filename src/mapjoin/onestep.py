@@ -35,8 +35,12 @@ __all__ = [
     "OneStepSolution",
     "Solver",
     "analyse_minima",
+    "batch_constants",
     "constants",
     "cost",
+    "global_orientation",
+    "linked_cost",
+    "Orientation",
     "MinimaSummary",
     "minimise_reduced",
     "summarise_minima",
@@ -88,6 +92,7 @@ class Constants:
     """c0, a0, phi0 of Theorem 1, and the weighted means that recover ``t = m0 - R(phi) m1``.
 
     ``weight`` is the total weight ``W`` of the point pairs: the information of ``t`` at fixed phi.
+    For a batch (:func:`batch_constants`) every field has one more leading axis, one entry per problem.
     """
 
     c0: float
@@ -99,33 +104,55 @@ class Constants:
 
 
 def constants(problem: OneStepProblem) -> Constants:
-    """c0, a0, phi0 of Theorem 1 in O(n) (see the module docstring for the derivation).
+    """c0, a0, phi0 of Theorem 1 in O(n) (see the module docstring for the derivation)."""
+    k = batch_constants(np.zeros(len(problem.z0), dtype=np.intp), 1, problem.z0, problem.var0, problem.z1,
+                        problem.var1, problem.odometry[None, :2], problem.odometry_variances[None, :1])
+    return Constants(float(k.c0[0]), float(k.a0[0]), float(k.phi0[0]), k.mean0[0], k.mean1[0],
+                     float(k.weight[0]))
 
-    The odometry is the point pair (O_xy, 0) with weight 1/var_o, added as scalars.
+
+def batch_constants(problem_of: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
+                    var1: np.ndarray, odometry: np.ndarray, odometry_variances: np.ndarray) -> Constants:
+    """Theorem 1's constants of ``count`` one-step problems at once, as arrays of length ``count``.
+
+    Common feature j belongs to problem ``problem_of[j]`` (any order, a problem may have none);
+    ``odometry`` (count x 2, the x/y of O) and ``odometry_variances[:, 0]`` (var_o) give each
+    problem's odometry point pair ``(O_xy, 0)`` with weight ``1 / var_o``.
     """
-    weights = 1.0 / (problem.var0 + problem.var1)
-    odometry_weight = 1.0 / float(problem.odometry_variances[0])
-    odometry = problem.odometry[:2]
-    weight = float(weights.sum()) + odometry_weight
-    mean0 = (weights @ problem.z0 + odometry_weight * odometry) / weight
-    mean1 = (weights @ problem.z1) / weight
-    q0 = problem.z0 - mean0
-    q1 = problem.z1 - mean1
-    o0, o1 = odometry - mean0, -mean1  # the odometry pair, centred
-    c0 = float(weights @ (q0 * q0 + q1 * q1).sum(axis=1)) + odometry_weight * float(o0 @ o0 + o1 @ o1)
-    along = float(weights @ (q0 * q1).sum(axis=1)) + odometry_weight * float(o0 @ o1)
-    across = (float(weights @ (q0[:, 1] * q1[:, 0] - q0[:, 0] * q1[:, 1]))
-              + odometry_weight * float(o0[1] * o1[0] - o0[0] * o1[1]))
-    return Constants(c0, math.hypot(along, across), math.atan2(across, along), mean0, mean1, weight)
+    def total(values: np.ndarray) -> np.ndarray:
+        return np.bincount(problem_of, values, count)
+
+    weights = 1.0 / (var0 + var1)
+    odometry_weight = 1.0 / odometry_variances[:, 0]
+    weight = total(weights) + odometry_weight
+    weighted0, weighted1 = weights[:, None] * z0, weights[:, None] * z1
+    mean0 = np.stack([total(weighted0[:, 0]), total(weighted0[:, 1])], axis=1) + odometry_weight[:, None] * odometry
+    mean0 /= weight[:, None]
+    mean1 = np.stack([total(weighted1[:, 0]), total(weighted1[:, 1])], axis=1) / weight[:, None]
+    q0 = z0 - mean0[problem_of]
+    q1 = z1 - mean1[problem_of]
+    o0, o1 = odometry - mean0, -mean1  # the odometry pairs, centred
+    c0 = (total(weights * ((q0 * q0).sum(axis=1) + (q1 * q1).sum(axis=1)))
+          + odometry_weight * ((o0 * o0).sum(axis=1) + (o1 * o1).sum(axis=1)))
+    along = total(weights * (q0 * q1).sum(axis=1)) + odometry_weight * (o0 * o1).sum(axis=1)
+    across = (total(weights * (q0[:, 1] * q1[:, 0] - q0[:, 0] * q1[:, 1]))
+              + odometry_weight * (o0[:, 1] * o1[:, 0] - o0[:, 0] * o1[:, 1]))
+    return Constants(c0, np.hypot(along, across), np.arctan2(across, along), mean0, mean1, weight)
 
 
 def cost(problem: OneStepProblem, phi, consts: Constants | None = None):
     """f_chi(phi) of Theorem 1 (scalar or array ``phi``)."""
     k = consts or constants(problem)
-    value = k.c0 - 2.0 * k.a0 * np.cos(np.asarray(phi) - k.phi0)
     if problem.link:
-        value = value + wrap(problem.odometry[2] - np.asarray(phi)) ** 2 / problem.odometry_variances[1]
+        value = linked_cost(k, problem.odometry[2], problem.odometry_variances[1], np.asarray(phi))
+    else:
+        value = k.c0 - 2.0 * k.a0 * np.cos(np.asarray(phi) - k.phi0)
     return value if np.ndim(phi) else float(value)
+
+
+def linked_cost(k: Constants, z_phi, p_phi, phi):
+    """f_1(phi) = c0 - 2 a0 cos(phi - phi0) + wrap(z_phi - phi)^2 / p_phi (Theorem 1; arrays broadcast)."""
+    return k.c0 - 2.0 * k.a0 * np.cos(phi - k.phi0) + wrap(z_phi - phi) ** 2 / p_phi
 
 
 def recover(problem: OneStepProblem, phi: float, consts: Constants | None = None
@@ -179,13 +206,27 @@ class MinimaAnalysis:
     c_phi: float
     phi1: float
     phi2: float
-    conditions: tuple[Condition, ...]
+    h1: float
+    h2: float
     brackets: tuple[tuple[float, float], ...]
 
     @property
     def count(self) -> int:
         """Number of local minima (1 or 2)."""
         return len(self.brackets)
+
+    @property
+    def conditions(self) -> tuple[Condition, ...]:
+        """Conditions (16)-(21) with their values (h1, h2 = h(phi1), h(phi2); NaN when a <= 1)."""
+        h_edge = -self.a * math.sin(self.c_phi)
+        return (
+            Condition(16, "a", self.a, ">=", 1.0),
+            Condition(17, "-a sin(C_phi) - pi", h_edge - math.pi, "<=", 0.0),
+            Condition(18, "sqrt(a^2-1) + phi1", self.h1, ">=", 0.0),
+            Condition(19, "-sqrt(a^2-1) + phi2", self.h2, "<=", 0.0),
+            Condition(20, "-a sin(C_phi) + pi", h_edge + math.pi, ">=", 0.0),
+            Condition(21, "phi1 - phi2", self.phi1 - self.phi2, "<=", 0.0),
+        )
 
 
 def reduced_cost(a: float, c_phi: float, varphi):
@@ -214,14 +255,6 @@ def analyse_minima(a: float, c_phi: float) -> MinimaAnalysis:
         phi1, phi2, h1, h2 = _inflections(a, c_phi)
     else:
         phi1 = phi2 = h1 = h2 = math.nan
-    conditions = (
-        Condition(16, "a", a, ">=", 1.0),
-        Condition(17, "-a sin(C_phi) - pi", h_left, "<=", 0.0),
-        Condition(18, "sqrt(a^2-1) + phi1", h1, ">=", 0.0),
-        Condition(19, "-sqrt(a^2-1) + phi2", h2, "<=", 0.0),
-        Condition(20, "-a sin(C_phi) + pi", h_right, ">=", 0.0),
-        Condition(21, "phi1 - phi2", phi1 - phi2, "<=", 0.0),
-    )
     if not a > 1:
         brackets: tuple[tuple[float, float], ...] = ((-pi, pi),)
     elif phi1 >= phi2:
@@ -232,7 +265,7 @@ def analyse_minima(a: float, c_phi: float) -> MinimaAnalysis:
         brackets = tuple(b for b, margin in candidates if margin > 0)
         if not brackets:  # rounding at a boundary; Theorem 2 guarantees one minimum
             brackets = (max(candidates, key=lambda c: c[1])[0],)
-    return MinimaAnalysis(a, c_phi, phi1, phi2, conditions, brackets)
+    return MinimaAnalysis(a, c_phi, phi1, phi2, h1, h2, brackets)
 
 
 def _inflections(a: float, c_phi: float) -> tuple[float, float, float, float]:
@@ -355,6 +388,25 @@ class OneStepSolution:
     phi_information: float
 
 
+@dataclass(frozen=True)
+class Orientation:
+    """The global minimiser ``phi`` of f_1 (Algorithm 1), the other local minimum if any, and Theorem 2's analysis."""
+
+    phi: float
+    other_phi: float | None
+    minima: MinimaAnalysis
+    iterations: int
+
+
+def global_orientation(a0: float, phi0: float, z_phi: float, p_phi: float, solver: Solver = "bisection",
+                       tolerance: float = TOLERANCE) -> Orientation:
+    """Algorithm 1 on f_1: reduce to fbar with ``a = a0 p_phi``, ``C_phi = wrap(z_phi - phi0)``, count, minimise."""
+    analysis = analyse_minima(a0 * p_phi, wrap(z_phi - phi0))
+    minima = minimise_reduced(analysis, solver, tolerance)
+    other = wrap(z_phi + minima[1].varphi) if len(minima) > 1 else None
+    return Orientation(wrap(z_phi + minima[0].varphi), other, analysis, sum(m.iterations for m in minima))
+
+
 def solve(problem: OneStepProblem, solver: Solver = "bisection", tolerance: float = TOLERANCE
           ) -> OneStepSolution:
     """Algorithm 1: the global minimum of f_chi over phi, then X_L from Theorem 1.
@@ -368,16 +420,12 @@ def solve(problem: OneStepProblem, solver: Solver = "bisection", tolerance: floa
         phi = wrap(k.phi0)
         features, t = recover(problem, phi, k)
         return OneStepSolution(phi, t, features, cost(problem, phi, k), k, None, None, None, 0, k.a0)
-    z_phi, p_phi = float(problem.odometry[2]), float(problem.odometry_variances[1])
-    analysis = analyse_minima(k.a0 * p_phi, wrap(z_phi - k.phi0))
-    minima = minimise_reduced(analysis, solver, tolerance)
-    phi = wrap(z_phi + minima[0].varphi)
-    features, t = recover(problem, phi, k)
-    other = minima[1] if len(minima) > 1 else None
-    other_phi = wrap(z_phi + other.varphi) if other else None
+    p_phi = float(problem.odometry_variances[1])
+    found = global_orientation(k.a0, k.phi0, float(problem.odometry[2]), p_phi, solver, tolerance)
+    features, t = recover(problem, found.phi, k)
     return OneStepSolution(
-        phi=phi, t=t, features=features, cost=cost(problem, phi, k), constants=k, minima=analysis,
-        other_phi=other_phi, other_cost=cost(problem, other_phi, k) if other else None,
-        iterations=sum(m.iterations for m in minima),
-        phi_information=k.a0 * math.cos(phi - k.phi0) + 1.0 / p_phi,
+        phi=found.phi, t=t, features=features, cost=cost(problem, found.phi, k), constants=k,
+        minima=found.minima, other_phi=found.other_phi,
+        other_cost=cost(problem, found.other_phi, k) if found.other_phi is not None else None,
+        iterations=found.iterations, phi_information=k.a0 * math.cos(found.phi - k.phi0) + 1.0 / p_phi,
     )

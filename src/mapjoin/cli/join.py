@@ -7,7 +7,7 @@ import time
 import click
 
 from .. import formats
-from ..joining import join_sequential
+from ..joining import STRATEGIES, join as join_maps
 from . import common, main
 from .common import (covariance_option, format_option, input_format_option, inputs_argument,
                      output_option, progress_bar, say, solver_option)
@@ -21,12 +21,18 @@ from .common import (covariance_option, format_option, input_format_option, inpu
               help="Per-join report (.csv, .yaml or .json): common/new features, a, C_phi, minima, phi*.")
 @covariance_option
 @solver_option
+@click.option("--strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
+              help="Order of the joins: each map onto the global map so far, or neighbours pairwise, "
+                   "level by level (faster, less accurate: README, 'Strategies').")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
 @click.option("--refine", "exact", is_flag=True,
               help="Then refine to the exact least-squares join (as `mapjoin refine`), with covariances.")
 @input_format_option
 @click.pass_context
 def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
-         report_path: str | None, covariance: str, solver: str, exact: bool, input_format: str | None) -> None:
+         report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, exact: bool,
+         input_format: str | None) -> None:
     """Join a chain of local maps into one global map.
 
     Map k must start at the end pose of map k-1; the global frame is the start pose of
@@ -38,8 +44,11 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
       mapjoin join ../shared/data/VicPark_200_local_maps -o vicpark.csv --report joins.csv
       mapjoin join 'maps/localmap_*.yaml' --covariance identity --format yaml
       mapjoin simulate -o - | mapjoin join - > global.csv
+      mapjoin join ../shared/data/VicPark_6898_local_maps --strategy tree --jobs 2 -o vp.csv
       mapjoin join ../shared/data/DLR_200_local_maps --refine -o dlr_exact.yaml
     """
+    if jobs > 1 and strategy != "tree":
+        raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
     paths = formats.resolve_inputs(inputs)
     outputs = [p for p in (output, report_path) if p and p != "-"]
     formats.check_not_overwriting(paths, outputs)
@@ -48,7 +57,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     start = time.perf_counter()
     maps = formats.read_maps(paths, format=input_format)
     with progress_bar(ctx, len(maps), "joining") as progress:
-        result = join_sequential(maps, covariance=covariance, solver=solver, progress=progress)
+        result = join_maps(maps, covariance, solver, strategy, jobs, progress)
     global_map = result.global_map
     if exact:
         from ..refine import refine  # scipy.sparse: imported only when refining
@@ -71,5 +80,5 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     two = sum(r.minima == 2 for r in result.report)
     g = global_map
     say(ctx, f"joined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{len(result.report)} joins ({two} with two minima), covariance {covariance}, "
+             f"{len(result.report)} joins ({two} with two minima), covariance {covariance}, {strategy}, "
              f"{elapsed:.3f} s -> {'stdout' if output == '-' else output}")
