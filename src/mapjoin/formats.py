@@ -1034,16 +1034,18 @@ def _read_local_mat(data: bytes, source: str) -> list[LocalMap]:
     if state.shape[1] != 2 or rows < 3 or (rows - 3) % 2:
         raise InputError(f"expected (3+2m)x2 [id, value] rows, got shape {state.shape}", source, "localmap_st")
     ids = state[:, 0]
-    bad = np.flatnonzero(ids[:3] != 0)
-    if bad.size:
-        raise InputError(f"expected id 0 on the three end-pose rows, got {ids[bad[0]]:g}", source,
-                         f"localmap_st row {bad[0] + 1}")
-    bad = np.flatnonzero(~((ids[3:] >= 0) & (ids[3:] < 2**53) & (ids[3:] == np.round(ids[3:]))))  # NaN fails
-    if bad.size:
+    for row in range(3):
+        if ids[row] != 0:
+            raise InputError(f"expected id 0 on the three end-pose rows, got {ids[row]:g}", source,
+                             f"localmap_st row {row + 1}")
+    feature_ids = ids[3:]
+    if feature_ids.size and not (feature_ids.min() >= 0 and feature_ids.max() < 2**53  # NaN fails
+                                 and (feature_ids == np.round(feature_ids)).all()):
+        bad = np.flatnonzero(~((feature_ids >= 0) & (feature_ids < 2**53) & (feature_ids == np.round(feature_ids))))
         raise InputError(f"expected a non-negative integer feature id, got {ids[3 + bad[0]]:g}", source,
                          f"localmap_st row {bad[0] + 4}")
-    mismatch = np.flatnonzero(ids[3::2] != ids[4::2])
-    if mismatch.size:
+    if (ids[3::2] != ids[4::2]).any():
+        mismatch = np.flatnonzero(ids[3::2] != ids[4::2])
         row = 3 + 2 * int(mismatch[0])
         raise InputError(f"feature id {ids[row]:g} on the x row but {ids[row + 1]:g} on the y row "
                          f"(row {row + 2}); expected the same id on both rows of a feature", source,
@@ -1052,7 +1054,7 @@ def _read_local_mat(data: bytes, source: str) -> list[LocalMap]:
         raise InputError(f"expected {rows}x{rows} (the size of localmap_st), got {covariance.shape}", source,
                          "localmap_P")
     pose_variances = covariance.diagonal()[:3]
-    if (pose_variances < STAB_NOISE).any():
+    if pose_variances.min() < STAB_NOISE:
         log.warning("%s: end-pose variances %s include one below %g (the robot did not move); added %g to the "
                     "three pose diagonal entries, as I-SLSJF does", source,
                     np.array2string(pose_variances, precision=3), STAB_NOISE, STAB_NOISE)

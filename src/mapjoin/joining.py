@@ -139,13 +139,19 @@ class _Pieces:
 
 @dataclass(frozen=True)
 class _Joins:
-    """The outcome of ``count`` independent joins (left i + right i), as arrays over the joins."""
+    """The outcome of ``count`` independent joins (left i + right i), as arrays over the joins.
+
+    ``rows`` are the joins' report entries: JoinRecord's fields after ``join``, which is
+    numbered once all joins are known.
+    """
 
     phi: np.ndarray
+    cos: np.ndarray
+    sin: np.ndarray
     t: np.ndarray
     phi_variance: np.ndarray
     t_variance: np.ndarray
-    records: list[JoinRecord]
+    rows: list[tuple]
 
 
 def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
@@ -162,14 +168,15 @@ def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray,
     found = [global_orientation(*args, solver) for args in zip(k.a0.tolist(), k.phi0.tolist(),
                                                                  z_phi.tolist(), p_phi.tolist())]
     phi = np.array([f.phi for f in found])
-    information = k.a0 * np.cos(phi - k.phi0) + 1.0 / p_phi  # f_1''(phi*) / 2
-    phi_variance = np.where(information > 0, 1.0 / np.where(information > 0, information, 1.0), p_phi)
-    rotated = _rotate(k.mean1, phi)
-    t = k.mean0 - rotated
+    cos, sin = np.cos(phi), np.sin(phi)
+    information = k.a0 * (cos * np.cos(k.phi0) + sin * np.sin(k.phi0)) + 1.0 / p_phi  # f_1''(phi*) / 2
+    positive = information > 0
+    phi_variance = np.where(positive, 1.0 / np.where(positive, information, 1.0), p_phi)
+    t = k.mean0 - _rotate(k.mean1, cos, sin)
     t_variance = 1.0 / k.weight + (k.mean1 * k.mean1).sum(axis=1) * phi_variance / 2
-    costs = linked_cost(k, z_phi, p_phi, phi)
-    common = np.bincount(pair, minlength=count)
-    records = []
+    costs = linked_cost(k, z_phi, p_phi, phi).tolist()
+    common = np.bincount(pair, minlength=count).tolist()
+    rows = []
     for i, f in enumerate(found):
         name, start_id, end_id, size = describe(i)
         if not common[i]:
@@ -178,11 +185,14 @@ def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray,
         other_cost = None
         if f.other_phi is not None:
             other_cost = float(linked_cost(_one(k, i), z_phi[i], p_phi[i], f.other_phi))
-        records.append(JoinRecord(
-            join=0, map=name, start_id=start_id, end_id=end_id, common=int(common[i]), new=size - int(common[i]),
-            a=f.minima.a, c_phi=f.minima.c_phi, minima=f.minima.count, phi=f.phi, cost=float(costs[i]),
-            phi2=f.other_phi, cost2=other_cost, iterations=f.iterations, level=level))
-    return _Joins(phi, t, phi_variance, t_variance, records)
+        rows.append((name, start_id, end_id, common[i], size - common[i], f.minima.a, f.minima.c_phi,
+                     f.minima.count, f.phi, costs[i], f.other_phi, other_cost, f.iterations, level))
+    return _Joins(phi, cos, sin, t, phi_variance, t_variance, rows)
+
+
+def _report(rows: Sequence[tuple]) -> tuple[JoinRecord, ...]:
+    """The report: the joins' rows numbered from 1."""
+    return tuple(JoinRecord(number, *row) for number, row in enumerate(rows, start=1))
 
 
 def _one(k: Constants, i: int) -> Constants:
@@ -190,16 +200,16 @@ def _one(k: Constants, i: int) -> Constants:
     return Constants(k.c0[i], k.a0[i], k.phi0[i], k.mean0[i], k.mean1[i], k.weight[i])
 
 
-def _rotate(points: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """R(phi_i) p_i for each row (phi broadcast against the rows)."""
-    c, s = np.cos(phi), np.sin(phi)
-    return np.stack([c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1]], axis=1)
+def _rotate(points: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
+    """R(phi_i) p_i for each row, given cos(phi_i) and sin(phi_i)."""
+    x, y = points[:, 0], points[:, 1]
+    return np.column_stack([cos * x - sin * y, sin * x + cos * y])
 
 
 def _place(joins: _Joins, pair: np.ndarray, points: np.ndarray, variances: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray]:
     """Points of right pieces (join ``pair[j]``) in left's frame, ``t + R(phi) z``, with their spherical variances."""
-    placed = _rotate(points, joins.phi[pair]) + joins.t[pair]
+    placed = _rotate(points, joins.cos[pair], joins.sin[pair]) + joins.t[pair]
     spread = joins.t_variance[pair] + variances + (points * points).sum(axis=1) * joins.phi_variance[pair] / 2
     return placed, spread
 
@@ -280,7 +290,7 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     poses, pose_variances = pieces.poses.copy(), pieces.pose_variances.copy()
     rows = pieces.feature_ids[:offsets[1]]
     positions[rows], position_variances[rows] = pieces.features[:offsets[1]], pieces.feature_variances[:offsets[1]]
-    report: list[JoinRecord] = []
+    rows: list[tuple] = []
     if progress:
         progress(1)
     for k in range(1, len(maps)):
@@ -302,17 +312,17 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         pose_variances[k - 1] = (joins.t_variance[0], joins.phi_variance[0])
         poses[k:k + 1], pose_variances[k:k + 1] = _place_poses(joins, np.zeros(1, dtype=np.intp), poses[k:k + 1],
                                                                pose_variances[k:k + 1])
-        report.append(replace(joins.records[0], join=k))
+        rows += joins.rows
         if progress:
             progress(k + 1)
     pieces = replace(pieces, feature_piece=np.zeros(len(feature_ids), dtype=np.intp),
                      feature_ids=np.arange(len(feature_ids)), features=positions,
                      feature_variances=position_variances, poses=poses, pose_variances=pose_variances)
-    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"), tuple(report))
+    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"), _report(rows))
 
 
 def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
-                ) -> tuple[_Pieces, list[JoinRecord]]:
+                ) -> tuple[_Pieces, list[tuple]]:
     """Join pieces 2i and 2i+1 for every i (an odd last piece passes through): one level of the tree."""
     count = pieces.count // 2
     parent = pieces.feature_piece // 2
@@ -358,13 +368,13 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
     joined = _Pieces(parent[order], pieces.feature_ids[order], features[order], feature_variances[order],
                      pieces.pose_piece // 2, poses, pose_variances, pieces.first[0::2],
                      np.append(pieces.last[1::2], pieces.last[-1:]) if pieces.count % 2 else pieces.last[1::2])
-    return joined, joins.records
+    return joined, joins.rows
 
 
 def _join_levels(pieces: _Pieces, labels: _Labels, solver: Solver, level: int,
-                 progress: Callable[[int], None] | None = None) -> tuple[_Pieces, list[JoinRecord]]:
-    """Join levels from ``level`` on until one piece is left."""
-    records: list[JoinRecord] = []
+                 progress: Callable[[int], None] | None = None) -> tuple[_Pieces, list[tuple]]:
+    """Join levels from ``level`` on until one piece is left; the joins' report rows."""
+    records: list[tuple] = []
     while pieces.count > 1:
         level += 1
         pieces, joined = _join_level(pieces, labels, solver, level)
@@ -374,7 +384,7 @@ def _join_levels(pieces: _Pieces, labels: _Labels, solver: Solver, level: int,
     return pieces, records
 
 
-def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[JoinRecord]]:
+def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[tuple]]:
     """A worker process's share: one aligned block of pieces joined into one."""
     pieces, labels, solver = job
     return _join_levels(pieces, labels, solver, 0)
@@ -393,7 +403,7 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     feature_ids, pieces = _prepare(maps, covariance)
     labels = _Labels.of(maps)
-    records: list[JoinRecord] = []
+    records: list[tuple] = []
     depth = 0
     if jobs > 1 and len(maps) >= 2 * jobs:
         depth = int(math.floor(math.log2(len(maps) / jobs)))
@@ -410,9 +420,8 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
     pieces, upper = _join_levels(pieces, labels, solver, depth,
                                  (lambda done: progress(done + len(records))) if progress else None)
     records += upper
-    records.sort(key=lambda r: r.level)  # stable: chain order within a level
-    report = tuple(replace(r, join=number) for number, r in enumerate(records, start=1))
-    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"), report)
+    records.sort(key=lambda row: row[-1])  # by level, stable: chain order within a level
+    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"), _report(records))
 
 
 def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:

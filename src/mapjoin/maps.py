@@ -11,6 +11,7 @@ derives them from a map in one of the documented ``COVARIANCE_MODES``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -35,32 +36,28 @@ COVARIANCE_MODES: tuple[str, ...] = ("identity", "marginal", "information")
 SYMMETRY_TOLERANCE = 1e-6  # |P_ij - P_ji| allowed, relative to sqrt(P_ii P_jj); rounding in stored files
 
 
-def _frozen(array: np.ndarray) -> np.ndarray:
-    array = np.array(array, copy=True)
-    array.flags.writeable = False
-    return array
-
-
 def _checked(value, name: str, source: str, shape: tuple[int | None, ...], *,
              dtype=float, positive: bool = False) -> np.ndarray:
-    """Convert ``value`` to an array of ``shape`` (None = any length), finite, optionally > 0."""
+    """A read-only copy of ``value`` as an array of ``shape`` (None = any length), finite, optionally > 0."""
     try:
-        array = np.asarray(value, dtype=dtype)
+        array = np.array(value, dtype=dtype)
     except (TypeError, ValueError) as error:
         raise InputError(f"expected numbers, got {value!r:.80}", source, name) from error
     if array.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, array.shape)):
         expected = "x".join("n" if s is None else str(s) for s in shape) or "a scalar"
         raise InputError(f"expected shape {expected}, got {array.shape}", source, name)
-    if dtype is float:
+    # one reduction in the common case; the element at fault is looked for only on failure
+    if dtype is float and not (math.isfinite(array.sum()) and (not positive or not array.size or array.min() > 0)):
         bad = ~np.isfinite(array)
         if bad.any():
             index = tuple(int(i) for i in np.argwhere(bad)[0])
             raise InputError(f"expected finite numbers, got {array[index]} at index {index}", source, name)
-        if positive and array.size and not (array > 0).all():
+        if positive and not (array > 0).all():
             index = tuple(int(i) for i in np.argwhere(~(array > 0))[0])
             raise InputError(f"expected positive variances, got {array[index]} at index {index}",
                              source, name)
-    return _frozen(array)
+    array.flags.writeable = False
+    return array
 
 
 def _unique_ids(ids: np.ndarray, name: str, source: str) -> None:
@@ -108,7 +105,7 @@ class LocalMap:
                                  and not np.array_equal(ids, np.round(ids))):
             raise InputError(f"expected {m} integer ids, got {ids!r:.80}", source, "feature_ids")
         set_("feature_ids", _checked(ids, "feature_ids", source, (m,), dtype=np.int64))
-        if (self.feature_ids < 0).any():
+        if m and self.feature_ids.min() < 0:
             raise InputError(f"expected non-negative ids, got {int(self.feature_ids.min())}",
                              source, "feature_ids")
         _unique_ids(self.feature_ids, "feature_ids", source)
@@ -118,15 +115,15 @@ class LocalMap:
         if self.covariance is not None:
             n = 3 + 2 * m
             covariance = _checked(self.covariance, "covariance", source, (n, n))
-            deviation = np.sqrt(np.abs(np.diagonal(covariance)))
-            scale = np.outer(deviation, deviation)
-            asymmetry = np.abs(covariance - covariance.T)
-            if (asymmetry > SYMMETRY_TOLERANCE * scale).any():
-                i, j = (int(v) for v in np.unravel_index(np.argmax(asymmetry - SYMMETRY_TOLERANCE * scale),
-                                                          asymmetry.shape))
-                raise InputError(f"expected a symmetric matrix, but entries ({i}, {j}) and ({j}, {i}) "
-                                 f"differ: {covariance[i, j]!r} vs {covariance[j, i]!r}", source, "covariance")
-            covariance = _frozen((covariance + covariance.T) / 2)
+            if not (covariance == covariance.T).all():  # rounding-level asymmetry is averaged away
+                deviation = np.sqrt(np.abs(np.diagonal(covariance)))
+                excess = np.abs(covariance - covariance.T) - SYMMETRY_TOLERANCE * np.outer(deviation, deviation)
+                if (excess > 0).any():
+                    i, j = (int(v) for v in np.unravel_index(np.argmax(excess), excess.shape))
+                    raise InputError(f"expected a symmetric matrix, but entries ({i}, {j}) and ({j}, {i}) "
+                                     f"differ: {covariance[i, j]!r} vs {covariance[j, i]!r}", source, "covariance")
+                covariance = (covariance + covariance.T) / 2
+                covariance.flags.writeable = False
             try:
                 np.linalg.cholesky(covariance)
             except np.linalg.LinAlgError as error:
@@ -166,8 +163,9 @@ def spherical_variances(local_map: LocalMap, mode: CovarianceMode) -> tuple[np.n
 
 def _summary(diagonal: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
     """Mean of each x/y pair of ``diagonal`` (the last axis: pose x, y, phi, then features), the phi entry as is; ``**power``."""
-    features = diagonal[..., 3:].reshape(*diagonal.shape[:-1], -1, 2).mean(axis=-1)
-    poses = np.stack([diagonal[..., :2].mean(axis=-1), diagonal[..., 2]], axis=-1)
+    features = (diagonal[..., 3::2] + diagonal[..., 4::2]) / 2
+    poses = diagonal[..., 1:3].copy()
+    poses[..., 0] = (diagonal[..., 0] + diagonal[..., 1]) / 2
     return features**power, poses**power
 
 

@@ -117,26 +117,23 @@ def batch_constants(problem_of: np.ndarray, count: int, z0: np.ndarray, var0: np
 
     Common feature j belongs to problem ``problem_of[j]`` (any order, a problem may have none);
     ``odometry`` (count x 2, the x/y of O) and ``odometry_variances[:, 0]`` (var_o) give each
-    problem's odometry point pair ``(O_xy, 0)`` with weight ``1 / var_o``.
+    problem's odometry point pair ``(O_xy, 0)`` with weight ``1 / var_o``, appended as one more pair.
     """
-    def total(values: np.ndarray) -> np.ndarray:
-        return np.bincount(problem_of, values, count)
+    group = np.concatenate([problem_of, np.arange(count)])
+    weights = 1.0 / np.concatenate([var0 + var1, odometry_variances[:, 0]])
+    p0 = np.concatenate([z0, odometry])
+    p1 = np.concatenate([z1, np.zeros((count, 2))])
 
-    weights = 1.0 / (var0 + var1)
-    odometry_weight = 1.0 / odometry_variances[:, 0]
-    weight = total(weights) + odometry_weight
-    weighted0, weighted1 = weights[:, None] * z0, weights[:, None] * z1
-    mean0 = np.stack([total(weighted0[:, 0]), total(weighted0[:, 1])], axis=1) + odometry_weight[:, None] * odometry
-    mean0 /= weight[:, None]
-    mean1 = np.stack([total(weighted1[:, 0]), total(weighted1[:, 1])], axis=1) / weight[:, None]
-    q0 = z0 - mean0[problem_of]
-    q1 = z1 - mean1[problem_of]
-    o0, o1 = odometry - mean0, -mean1  # the odometry pairs, centred
-    c0 = (total(weights * ((q0 * q0).sum(axis=1) + (q1 * q1).sum(axis=1)))
-          + odometry_weight * ((o0 * o0).sum(axis=1) + (o1 * o1).sum(axis=1)))
-    along = total(weights * (q0 * q1).sum(axis=1)) + odometry_weight * (o0 * o1).sum(axis=1)
-    across = (total(weights * (q0[:, 1] * q1[:, 0] - q0[:, 0] * q1[:, 1]))
-              + odometry_weight * (o0[:, 1] * o1[:, 0] - o0[:, 0] * o1[:, 1]))
+    def total(values: np.ndarray) -> np.ndarray:
+        return np.bincount(group, weights * values, count)
+
+    weight = np.bincount(group, weights, count)
+    mean0 = np.column_stack([total(p0[:, 0]), total(p0[:, 1])]) / weight[:, None]
+    mean1 = np.column_stack([total(p1[:, 0]), total(p1[:, 1])]) / weight[:, None]
+    q0, q1 = p0 - mean0[group], p1 - mean1[group]
+    c0 = total((q0 * q0 + q1 * q1).sum(axis=1))
+    along = total((q0 * q1).sum(axis=1))
+    across = total(q0[:, 1] * q1[:, 0] - q0[:, 0] * q1[:, 1])
     return Constants(c0, np.hypot(along, across), np.arctan2(across, along), mean0, mean1, weight)
 
 
