@@ -46,8 +46,9 @@ def _checked(value, name: str, source: str, shape: tuple[int | None, ...], *,
     if array.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, array.shape)):
         expected = "x".join("n" if s is None else str(s) for s in shape) or "a scalar"
         raise InputError(f"expected shape {expected}, got {array.shape}", source, name)
-    # one reduction in the common case; the element at fault is looked for only on failure
-    if dtype is float and not (math.isfinite(array.sum()) and (not positive or not array.size or array.min() > 0)):
+    # two reductions in the common case (NaN fails both); the element at fault is looked for only on failure
+    if dtype is float and array.size and not (array.min() > (0.0 if positive else -math.inf)
+                                              and array.max() < math.inf):
         bad = ~np.isfinite(array)
         if bad.any():
             index = tuple(int(i) for i in np.argwhere(bad)[0])
