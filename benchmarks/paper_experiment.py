@@ -16,14 +16,11 @@
 from __future__ import annotations
 
 import math
-import os
 import statistics
 import sys
-import time
-from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
+from common import DATA, median_seconds, write_section
 
 from mapjoin import COVARIANCE_MODES, GlobalMap, LocalMap, formats
 from mapjoin.evaluate import compare, evaluate
@@ -31,29 +28,16 @@ from mapjoin.joining import DEFAULT_COVARIANCE, certify_pair, join_sequential
 from mapjoin.onestep import rotation, wrap
 from mapjoin.refine import refine
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = Path(os.environ.get("MAPJOIN_DATA", ROOT.parent / "shared" / "data"))
 REPEATS = 5
 TRIALS = 200
-BEGIN, END = "<!-- paper:begin -->", "<!-- paper:end -->"
-
-
-def median_seconds(run: Callable[[], object], repeats: int = REPEATS) -> tuple[float, object]:
-    """Median wall time of ``run`` over ``repeats`` calls, and the last result."""
-    times, result = [], None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = run()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), result
 
 
 def accuracy_rows(name: str) -> list[str]:
     maps = formats.read_maps([str(DATA / name)])
-    refine_time, exact = median_seconds(lambda: refine(maps))
+    refine_time, exact = median_seconds(lambda: refine(maps), REPEATS)
     rows = []
     for mode in COVARIANCE_MODES:
-        join_time, fast = median_seconds(lambda: join_sequential(maps, mode))
+        join_time, fast = median_seconds(lambda: join_sequential(maps, mode), REPEATS)
         d = compare(exact.global_map, fast.global_map)
         two = sum(r.minima == 2 for r in fast.report)
         label = f"**{mode}**" if mode == DEFAULT_COVARIANCE else mode
@@ -143,11 +127,7 @@ def main() -> None:
         lines += ground_truth_rows(name)
     text = "\n".join(lines)
     print(text)
-    readme = ROOT / "benchmarks" / "README.md"
-    content = readme.read_text()
-    if BEGIN in content and END in content:
-        head, rest = content.split(BEGIN, 1)
-        readme.write_text(f"{head}{BEGIN}\n{text}\n{END}{rest.split(END, 1)[1]}")
+    write_section("paper", text)
 
 
 if __name__ == "__main__":

@@ -426,7 +426,7 @@ def test_write_maps_targets(tmp_path, monkeypatch):
     (tmp_path / "existing").mkdir()
     assert formats.write_maps(maps, tmp_path / "existing", "csv") == [
         str(tmp_path / "existing" / "localmap_1.csv"), str(tmp_path / "existing" / "localmap_2.csv")]
-    with pytest.raises(InputError, match="cannot write local maps as mat"):
+    with pytest.raises(InputError, match="a mat file holds one local map, got 2"):
         formats.write_maps(maps, tmp_path / "maps.mat", "mat")
     with pytest.raises(InputError, match="both would be localmap_1.yaml"):
         formats.write_maps([maps[0], maps[0]], f"{tmp_path}/clash/", "yaml")

@@ -12,11 +12,13 @@ Formats
 =======
 
 The format comes from ``--format`` or the extension: ``.yaml``/``.yml``, ``.csv``,
-``.mat`` (local maps, read-only), ``.json`` (tables only). A stream without ``--format``
-is YAML if it starts with ``format:``, ``---``, ``%YAML`` or ``#``, CSV if its first line
-is a header naming a ``kind`` column.
+``.mat`` (local maps), ``localmap_<k>.txt`` (Linear SLAM local maps; other ``.txt`` files
+need ``--format``), ``.g2o`` (global maps, write-only), ``.json`` (tables only). A stream
+without ``--format`` is YAML if it starts with ``format:``, ``---``, ``%YAML`` or ``#``,
+CSV if its first line is a header naming a ``kind`` column, Linear SLAM text if its first
+two lines are each one integer.
 
-I-SLSJF local map (``localmap_<k>.mat``, read-only)
+I-SLSJF local map (``localmap_<k>.mat``)
     A MATLAB v5 file as distributed with the I-SLSJF code, holding ``localmap_st``, a
     (3+2m)x2 array of ``[id, value]`` rows (three end-pose rows x, y, phi with id 0, then
     an x row and a y row per feature, both with the feature's id), and ``localmap_P``, the
@@ -25,7 +27,23 @@ I-SLSJF local map (``localmap_<k>.mat``, read-only)
     in the I-SLSJF code, when an end-pose variance is below 1e-6 (the robot did not move)
     1e-6 is added to the three pose diagonal entries, with a warning. The file is parsed
     by mapjoin itself (numeric matrices, compressed or not, either byte order), not by
-    ``scipy.io.loadmat``, which crashes the interpreter on some corrupt files.
+    ``scipy.io.loadmat``, which crashes the interpreter on some corrupt files. Written
+    uncompressed, little-endian, one map per file named after its end id; only a map from
+    pose k-1 to pose k can be written (the format has nowhere else to keep its pose ids),
+    and a map without a full covariance is written with its diagonal one.
+
+Linear SLAM local map (``localmap_<k>.txt``)
+    Text as distributed with Linear SLAM: line 1 the reference (start) pose id, line 2 the
+    state dimension d = 3 + 2m, then d lines ``id value`` (the end pose's x, y, phi with
+    id -k, k its pose id; then per feature an x and a y line with its id), then d lines of
+    d numbers: the information matrix, the inverse of the covariance, row by row. It must
+    be symmetric (up to ``maps.SYMMETRY_TOLERANCE``, then symmetrised) and positive
+    definite; the covariance is its inverse by Cholesky factorisation, and writing inverts
+    the covariance the same way, so a round trip is exact up to rounding (about the
+    condition number times 1e-16, relative). Rows may come in any order as long as the
+    pose's three are together and each feature's y follows its x. One map per file; the
+    end pose id must not be 0 (it would be -0). Feature id 0 is read and written, with a
+    warning on writing, as Linear SLAM's own code expects positive feature ids.
 
 YAML local map (one map per document; a file may hold a stream of documents)::
 
@@ -67,6 +85,16 @@ Global map, CSV::
     Features first, then poses. The ``cov_*`` columns (upper triangles of the symmetric
     marginal covariance blocks) are present when the map carries them; per kind they are
     all filled or all empty. CSV does not hold the provenance.
+
+Global map, g2o (write-only; for g2o's viewer and GTSAM's ``readG2o``)::
+
+    # mapjoin global map: VERTEX_SE2 <pose id> x y phi per end pose, VERTEX_XY <feature id + 1000> x y ...
+    VERTEX_SE2 1 1.5 -0.25 0.1
+    VERTEX_XY 1012 3.0 4.0
+
+    g2o has one id space, so feature ids are offset by :func:`g2o_feature_offset` (the
+    smallest power of ten above every pose id, at least 10); the first line says which.
+    Vertices only: the variances are not exported.
 
 Global map, YAML::
 
@@ -111,6 +139,7 @@ import sys
 import zlib
 from collections.abc import Callable, Mapping, Sequence
 from glob import glob
+from itertools import chain
 from pathlib import Path
 from typing import Any, NamedTuple, TextIO
 
@@ -118,7 +147,7 @@ import numpy as np
 import yaml
 
 from .errors import InputError
-from .maps import GlobalMap, GroundTruth, LocalMap, Provenance
+from .maps import SYMMETRY_TOLERANCE, GlobalMap, GroundTruth, LocalMap, Provenance
 
 __all__ = [
     "MAP_FORMATS",
@@ -126,6 +155,8 @@ __all__ = [
     "atomic_write",
     "check_not_overwriting",
     "detect_format",
+    "g2o_feature_offset",
+    "map_file_name",
     "read_global_map",
     "read_map_file",
     "read_maps",
@@ -141,15 +172,17 @@ __all__ = [
 
 log = logging.getLogger("mapjoin")
 
-MAP_FORMATS: tuple[str, ...] = ("yaml", "csv", "mat")
+MAP_FORMATS: tuple[str, ...] = ("yaml", "csv", "mat", "linearslam")
 TABLE_FORMATS: tuple[str, ...] = ("csv", "yaml", "json")
 STDIN = "-"
 #: I-SLSJF's ``StabNoise``: added to the end-pose variances of a map whose robot did not move.
 STAB_NOISE = 1e-6
 
-_EXTENSIONS = {".yaml": "yaml", ".yml": "yaml", ".csv": "csv", ".mat": "mat", ".json": "json"}
-_FORMATS = ("yaml", "csv", "mat", "json")
-_LOCAL_MAP_FILE = re.compile(r"localmap_([0-9]+)\.(?:mat|yaml|yml|csv)", re.IGNORECASE)
+_EXTENSIONS = {".yaml": "yaml", ".yml": "yaml", ".csv": "csv", ".mat": "mat", ".json": "json", ".g2o": "g2o"}
+_FORMATS = ("yaml", "csv", "mat", "linearslam", "json", "g2o")
+_LOCAL_MAP_FILE = re.compile(r"localmap_([0-9]+)\.(?:mat|yaml|yml|csv|txt)", re.IGNORECASE)
+_LINEARSLAM_FILE = re.compile(r"localmap_[0-9]+\.txt", re.IGNORECASE)  # .txt is Linear SLAM only when so named
+_FILE_EXTENSIONS = {"linearslam": "txt"}  # format -> extension, where they differ
 _GLOB_CHARACTERS = re.compile(r"[*?[]")
 
 Source = str | Path | TextIO
@@ -159,9 +192,10 @@ class _Codec(NamedTuple):
     """How one format reads (text, or bytes when ``binary``) and writes (``dump``) one kind of data."""
 
     read: Callable[[Any, str], Any] | None
-    dump: Callable[[Any], str] | None
+    dump: Callable[[Any], str | bytes] | None  # bytes for a binary format
     binary: bool = False
     spherical_only: bool = False  # local maps: full covariances are dropped on writing
+    one_per_file: bool = False  # local maps: a file holds exactly one map
 
 
 # ---------------------------------------------------------------------------------------
@@ -169,24 +203,30 @@ class _Codec(NamedTuple):
 
 
 def detect_format(path_or_name: str, explicit: str | None = None) -> str:
-    """``explicit`` if given (checked against the known formats), else the format its extension names."""
+    """``explicit`` if given (checked against the known formats), else the format its extension names.
+
+    A ``.txt`` file is a Linear SLAM local map when named ``localmap_<k>.txt``, as Linear SLAM
+    names them; other ``.txt`` files need ``explicit``.
+    """
     name = "<stdin>" if path_or_name == STDIN else str(path_or_name)
     if explicit is not None:
         if explicit not in _FORMATS:
             raise InputError(f"unknown format {explicit!r}; expected one of {', '.join(_FORMATS)}", name)
         return explicit
+    if _LINEARSLAM_FILE.fullmatch(os.path.basename(name)):
+        return "linearslam"
     suffix = os.path.splitext(name)[1].lower()
     if suffix not in _EXTENSIONS:
         got = f"the extension {suffix!r}" if suffix else "no extension"
-        raise InputError(f"cannot tell the format from {got}; expected one of {', '.join(_EXTENSIONS)} "
-                         "or pass --format", name)
+        raise InputError(f"cannot tell the format from {got}; expected one of {', '.join(_EXTENSIONS)}, "
+                         "a Linear SLAM localmap_<k>.txt, or pass --format", name)
     return _EXTENSIONS[suffix]
 
 
 def resolve_inputs(inputs: Sequence[str]) -> list[str]:
     """Input arguments as a list of files: globs expanded (natural order), folders as their local maps.
 
-    A folder contributes its files named ``localmap_<k>.mat|yaml|yml|csv``, ordered by k
+    A folder contributes its files named ``localmap_<k>.mat|yaml|yml|csv|txt``, ordered by k
     (``localmap_10`` after ``localmap_9``); other files are ignored. ``-`` (stdin) is kept.
     """
     paths: list[str] = []
@@ -239,7 +279,8 @@ def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[st
     """Write ``maps`` as ``format`` and return the paths written (none for a stream).
 
     A folder target (an existing folder, or a path ending in ``/``, created if needed) gets
-    one file per map, ``localmap_<end_id>.<format>``; a file path or stream gets one stream.
+    one file per map, :func:`map_file_name`; a file path or stream gets one stream, which
+    for ``mat`` and ``linearslam`` must hold one map (a .mat file's name must end in its end id).
     """
     name = _source_name(target, "<stdout>")
     codec = _codec(detect_format(name, format), _LOCAL_MAP_CODECS, "local maps", name, writing=True)
@@ -251,6 +292,8 @@ def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[st
     if isinstance(target, (str, os.PathLike)) and (
             os.path.isdir(target) or os.fspath(target).endswith(("/", os.sep))):
         return _write_map_folder(maps, os.fspath(target), format, codec)
+    if codec.one_per_file:
+        _check_single_map_file(maps, target, format)
     return _write(codec.dump(maps), target)
 
 
@@ -363,8 +406,8 @@ def check_not_overwriting(inputs: Sequence[str], outputs: Sequence[str]) -> None
                 raise InputError(f"is {which}; choose another output so the input is kept", os.fspath(output))
 
 
-def atomic_write(path: str | Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` via a temporary file in the same folder and ``os.replace``.
+def atomic_write(path: str | Path, text: str | bytes) -> None:
+    """Write ``text`` (UTF-8; bytes as they are) to ``path`` via a temporary file in the same folder and ``os.replace``.
 
     Readers never see a half-written file, and a failed write leaves an existing file as it was.
     """
@@ -372,7 +415,8 @@ def atomic_write(path: str | Path, text: str) -> None:
     folder, base = os.path.split(path)
     temporary = os.path.join(folder, f".{base}.{secrets.token_hex(4)}.tmp")
     try:
-        with open(temporary, "x", encoding="utf-8", newline="") as file:
+        with open(temporary, "xb") if isinstance(text, bytes) else open(
+                temporary, "x", encoding="utf-8", newline="") as file:
             file.write(text)
         os.replace(temporary, path)
     except BaseException as error:
@@ -398,7 +442,7 @@ def _source_name(source: Source, dash: str = "<stdin>") -> str:
 
 def _codec(fmt: str, codecs: Mapping[str, _Codec], what: str, name: str, *, writing: bool = False) -> _Codec:
     """The codec of ``fmt`` for ``what``; InputError if the format cannot hold it (or cannot be written)."""
-    usable = [key for key, codec in codecs.items() if codec.dump or not writing]
+    usable = [key for key, codec in codecs.items() if (codec.dump if writing else codec.read)]
     if fmt not in usable:
         verb = "write" if writing else "read"
         raise InputError(f"cannot {verb} {what} as {fmt}; expected one of {', '.join(usable)}", name)
@@ -444,38 +488,46 @@ def _not_utf8(error: UnicodeDecodeError, name: str) -> InputError:
 
 
 def _sniff(text: str, name: str) -> str:
-    """The format of a stream from its start: YAML by its usual openings, CSV by a header naming ``kind``."""
+    """The format of a stream from its start: YAML by its usual openings, CSV by a header naming ``kind``,
+    Linear SLAM text by its first two lines, each one integer."""
     start = text.lstrip()
     if start.startswith(("format:", "---", "%YAML", "#")):
         return "yaml"
     header = start.partition("\n")[0]
     if "kind" in (cell.strip().strip('"') for cell in header.split(",")):
         return "csv"
-    raise InputError("cannot tell the format (expected YAML starting with format:, ---, %YAML or #, or a CSV "
-                     "header naming a kind column); pass --format", name)
+    if re.match(r"[0-9]+[ \t]*\r?\n[ \t]*[0-9]+[ \t]*(?:\r?\n|$)", start):
+        return "linearslam"
+    raise InputError("cannot tell the format (expected YAML starting with format:, ---, %YAML or #, a CSV "
+                     "header naming a kind column, or Linear SLAM text); pass --format", name)
 
 
-def _write(text: str, target: Source) -> list[str]:
-    """Write ``text`` to a path (atomically), ``-`` (stdout) or a text stream; the paths written."""
+def _write(text: str | bytes, target: Source) -> list[str]:
+    """Write ``text`` to a path (atomically), ``-`` (stdout) or a text stream (text only); the paths written."""
     if isinstance(target, (str, os.PathLike)) and os.fspath(target) != STDIN:
         atomic_write(target, text)
         return [os.fspath(target)]
+    if isinstance(text, bytes):
+        raise InputError("a .mat file cannot be written to stdout or a text stream; give a file path",
+                         _source_name(target, "<stdout>"))
     (sys.stdout if isinstance(target, (str, os.PathLike)) else target).write(text)
     return []
 
 
 def _write_map_folder(maps: Sequence[LocalMap], folder: str, fmt: str, codec: _Codec) -> list[str]:
-    paths = [os.path.join(folder, f"localmap_{local_map.end_id}.{fmt}") for local_map in maps]
+    """One file per map; every map is encoded first, so a map the format cannot hold writes nothing."""
+    paths = [os.path.join(folder, map_file_name(local_map.end_id, fmt)) for local_map in maps]
     duplicate = _first_duplicate(np.array([local_map.end_id for local_map in maps], dtype=np.int64))
     if duplicate is not None:
         raise InputError(f"two maps end at pose {maps[duplicate].end_id}, so both would be "
                          f"{os.path.basename(paths[duplicate])}; write them to one file instead", folder)
+    contents = [codec.dump([local_map]) for local_map in maps]
     try:
         os.makedirs(folder, exist_ok=True)
     except OSError as error:
         raise InputError(f"cannot create the folder ({error.strerror or error})", folder) from error
-    for local_map, path in zip(maps, paths):
-        atomic_write(path, codec.dump([local_map]))
+    for content, path in zip(contents, paths):
+        atomic_write(path, content)
     return paths
 
 
@@ -497,7 +549,7 @@ def _folder_maps(folder: str) -> list[str]:
             raise InputError(f"holds both {numbered[k]} and {name} for map {k}; keep one", folder)
         numbered[k] = name
     if not numbered:
-        raise InputError("expected local-map files named localmap_<k>.mat, .yaml, .yml or .csv; found none",
+        raise InputError("expected local-map files named localmap_<k>.mat, .yaml, .yml, .csv or .txt (Linear SLAM); found none",
                          folder)
     return [os.path.join(folder, numbered[k]) for k in sorted(numbered)]
 
@@ -1328,17 +1380,269 @@ def _dump_table_json(rows: Sequence[Any]) -> str:
 
 
 # ---------------------------------------------------------------------------------------
+# Linear SLAM text local maps, I-SLSJF .mat writing, g2o export of a global map
+
+
+_MI_DOUBLE, _MX_DOUBLE = 9, 6  # MAT v5: element type double, array class double
+_MAT_HEADER = (b"MATLAB 5.0 MAT-file, written by mapjoin".ljust(116) + bytes(8)  # text, no subsystem data
+               + struct.pack("<H", 0x0100) + b"IM")                             # version 1, little-endian
+_G2O_MAX_ID = 2**31 - 1  # g2o vertex ids are C ints
+
+
+def map_file_name(end_id: int, fmt: str) -> str:
+    """The name of the file a folder holds the map ending at pose ``end_id`` in, e.g. ``localmap_7.txt``."""
+    return f"localmap_{end_id}.{_FILE_EXTENSIONS.get(fmt, fmt)}"
+
+
+def g2o_feature_offset(pose_ids: np.ndarray) -> int:
+    """What the g2o export adds to feature ids so they cannot clash with pose ids (g2o has one id space):
+    the smallest power of ten above every pose id, at least 10 (poses 1..200: feature 7 is vertex 1007)."""
+    return 10 ** len(str(int(np.max(pose_ids, initial=0))))
+
+
+def _check_single_map_file(maps: Sequence[LocalMap], target: Source, fmt: str) -> None:
+    """A ``mat`` or ``linearslam`` file holds one map, and a .mat file's name ends in its end id (map k)."""
+    name = _source_name(target, "<stdout>")
+    if len(maps) != 1:
+        raise InputError(f"a {fmt} file holds one local map, got {len(maps)}; write them to a folder "
+                         "(a path ending in /), one file per map", name)
+    if fmt == "mat" and isinstance(target, (str, os.PathLike)) and name != "<stdout>":
+        match = _MAT_NUMBER.search(os.path.basename(name))
+        if not match or int(match[1]) != maps[0].end_id:
+            raise InputError("an I-SLSJF .mat local map takes its number k (its end pose) from the file name; "
+                             f"name this one {map_file_name(maps[0].end_id, fmt)}", name)
+
+
+def _read_local_linearslam(text: str, source: str) -> list[LocalMap]:
+    """One Linear SLAM local map (see the module docstring); its covariance is the inverse of the stored information."""
+    lines = text.splitlines()
+    start_id = _text_integer(lines, 0, "the reference pose index (a non-negative integer)", source)
+    size = _text_integer(lines, 1, "the state dimension d = 3 + 2m (m features)", source)
+    if size < 3 or (size - 3) % 2:
+        raise InputError(f"expected the state dimension d = 3 + 2m (m features), got {size}", source, "line 2")
+    state_rows = _text_rows(lines, 2, size, 2, f"`id value`, one of d = {size} state rows", source)
+    ids = _text_ids(state_rows[:, 0], 2, source)
+    state = _text_numbers(state_rows[:, 1:], 2, source, first_field=2)[:, 0]
+    information = _text_numbers(
+        _text_rows(lines, 2 + size, size, size, f"a row of the {size}x{size} information matrix", source),
+        2 + size, source)
+    trailing = next((i for i in range(2 + 2 * size, len(lines)) if lines[i].strip()), None)
+    if trailing is not None:
+        raise InputError(f"expected nothing after the {size} rows of the information matrix, got "
+                         f"{reprlib.repr(lines[trailing].strip())}", source, f"line {trailing + 1}")
+    pose, features, end_id = _linearslam_layout(ids, start_id, source)
+    order = np.concatenate([pose, features])
+    covariance = _covariance_of_information(information, 2 + size, source)[np.ix_(order, order)]
+    return [LocalMap.from_covariance(source, start_id, end_id, state[pose], ids[features[0::2]],
+                                     state[features].reshape(-1, 2), covariance)]
+
+
+def _text_integer(lines: Sequence[str], index: int, expected: str, source: str) -> int:
+    """Line ``index`` (0-based) as one non-negative integer."""
+    text = lines[index].strip() if index < len(lines) else ""
+    if not text.isdigit() or not text.isascii():
+        raise InputError(f"expected {expected}, got {reprlib.repr(text) if text else 'nothing'}", source,
+                         f"line {index + 1}")
+    return int(text)
+
+
+def _text_rows(lines: Sequence[str], first: int, count: int, width: int, expected: str, source: str) -> np.ndarray:
+    """Lines ``first .. first+count-1`` (0-based) as a (count x width) array of their whitespace-separated fields."""
+    cells = [line.split() for line in lines[first:first + count]]
+    bad = next((i for i, row in enumerate(cells) if len(row) != width), None)
+    if bad is None and len(cells) < count:
+        bad = len(cells)
+    if bad is not None:
+        got = (f"{len(cells[bad])} fields: {reprlib.repr(lines[first + bad].strip())}" if bad < len(cells)
+               else "the end of the file")
+        raise InputError(f"expected {expected} ({width} fields), got {got}", source, f"line {first + bad + 1}")
+    return np.array(list(chain.from_iterable(cells)), dtype=str).reshape(count, width)
+
+
+def _text_numbers(cells: np.ndarray, first: int, source: str, first_field: int = 1) -> np.ndarray:
+    """Text fields (rows from line ``first`` + 1, columns from field ``first_field``) as finite floats."""
+    try:
+        values = cells.astype(float)
+    except ValueError:
+        values = None
+    if values is None or not np.isfinite(values).all():
+        bad = np.array([not _is_finite_text(cell) for cell in cells.ravel()]).reshape(cells.shape)
+        i, j = (int(index) for index in np.argwhere(bad)[0])
+        raise InputError(f"expected a finite number in field {j + first_field}, got {reprlib.repr(str(cells[i, j]))}",
+                         source, f"line {first + i + 1}")
+    return values
+
+
+def _is_finite_text(text: str) -> bool:
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False
+
+
+def _text_ids(cells: np.ndarray, first: int, source: str) -> np.ndarray:
+    """Text fields (one per row, from line ``first`` + 1) as 64-bit integers."""
+    try:
+        return cells.astype(np.int64)
+    except (ValueError, OverflowError):
+        bad = next(i for i, cell in enumerate(cells.tolist())
+                   if not re.fullmatch(r"[-+]?[0-9]+", cell) or abs(int(cell)) >= 2**63)
+        raise InputError(f"expected an integer id in field 1, got {reprlib.repr(str(cells[bad]))}", source,
+                         f"line {first + bad + 1}") from None
+
+
+def _linearslam_layout(ids: np.ndarray, start_id: int, source: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """Rows of the end pose (three, consecutive, one id -k), rows of the features (x then y per id), and k."""
+    pose = np.flatnonzero(ids < 0)
+    if pose.size != 3 or pose[2] != pose[0] + 2 or (ids[pose] != ids[pose[0]]).any():
+        got = ", ".join(f"{ids[row]} on line {row + 3}" for row in pose[:4]) or "none"
+        raise InputError("expected one end pose: three consecutive rows with the same negative id -k; got "
+                         f"negative ids {got}", source, f"line {(pose[0] if pose.size else 0) + 3}")
+    end_id = -int(ids[pose[0]])
+    if end_id == start_id:
+        raise InputError(f"the end pose id {end_id} (rows with id {-end_id}) equals the reference pose index "
+                         "on line 1", source, f"line {pose[0] + 3}")
+    features = np.delete(np.arange(len(ids)), pose)
+    x, y = features[0::2], features[1::2]
+    split = np.flatnonzero(ids[x] != ids[y])
+    if split.size:
+        i = split[0]
+        raise InputError(f"expected the y row of feature {ids[x[i]]} (x on line {x[i] + 3}), got id {ids[y[i]]}",
+                         source, f"line {y[i] + 3}")
+    duplicate = _first_duplicate(ids[x])
+    if duplicate is not None:
+        earlier = x[np.flatnonzero(ids[x] == ids[x[duplicate]])[0]]
+        raise InputError(f"duplicate feature id {ids[x[duplicate]]} (also on line {earlier + 3})", source,
+                         f"line {x[duplicate] + 3}")
+    return pose, features, end_id
+
+
+def _covariance_of_information(information: np.ndarray, first: int, source: str) -> np.ndarray:
+    """The inverse of an information matrix stored from line ``first`` + 1, checked symmetric positive definite."""
+    diagonal = np.abs(np.diagonal(information))
+    excess = np.abs(information - information.T) - SYMMETRY_TOLERANCE * np.sqrt(np.outer(diagonal, diagonal))
+    if (excess > 0).any():
+        i, j = (int(index) for index in np.unravel_index(np.argmax(excess), excess.shape))
+        raise InputError(f"expected a symmetric information matrix, but entries ({i + 1}, {j + 1}) and "
+                         f"({j + 1}, {i + 1}) differ: {float(information[i, j])!r} vs "
+                         f"{float(information[j, i])!r}", source, f"line {first + i + 1}")
+    covariance, failed = _spd_inverse((information + information.T) / 2)
+    if covariance is None:
+        raise InputError(f"expected a positive definite information matrix; its leading {failed}x{failed} block "
+                         "is not", source, f"line {first + failed}")
+    return covariance
+
+
+def _spd_inverse(matrix: np.ndarray) -> tuple[np.ndarray | None, int]:
+    """The inverse of a symmetric positive definite matrix by Cholesky (exactly symmetric), or None and the
+    order of the first leading block that is not positive definite."""
+    from scipy.linalg import lapack  # only the formats that store information matrices need it
+
+    factor, failed = lapack.dpotrf(matrix, lower=True)
+    if failed:
+        return None, failed
+    inverse, failed = lapack.dpotri(factor, lower=True)
+    if failed:
+        return None, failed
+    lower = np.tril(inverse)
+    return lower + np.tril(lower, -1).T, 0
+
+
+def _spherical_diagonal(local_map: LocalMap) -> np.ndarray:
+    """The covariance diagonal a map without a full covariance stands for: x y phi, then x y per feature."""
+    return np.concatenate([local_map.pose_variances[[0, 0, 1]], np.repeat(local_map.feature_variances, 2)])
+
+
+def _dump_local_linearslam(maps: Sequence[LocalMap]) -> str:
+    """One map as Linear SLAM text; the information matrix is the inverse of its covariance."""
+    [local_map] = maps
+    if local_map.end_id == 0:
+        raise InputError("cannot be written as Linear SLAM text: its end pose id 0 would be the row id -0, "
+                         "which reads as a feature", local_map.name)
+    if local_map.size and local_map.feature_ids.min() == 0:
+        log.warning("%s: feature id 0 written as Linear SLAM text (mapjoin reads it back; Linear SLAM's own code "
+                    "expects positive feature ids)", local_map.name)
+    if local_map.covariance is None:
+        information = np.diag(1.0 / _spherical_diagonal(local_map))
+    else:
+        information, _ = _spd_inverse(local_map.covariance)
+    if information is None or not np.isfinite(information).all():
+        raise InputError("the covariance is numerically singular, so it has no finite information matrix",
+                         local_map.name, "covariance")
+    ids = np.concatenate([np.full(3, -local_map.end_id), np.repeat(local_map.feature_ids, 2)])
+    values = np.concatenate([local_map.end_pose, local_map.features.ravel()])
+    lines = [str(local_map.start_id), str(len(ids)),
+             *(f"{i} {value!r}" for i, value in zip(ids.tolist(), values.tolist())),
+             *(" ".join(map(repr, row)) for row in information.tolist())]
+    return "\n".join(lines) + "\n"
+
+
+def _dump_local_mat(maps: Sequence[LocalMap]) -> bytes:
+    """One map as an I-SLSJF .mat file (MAT v5, little-endian, uncompressed): ``localmap_st``, ``localmap_P``."""
+    [local_map] = maps
+    if local_map.start_id != local_map.end_id - 1:
+        raise InputError("cannot be written as an I-SLSJF .mat file, which holds map k from pose k-1 to pose k; "
+                         f"this map runs from pose {local_map.start_id} to {local_map.end_id} (use yaml or "
+                         "linearslam)", local_map.name)
+    if local_map.size and local_map.feature_ids.max() >= 2**53:
+        raise InputError(f"feature id {local_map.feature_ids.max()} is not exact as a double (2^53 or more), "
+                         "so it cannot be written to a .mat file", local_map.name)
+    covariance = (np.diag(_spherical_diagonal(local_map)) if local_map.covariance is None
+                  else local_map.covariance)
+    if covariance.diagonal()[:3].min() < STAB_NOISE:
+        log.warning("%s: an end-pose variance is below %g; reading the .mat file back adds %g to the pose "
+                    "diagonal, as I-SLSJF does", local_map.name, STAB_NOISE, STAB_NOISE)
+    ids = np.concatenate([np.zeros(3), np.repeat(local_map.feature_ids, 2)])
+    state = np.column_stack([ids, np.concatenate([local_map.end_pose, local_map.features.ravel()])])
+    return _MAT_HEADER + _mat_double_array("localmap_st", state) + _mat_double_array("localmap_P", covariance)
+
+
+def _mat_double_array(name: str, value: np.ndarray) -> bytes:
+    """A real double matrix variable: one miMATRIX element of flags, dimensions, name, column-major data."""
+    return _mat_element(_MI_MATRIX, _mat_element(_MI_UINT32, struct.pack("<II", _MX_DOUBLE, 0))
+                        + _mat_element(_MI_INT32, struct.pack("<ii", *value.shape))
+                        + _mat_element(_MI_INT8, name.encode("ascii"))
+                        + _mat_element(_MI_DOUBLE, np.asarray(value, "<f8").tobytes(order="F")))
+
+
+def _mat_element(kind: int, data: bytes) -> bytes:
+    """A MAT v5 data element: tag (type, byte count), data, zeros up to a multiple of 8 bytes."""
+    return struct.pack("<II", kind, len(data)) + data + bytes(-len(data) % 8)
+
+
+def _dump_global_g2o(global_map: GlobalMap) -> str:
+    """``VERTEX_SE2 id x y phi`` per end pose (its id), ``VERTEX_XY id x y`` per feature (its id plus
+    :func:`g2o_feature_offset`), after a comment stating the mapping."""
+    offset = g2o_feature_offset(global_map.pose_ids)
+    largest = max(int(np.max(global_map.pose_ids, initial=0)), int(np.max(global_map.feature_ids, initial=-1)) + offset)
+    if largest > _G2O_MAX_ID:
+        raise InputError(f"vertex id {largest} does not fit g2o's 32-bit ids (feature ids are offset by {offset})",
+                         global_map.name)
+    return "\n".join([
+        (f"# mapjoin global map: VERTEX_SE2 <pose id> x y phi per end pose, VERTEX_XY <feature id + {offset}> x y "
+         "per feature"),
+        *(f"VERTEX_SE2 {i} {x!r} {y!r} {phi!r}" for i, (x, y, phi) in zip(global_map.pose_ids.tolist(),
+                                                                           global_map.poses.tolist())),
+        *(f"VERTEX_XY {i + offset} {x!r} {y!r}" for i, (x, y) in zip(global_map.feature_ids.tolist(),
+                                                                      global_map.features.tolist())),
+    ]) + "\n"
+
+
+
+# ---------------------------------------------------------------------------------------
 # Registries: format name -> codec
 
 
 _LOCAL_MAP_CODECS: dict[str, _Codec] = {
     "yaml": _Codec(_read_local_yaml, _dump_local_yaml),
     "csv": _Codec(_read_local_csv, _dump_local_csv, spherical_only=True),
-    "mat": _Codec(_read_local_mat, None, binary=True),
+    "mat": _Codec(_read_local_mat, _dump_local_mat, binary=True, one_per_file=True),
+    "linearslam": _Codec(_read_local_linearslam, _dump_local_linearslam, one_per_file=True),
 }
 _GLOBAL_MAP_CODECS: dict[str, _Codec] = {
     "csv": _Codec(_read_global_csv, _dump_global_csv),
     "yaml": _Codec(_read_global_yaml, _dump_global_yaml),
+    "g2o": _Codec(None, _dump_global_g2o),
 }
 _TRUTH_CODECS: dict[str, _Codec] = {
     "csv": _Codec(_read_truth_csv, _dump_truth_csv),

@@ -31,7 +31,10 @@ from .common import covariance_option, input_format_option, output_option, solve
 def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_phi: float | None,
                  batch: str | None, output: str, as_json: bool, covariance: str, solver: str,
                  input_format: str | None) -> None:
-    """Count the local minima of a join's 1-D problem (Theorem 2) and locate them.
+    """Count and locate a join's local minima (Theorem 2).
+
+    The 1-D problem of a join has one or two local minima; Theorem 2's conditions
+    (16)-(21) say which, and Algorithm 1 locates them.
 
     Give --a and --c-phi; or two local maps MAP_A MAP_B (MAP_B starting at MAP_A's end
     pose), whose join is analysed; or --batch FILE with rows a,c_phi.

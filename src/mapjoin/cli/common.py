@@ -15,7 +15,7 @@ from ..onestep import SOLVERS
 
 inputs_argument = click.argument("inputs", nargs=-1, required=True, metavar="INPUTS...")
 input_format_option = click.option(
-    "--input-format", type=click.Choice(["yaml", "csv", "mat"]),
+    "--input-format", type=click.Choice(formats.MAP_FORMATS),
     help="Format of the inputs when their names do not tell it (e.g. stdin).")
 covariance_option = click.option(
     "--covariance", type=click.Choice(COVARIANCE_MODES), default=DEFAULT_COVARIANCE, show_default=True,

@@ -18,7 +18,7 @@ from . import main
 @click.argument("map_b", metavar="B")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable JSON instead of the table.")
 def compare(map_a: str, map_b: str, as_json: bool) -> None:
-    """Compare two global maps (.csv or .yaml) entity by entity, by id.
+    """Compare two global maps (.csv, .yaml) entity by entity.
 
     Prints the paper's metric (Section 7: mean absolute x and y difference over the
     shared features and poses, mean absolute orientation difference over the shared

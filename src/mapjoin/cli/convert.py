@@ -14,20 +14,26 @@ from .common import input_format_option, inputs_argument, say
 @main.command()
 @inputs_argument
 @click.option("-o", "--output", required=True, metavar="DIR|FILE",
-              help="A directory (one localmap_<k> file per map), a file (one stream), or - for stdout.")
-@click.option("--to", "to_format", type=click.Choice(["yaml", "csv"]),
-              help="Output format (default: from the -o extension; YAML for a directory or stdout).")
+              help="A directory (one localmap_<k> file per map), a file (one stream; a single map for mat and "
+                   "linearslam), or - for stdout.")
+@click.option("--to", "to_format", type=click.Choice(formats.MAP_FORMATS),
+              help="Output format (default: from the -o name; YAML for a directory or stdout).")
 @input_format_option
 @click.pass_context
 def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format: str | None,
             input_format: str | None) -> None:
-    """Convert local maps between formats (I-SLSJF .mat, YAML, CSV).
+    """Convert local maps: I-SLSJF .mat, Linear SLAM, YAML, CSV.
 
-    YAML keeps each map's full covariance; CSV keeps spherical variances only.
+    YAML, .mat and Linear SLAM text keep each map's full covariance (Linear SLAM text
+    stores its inverse, the information matrix: converting inverts it, exact up to
+    rounding). CSV keeps spherical variances only. A .mat file holds map k, from pose
+    k-1 to pose k, and takes k from its name.
 
     \b
     Examples:
       mapjoin convert ../shared/data/VicPark_200_local_maps -o vicpark/ --to yaml
+      mapjoin convert ../shared/data/linearslam_txt/8240_data_50_local_maps -o sim/ --to mat
+      mapjoin convert ../shared/data/8240_data_50_local_maps -o sim-txt/ --to linearslam
       mapjoin convert 'maps/*.yaml' -o maps.csv
     """
     paths = formats.resolve_inputs(inputs)
@@ -36,11 +42,10 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
         to_format = "yaml" if is_directory or output == "-" else formats.detect_format(output)
     maps = formats.read_maps(paths, format=input_format)
     if is_directory:
-        os.makedirs(output, exist_ok=True)
-        planned = [os.path.join(output, f"localmap_{m.end_id}.{to_format}") for m in maps]
-        formats.check_not_overwriting(paths, planned)
-    elif output != "-":
-        formats.check_not_overwriting(paths, [output])
+        planned = [os.path.join(output, formats.map_file_name(m.end_id, to_format)) for m in maps]
+    else:
+        planned = [output] if output != "-" else []
+    formats.check_not_overwriting(paths, planned)
     written = formats.write_maps(maps, output, to_format)
-    say(ctx, f"converted {len(maps)} maps to {to_format}: "
-             f"{len(written)} file(s) in {output}" if output != "-" else f"converted {len(maps)} maps")
+    say(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
+             if output != "-" else f"converted {len(maps)} maps to {to_format}")

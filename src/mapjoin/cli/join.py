@@ -15,8 +15,9 @@ from .common import (covariance_option, format_option, input_format_option, inpu
 
 @main.command()
 @inputs_argument
-@output_option("Global map (.csv or .yaml); - for stdout (CSV unless --format).")
-@format_option(("csv", "yaml"), "Format of the global map (default: from the -o extension, else CSV).")
+@output_option("Global map (.csv, .yaml or .g2o); - for stdout (CSV unless --format).")
+@format_option(("csv", "yaml", "g2o"), "Format of the global map (default: from the -o extension, else CSV); "
+               "g2o: VERTEX_SE2 poses and VERTEX_XY features, for g2o's viewer or GTSAM.")
 @click.option("--report", "report_path", metavar="FILE",
               help="Per-join report (.csv, .yaml or .json): common/new features, a, C_phi, minima, phi*.")
 @covariance_option

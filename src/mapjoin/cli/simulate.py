@@ -27,7 +27,7 @@ from .common import say
 @click.pass_context
 def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_map: int,
              output_format: str, truth_path: str | None) -> None:
-    """Simulate a robot run with ground truth and cut it into local maps.
+    """Simulate a robot run, with ground truth, as local maps.
 
     The maps' estimates are drawn from their declared full covariances, so joins can be
     checked against the truth.

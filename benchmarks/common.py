@@ -1,0 +1,34 @@
+"""What the benchmark scripts share: where the data is, median timing, and writing their README section."""
+
+from __future__ import annotations
+
+import os
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("MAPJOIN_DATA", ROOT.parent / "shared" / "data"))
+README = ROOT / "benchmarks" / "README.md"
+
+
+def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, object]:
+    """Median wall time of ``run`` over ``repeats`` calls, and the last result."""
+    times, result = [], None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = run()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times), result
+
+
+def write_section(name: str, text: str) -> None:
+    """Replace the text between ``<!-- name:begin -->`` and ``<!-- name:end -->`` in benchmarks/README.md
+    (the markers are appended at the end when missing)."""
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    content = README.read_text()
+    if begin not in content or end not in content:
+        content = f"{content.rstrip()}\n\n{begin}\n{end}\n"
+    head, rest = content.split(begin, 1)
+    README.write_text(f"{head}{begin}\n{text}\n{end}{rest.split(end, 1)[1]}")

@@ -1,0 +1,101 @@
+"""Speed of mapjoin on the real datasets: reading, each join strategy, refine, and whole commands.
+
+    python benchmarks/speed.py [--repeat N] [DATASET ...]     (default: the four below)
+
+In-process (maps loaded once; medians of ``--repeat`` runs): reading the folder, the
+sequential join, the tree join with 1 and 2 processes, the exact refinement (solve and
+marginal covariances), and each fast join's distance from the exact one (the paper's
+metric: mean absolute x, y, phi). Whole commands (a fresh interpreter per run, as a
+user types them; medians of ``--repeat``): ``mapjoin join`` with each strategy and
+``mapjoin refine``, with the peak resident memory of the process (its rusage).
+Results are printed and written between the ``speed`` markers of benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+from common import DATA, median_seconds, write_section
+
+from mapjoin import formats
+from mapjoin.evaluate import compare
+from mapjoin.joining import join
+from mapjoin.refine import refine
+
+DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps", "VicPark_6898_local_maps")
+COMMANDS = {
+    "join (sequential)": ["join"],
+    "join --strategy tree": ["join", "--strategy", "tree"],
+    "join --strategy tree --jobs 2": ["join", "--strategy", "tree", "--jobs", "2"],
+    "refine": ["refine"],
+}
+
+
+def whole_command(arguments: list[str], repeat: int) -> tuple[float, float]:
+    """Median wall time (s) and largest peak RSS (MB) of ``mapjoin ARGUMENTS`` in a fresh interpreter."""
+    times, peaks = [], []
+    command = [sys.executable, "-m", "mapjoin", "-q", *arguments]
+    for _ in range(repeat):
+        start = time.perf_counter()
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL)
+        _, status, usage = os.wait4(process.pid, 0)
+        times.append(time.perf_counter() - start)
+        process.returncode = os.waitstatus_to_exitcode(status)
+        if process.returncode:
+            raise SystemExit(f"{' '.join(command)} exited with {process.returncode}")
+        peaks.append(usage.ru_maxrss / 1024)
+    return statistics.median(times), max(peaks)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("datasets", nargs="*", default=DATASETS)
+    parser.add_argument("--repeat", type=int, default=5)
+    args = parser.parse_args()
+    logging.getLogger("mapjoin").setLevel(logging.ERROR)
+    inprocess = ["| dataset | maps | read (s) | sequential join (ms) | tree join (ms) | tree, 2 jobs (ms) | "
+                 "refine (s) | sequential vs exact: x, y (m), phi (rad) | tree vs exact |",
+                 "|---|---:|---:|---:|---:|---:|---:|---|---|"]
+    commands = ["| dataset | " + " | ".join(COMMANDS) + " |", "|---|" + "---:|" * len(COMMANDS)]
+    for name in args.datasets:
+        folder = str(DATA / name)
+        read, maps = median_seconds(lambda: formats.read_maps([folder]), args.repeat)  # noqa: B023
+        times, distances = {}, {}
+        for label, strategy, jobs in (("sequential", "sequential", 1), ("tree", "tree", 1), ("tree2", "tree", 2)):
+            times[label], result = median_seconds(lambda: join(maps, strategy=strategy, jobs=jobs),  # noqa: B023
+                                                  args.repeat)
+            distances[label] = result.global_map
+        refine_time, exact = median_seconds(lambda: refine(maps), args.repeat)  # noqa: B023
+        metric = {}
+        for label in ("sequential", "tree"):
+            d = compare(distances[label], exact.global_map)
+            metric[label] = f"{d.mean_abs_x:.3f}, {d.mean_abs_y:.3f}, {d.mean_abs_phi:.4f}"
+        inprocess.append(f"| {name} | {len(maps)} | {read:.3f} | {1e3 * times['sequential']:.1f} | "
+                         f"{1e3 * times['tree']:.1f} | {1e3 * times['tree2']:.1f} | {refine_time:.3f} "
+                         f"({exact.iterations} it., chi^2 {exact.cost:.3f}) | {metric['sequential']} | "
+                         f"{metric['tree']} |")
+        cells = []
+        with tempfile.TemporaryDirectory() as scratch:
+            for arguments in COMMANDS.values():
+                seconds, peak = whole_command([*arguments, folder, "-o", os.path.join(scratch, "out.csv")],
+                                              args.repeat)
+                cells.append(f"{seconds:.2f} s, {peak:.0f} MB")
+        commands.append(f"| {name} | " + " | ".join(cells) + " |")
+        print(inprocess[-1], commands[-1], sep="\n", file=sys.stderr)
+    text = "\n".join([f"In-process, maps loaded, medians of {args.repeat} (2-core shared machine, "
+                      f"{os.cpu_count()} CPUs visible):", "", *inprocess, "",
+                      f"Whole commands (`python -m mapjoin -q ... DATASET -o out.csv`, fresh interpreter, "
+                      f"reading included), median wall time of {args.repeat} and peak RSS:", "", *commands])
+    print(text)
+    write_section("speed", text)
+
+
+if __name__ == "__main__":
+    main()
