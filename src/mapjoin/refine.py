@@ -58,7 +58,7 @@ from .joining import join_sequential
 from .maps import GlobalMap, LocalMap, Provenance
 from .onestep import wrap
 
-__all__ = ["ExactProblem", "RefineResult", "exact_cost", "refine"]
+__all__ = ["Blocks", "ExactProblem", "Minimum", "RefineResult", "exact_cost", "minimise", "refine"]
 
 log = logging.getLogger("mapjoin")
 
@@ -128,6 +128,43 @@ class _Group:
     gradient_offset: int = 0  # where its J_k^T r_k start
 
 
+@dataclass(frozen=True)
+class Blocks:
+    """Measurement blocks in the shape of local maps, as flat arrays (no LocalMap per block).
+
+    Block k measures, in the frame of pose ``start_ids[k]``, the pose ``end_ids[k]`` and
+    ``sizes[k]`` distinct features: with ``o`` the sum of the sizes before k, the features
+    ``feature_ids[o:o + sizes[k]]``, measured as ``[end_poses[k], features[o:o +
+    sizes[k]].ravel()]``. ``covariances(ks)`` gives the covariances of blocks ``ks`` (all of
+    one size), stacked (G, 3 + 2m, 3 + 2m) in the order [x, y, phi, f1x, f1y, ...], and
+    ``names(k)`` names block k in messages. A local map is one block; raw odometry with the
+    observations made from its start pose is another (:mod:`mapjoin.build`).
+    """
+
+    start_ids: np.ndarray
+    end_ids: np.ndarray
+    end_poses: np.ndarray
+    sizes: np.ndarray
+    feature_ids: np.ndarray
+    features: np.ndarray
+    covariances: Callable[[np.ndarray], np.ndarray]
+    names: Callable[[int], str]
+
+    @classmethod
+    def of_maps(cls, maps: Sequence[LocalMap]) -> Blocks:
+        """One block per local map (a map without a full covariance: its spherical variances)."""
+        def stacked(ks: np.ndarray) -> np.ndarray:
+            return np.stack([_covariance(maps[k]) for k in ks])
+
+        return cls(start_ids=np.array([m.start_id for m in maps], dtype=np.int64),
+                   end_ids=np.array([m.end_id for m in maps], dtype=np.int64),
+                   end_poses=np.array([m.end_pose for m in maps], dtype=float).reshape(-1, 3),
+                   sizes=np.array([m.size for m in maps], dtype=np.int64),
+                   feature_ids=np.concatenate([m.feature_ids for m in maps]),
+                   features=np.concatenate([m.features for m in maps]),
+                   covariances=stacked, names=lambda k: maps[k].name)
+
+
 class ExactProblem:
     """The exact joining problem of a chain of local maps: residuals, Jacobian, normal equations.
 
@@ -135,41 +172,58 @@ class ExactProblem:
     whitened residual vector holds each map's ``3 + 2m`` entries in map order. A node is a
     pose (3 unknowns) or a feature (2); J^T J is kept in a fill-reducing node order
     (``position[i]``: row/column of unknown i), as a CSC matrix of fixed pattern.
+
+    ``measurements``: the local maps, or :class:`Blocks` of the same shape. ``origins``: the
+    pose ids held fixed at the origin (default: the first map's start). Maps starting at
+    different origins make independent problems, solved together.
     """
 
-    def __init__(self, maps: Sequence[LocalMap]):
-        maps = list(maps)
-        if not maps:
+    def __init__(self, measurements: Sequence[LocalMap] | Blocks, origins: Sequence[int] | None = None):
+        if not isinstance(measurements, Blocks):
+            measurements = list(measurements)
+            if not measurements:
+                raise JoinError("no local maps to join")
+            measurements = Blocks.of_maps(measurements)
+        blocks = measurements
+        self.n_maps = N = len(blocks.end_ids)
+        if not N:
             raise JoinError("no local maps to join")
-        self.maps = maps
-        self.n_maps = N = len(maps)
-        self.origin_id = maps[0].start_id
-        self.pose_ids = np.array([m.end_id for m in maps], dtype=np.int64)
-        index = {int(i): k for k, i in enumerate(self.pose_ids)}
-        if len(index) < N:
-            twice = next(i for i in self.pose_ids if np.count_nonzero(self.pose_ids == i) > 1)
-            raise JoinError(f"pose {int(twice)} is the end pose of more than one map")
-        if self.origin_id in index:
-            raise JoinError(f"pose {self.origin_id}, the start of {maps[0].name} and the fixed origin, "
-                            f"is also the end pose of {maps[index[self.origin_id]].name}")
-        base = np.empty(N, dtype=np.int64)
-        for k, m in enumerate(maps):
-            if m.start_id == self.origin_id:
-                base[k] = -1
-            elif m.start_id in index:
-                base[k] = index[m.start_id]
-            else:
-                raise JoinError(f"{m.name} starts at pose {m.start_id}, which is neither the origin "
-                                f"(pose {self.origin_id}) nor the end pose of any map")
-        sizes = np.array([m.size for m in maps], dtype=np.int64)
-        self.feature_ids, compact = np.unique(np.concatenate([m.feature_ids for m in maps]),
-                                              return_inverse=True)
+        self.pose_ids = np.asarray(blocks.end_ids, dtype=np.int64)
+        origins = np.array([blocks.start_ids[0]] if origins is None else origins, dtype=np.int64)
+        order = np.argsort(self.pose_ids, kind="stable")
+        ordered = self.pose_ids[order]
+        twice = np.flatnonzero(ordered[1:] == ordered[:-1])
+        if twice.size:
+            raise JoinError(f"pose {ordered[twice[0]]} is the end pose of more than one map")
+        starts = np.asarray(blocks.start_ids, dtype=np.int64)
+        at = np.minimum(np.searchsorted(ordered, starts), N - 1)
+        found = ordered[at] == starts
+        at_origin = np.isin(starts, origins)
+        clash = np.flatnonzero(at_origin & found)
+        if clash.size:
+            k = int(clash[0])
+            raise JoinError(f"pose {starts[k]}, the start of {blocks.names(k)} and a fixed origin, "
+                            f"is also the end pose of {blocks.names(int(order[at[k]]))}")
+        loose = np.flatnonzero(~at_origin & ~found)
+        if loose.size:
+            k = int(loose[0])
+            where = f"pose {origins[0]}" if len(origins) == 1 else f"poses {', '.join(map(str, origins[:5]))}"
+            raise JoinError(f"{blocks.names(k)} starts at pose {starts[k]}, which is neither the origin "
+                            f"({where}) nor the end pose of any map")
+        base = np.where(at_origin, -1, order[at])
+        sizes = np.asarray(blocks.sizes, dtype=np.int64)
+        self.feature_ids, compact = np.unique(blocks.feature_ids, return_inverse=True)
+        compact = compact.ravel()
         self.n_features = n = len(self.feature_ids)
         self.n_unknowns = 3 * N + 2 * n
         self.row0 = np.concatenate([[0], np.cumsum(3 + 2 * sizes)])
         self.n_residuals = int(self.row0[-1])
-        measurement = np.concatenate([np.concatenate([m.end_pose, m.features.ravel()]) for m in maps])
         feature0 = np.concatenate([[0], np.cumsum(sizes)])
+        measurement = np.empty(self.n_residuals)
+        measurement[self.row0[:-1, None] + np.arange(3)] = blocks.end_poses
+        owner = np.repeat(np.arange(N), sizes)
+        first_row = self.row0[owner] + 3 + 2 * (np.arange(len(owner)) - feature0[owner])
+        measurement[first_row[:, None] + np.arange(2)] = blocks.features
 
         self.groups: list[_Group] = []
         for m in np.unique(sizes):
@@ -177,7 +231,7 @@ class ExactProblem:
             ks = np.flatnonzero(sizes == m)
             local = np.concatenate([[0], 3 + 2 * np.arange(m), [1], 4 + 2 * np.arange(m), [2]])
             fidx = compact[feature0[ks][:, None] + np.arange(m)]
-            covariance = np.stack([_covariance(maps[k]) for k in ks])[:, local[:, None], local]
+            covariance = blocks.covariances(ks)[:, local[:, None], local]
             try:
                 factor = np.linalg.cholesky(covariance)
             except np.linalg.LinAlgError:
@@ -519,8 +573,9 @@ class ExactProblem:
         return splu(self.normal_matrix(data), permc_spec="NATURAL", **_SUPERLU)
 
     def solve(self, factor, rhs: np.ndarray) -> np.ndarray:
-        """``(J^T J)^-1 rhs`` (natural order) with a factor from :meth:`factorise`."""
-        permuted = np.empty(self.n_unknowns)
+        """``(J^T J)^-1 rhs`` (natural order; ``rhs`` a vector or a matrix of columns) with a
+        factor from :meth:`factorise`."""
+        permuted = np.empty(np.shape(rhs))
         permuted[self._position] = rhs
         return factor.solve(permuted)[self._position]
 
@@ -854,37 +909,46 @@ def exact_cost(maps: Sequence[LocalMap], global_map: GlobalMap) -> float:
     return problem.cost(problem.pack(global_map))
 
 
-def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_iterations: int = 100,
-           tolerance: float = 1e-10, covariances: bool = True,
-           progress: Callable[[int, float], None] | None = None) -> RefineResult:
-    """Solve the exact least-squares joining problem of the chain ``maps``.
+@dataclass
+class Minimum:
+    """Where :func:`minimise` stopped: the unknowns ``x``, the data of J^T J, J^T r and chi^2
+    there, chi^2 before the first step and after each accepted one (``costs``), why it
+    stopped, and ``factor``: the undamped Gauss-Newton factor of J^T J at ``x`` when the
+    last one computed was that (else None)."""
 
-    Starts from ``initial`` (which must hold every pose and feature; extra ones are
-    ignored) or else from ``join_sequential(maps)`` (which needs a chain). Steps solve the
-    normal equations: Gauss-Newton (``J^T J``), undamped while steps lower the cost, with
-    Marquardt damping ``lambda diag(J^T J)`` adapted by the gain ratio (Nielsen) after one
-    that does not; after a good undamped step, Newton's (``J^T J`` plus the second-order
-    term, for quadratic convergence on these non-zero-residual problems), falling back to
-    Gauss-Newton for good if a Newton step is not a descent or does not lower the cost.
-    Stops when an accepted step lowers chi^2 by at most ``tolerance`` relative, or a step is
-    at most ``tolerance * (1 + max |x|)`` in every unknown (then not taken), or after
-    ``max_iterations`` accepted steps. ``covariances``: compute the marginal covariances
-    (else the initial map's variances are kept). ``progress(iteration, cost)`` is called
-    with the initial chi^2 (iteration 0) and after each accepted step.
+    x: np.ndarray
+    data: np.ndarray
+    gradient: np.ndarray
+    cost: float
+    costs: list[float]
+    iterations: int
+    converged: bool
+    reason: str
+    rejected: int
+    factor: object = None
+
+    def final_factor(self, problem: ExactProblem):
+        """The undamped factor of J^T J at the optimum (for covariances)."""
+        return self.factor if self.factor is not None else problem.factorise(self.data)
+
+
+def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100, tolerance: float = 1e-10,
+             progress: Callable[[int, float], None] | None = None) -> Minimum:
+    """Minimise chi^2 of ``problem`` from ``x``: Gauss-Newton (``J^T J``), undamped while steps
+    lower the cost, with Marquardt damping ``lambda diag(J^T J)`` adapted by the gain ratio
+    (Nielsen) after one that does not; after a good undamped step, Newton's (``J^T J`` plus
+    the second-order term, for quadratic convergence on these non-zero-residual problems),
+    falling back to Gauss-Newton for good if a Newton step is not a descent or does not
+    lower the cost. Stops when an accepted step lowers chi^2 by at most ``tolerance``
+    relative, or a step is at most ``tolerance * (1 + max |x|)`` in every unknown, or one
+    that does not lower chi^2 was predicted to lower it by at most ``tolerance`` relative
+    (these two not taken), or after ``max_iterations`` accepted steps. ``progress(iteration, cost)`` is
+    called with the initial chi^2 (iteration 0) and after each accepted step.
     """
     if max_iterations < 0:
         raise ValueError(f"max_iterations must be >= 0, got {max_iterations}")
     if not tolerance >= 0:
         raise ValueError(f"tolerance must be >= 0, got {tolerance}")
-    maps = list(maps)
-    initial_seconds = 0.0
-    if initial is None:
-        start = time.perf_counter()
-        initial = join_sequential(maps).global_map
-        initial_seconds = time.perf_counter() - start
-    start = time.perf_counter()
-    problem = ExactProblem(maps)
-    x = problem.pack(initial)
     data, gradient, cost, second = problem.linearise(x, curvature=True)
     costs = [cost]
     factor_is_final = False
@@ -918,9 +982,14 @@ def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_it
             raise JoinError("the normal equations of the exact join are singular")
         trial = x + step
         trial_cost = problem.cost(trial)
+        # the model's decrease, -g.step + damping step.D.step (the gain ratio's denominator)
+        predicted = -(step @ gradient) + damping * (step * step) @ problem.diagonal(data)
+        if trial_cost >= cost and 0 <= predicted <= tolerance * cost:
+            # at the optimum to within rounding: damped retries would only shrink the step
+            factor_is_final = damping == 0.0 and not newton
+            reason, converged = "predicted decrease below tolerance", True
+            break
         if trial_cost < cost:
-            # gain ratio: actual over predicted decrease, -g.step + damping step.D.step
-            predicted = -(step @ gradient) + damping * (step * step) @ problem.diagonal(data)
             ratio = (cost - trial_cost) / predicted if predicted > 0 else 1.0
             x, previous = trial, cost
             if newton_allowed:
@@ -950,14 +1019,36 @@ def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_it
             if damping > _MAX_DAMPING:
                 reason = "no step lowers the cost (damping limit reached)"
                 break
+    return Minimum(x, data, gradient, cost, costs, iterations, converged, reason, rejected,
+                   factor if factor_is_final else None)
+
+
+def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_iterations: int = 100,
+           tolerance: float = 1e-10, covariances: bool = True,
+           progress: Callable[[int, float], None] | None = None) -> RefineResult:
+    """Solve the exact least-squares joining problem of the chain ``maps``.
+
+    Starts from ``initial`` (which must hold every pose and feature; extra ones are
+    ignored) or else from ``join_sequential(maps)`` (which needs a chain); the steps and
+    the stopping rules are those of :func:`minimise`. ``covariances``: compute the marginal
+    covariances (else the initial map's variances are kept).
+    """
+    maps = list(maps)
+    initial_seconds = 0.0
+    if initial is None:
+        start = time.perf_counter()
+        initial = join_sequential(maps).global_map
+        initial_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    problem = ExactProblem(maps)
+    found = minimise(problem, problem.pack(initial), max_iterations=max_iterations, tolerance=tolerance,
+                     progress=progress)
     seconds = time.perf_counter() - start
 
-    poses, features = problem.unpack(x)
+    poses, features = problem.unpack(found.x)
     start = time.perf_counter()
     if covariances:
-        if not factor_is_final:
-            factor = problem.factorise(data)
-        pose_covariances, feature_covariances = problem.marginals(factor)
+        pose_covariances, feature_covariances = problem.marginals(found.final_factor(problem))
         feature_variances = np.trace(feature_covariances, axis1=1, axis2=2) / 2
         pose_variances = np.stack([(pose_covariances[:, 0, 0] + pose_covariances[:, 1, 1]) / 2,
                                    pose_covariances[:, 2, 2]], axis=1)
@@ -974,7 +1065,7 @@ def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_it
         provenance=Provenance(tuple(m.name for m in maps), "full", "gauss-newton", "exact"),
         feature_covariances=feature_covariances, pose_covariances=pose_covariances)
     return RefineResult(
-        global_map=global_map, cost=cost, costs=tuple(costs), iterations=iterations, converged=converged,
-        reason=reason, seconds=seconds, covariance_seconds=covariance_seconds,
+        global_map=global_map, cost=found.cost, costs=tuple(found.costs), iterations=found.iterations,
+        converged=found.converged, reason=found.reason, seconds=seconds, covariance_seconds=covariance_seconds,
         initial_seconds=initial_seconds, residuals=problem.n_residuals, unknowns=problem.n_unknowns,
-        gradient_norm=float(np.max(np.abs(gradient), initial=0.0)), rejected=rejected)
+        gradient_norm=float(np.max(np.abs(found.gradient), initial=0.0)), rejected=found.rejected)

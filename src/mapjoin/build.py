@@ -1,0 +1,458 @@
+"""Local maps from raw data (``mapjoin build``): cut the odometry chain into consecutive
+local maps and solve each one's full nonlinear least-squares problem.
+
+Local map j runs from chain pose ``a_j`` to ``b_j``. Its unknowns are the poses after
+``a_j`` up to ``b_j`` and the features observed from its poses, all in the frame of pose
+``a_j`` (held fixed at the origin); its residuals are every odometry step in it
+(``(R(phi_i)^T (t_k - t_i), wrap(phi_k - phi_i)) - z``) and every observation made from
+its poses except ``b_j`` (``R(phi_i)^T (f - t_i) - z``), each whitened by its
+covariance. Observations from ``b_j`` belong to the next map, which sees them from its
+origin, so each is used once; the last map also takes those from the last pose.
+
+The problem is refine's exact joining problem (:class:`mapjoin.refine.ExactProblem`),
+solved by the same sparse Gauss-Newton/LM code (:func:`mapjoin.refine.minimise`): one
+measurement block per odometry step, its relative pose plus the observations made from
+its start pose with their block-diagonal covariance (I-SLSJF's one-step local maps are
+exactly these blocks). Observations from the last pose of the data form one more block
+whose end pose is virtual: measured as (0, 0, 0) with unit covariance from the last
+pose, it has zero residual at every optimum and changes nothing else, estimate or
+covariance (3 residuals, 3 unknowns: the degrees of freedom are unchanged). All local
+maps are solved at once, one fixed origin each: independent blocks of one sparse system.
+
+Initial values, so that each solve lands in its global minimum by construction rather
+than from long dead reckoning (which can stall in a local minimum, as GTSAM's batch
+Levenberg-Marquardt does on Victoria Park): stretches of at most ``piece_steps`` steps
+start from dead reckoning; a longer local map is first built as such pieces, which are
+joined with the certified one-step join (:func:`mapjoin.joining.join_sequential`), and
+refined from there.
+
+Covariance of each local map: the block of ``(J^T J)^-1`` over its end pose and features
+at the optimum, i.e. the inverse of the Schur complement that marginalises its interior
+poses out of the sparse information matrix ``J^T J`` (see :func:`_covariance_blocks`);
+only each map's own (3 + 2m)^2 Schur complement is inverted.
+
+:func:`batch` is the full batch SLAM problem: the whole chain as one local map.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from .errors import InputError
+from .joining import join_sequential
+from .maps import GlobalMap, LocalMap, Provenance
+from .raw import RawData
+from .refine import Blocks, ExactProblem, Minimum, RefineResult, minimise
+
+__all__ = ["PIECE_STEPS", "BuildResult", "batch", "build", "cut"]
+
+log = logging.getLogger("mapjoin")
+
+#: longest stretch of odometry solved from dead reckoning; longer maps are joined from pieces
+PIECE_STEPS = 50
+#: two-sided probability of the chi-square interval outside which a chi^2 is flagged
+CHI2_LEVEL = 0.999
+_PROBES = 256  # right-hand sides per solve for the covariances (memory: unknowns x this)
+
+
+@dataclass(frozen=True)
+class BuildResult:
+    """The local maps built and how well their problems fit.
+
+    ``costs[j]``: chi^2 of map j at its optimum, with ``residuals[j]`` and ``unknowns[j]``.
+    ``iterations``, ``converged``, ``reason``: of the final solve (all maps at once).
+    ``pieces``: small maps solved from dead reckoning and joined first (0 when every map
+    was short enough to solve directly). ``seconds``: the solves (pieces, joins, final);
+    ``covariance_seconds``: the maps' covariances. ``batch``: the full batch solution
+    started from these maps (see :func:`batch`), when asked for.
+    """
+
+    maps: tuple[LocalMap, ...]
+    costs: np.ndarray
+    residuals: np.ndarray
+    unknowns: np.ndarray
+    iterations: int
+    converged: bool
+    reason: str
+    seconds: float
+    covariance_seconds: float
+    pieces: int = 0
+    batch: RefineResult | None = None
+
+    @property
+    def cost(self) -> float:
+        """chi^2 of all maps together."""
+        return float(self.costs.sum())
+
+    @property
+    def degrees_of_freedom(self) -> np.ndarray:
+        """Residuals minus unknowns of each map: the expected value of its chi^2."""
+        return self.residuals - self.unknowns
+
+
+def cut(steps: int, maps: int | None = None, poses_per_map: int | None = None) -> np.ndarray:
+    """Chain indices ``0 = b_0 < b_1 < ... < b_N = steps`` of N consecutive local maps:
+    ``maps`` of (nearly) equal length, or ``poses_per_map`` steps each (the last map takes
+    what is left). Exactly one of the two."""
+    if (maps is None) == (poses_per_map is None):
+        raise ValueError("give exactly one of maps and poses_per_map")
+    if maps is not None:
+        if not 1 <= maps <= steps:
+            raise InputError(f"cannot cut {steps} odometry steps into {maps} local maps: expected 1 to {steps} maps "
+                             "(each map needs at least one step)")
+        return np.round(np.linspace(0, steps, maps + 1)).astype(np.int64)
+    if poses_per_map < 1:
+        raise InputError(f"expected at least 1 pose per map, got {poses_per_map}")
+    return np.unique(np.append(np.arange(0, steps, poses_per_map), steps)).astype(np.int64)
+
+
+def build(raw: RawData, bounds: Sequence[int], *, piece_steps: int = PIECE_STEPS, max_iterations: int = 100,
+          tolerance: float = 1e-10, progress: Callable[[int, float], None] | None = None,
+          with_batch: bool = False) -> BuildResult:
+    """Solve the local maps between consecutive chain indices ``bounds`` (see :func:`cut`)
+    and return them with their full covariances; ``progress(iteration, chi^2)`` follows the
+    final solves. ``with_batch``: also the batch solution (:func:`batch`), started from
+    these maps joined. Warns when chi^2 is implausible."""
+    bounds = np.asarray(bounds, dtype=np.int64)
+    start = time.perf_counter()
+    solved = _solve(raw, bounds, piece_steps, max_iterations, tolerance, progress)
+    seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    maps = solved.local_maps(raw.name)
+    covariance_seconds = time.perf_counter() - start
+    layout = solved.layout
+    empty = [m.name for m in maps if not m.size]
+    if empty:
+        log.warning("%d local map(s) see no feature (first: %s): written with their end pose only; a join places "
+                    "each by its start pose alone", len(empty), empty[0])
+    result = BuildResult(maps=tuple(maps), costs=solved.segment_costs(), residuals=layout.segment_residuals,
+                         unknowns=layout.segment_unknowns, iterations=solved.minimum.iterations,
+                         converged=solved.minimum.converged, reason=solved.minimum.reason, seconds=seconds,
+                         covariance_seconds=covariance_seconds, pieces=solved.pieces)
+    _check(result.costs, result.degrees_of_freedom, raw.name)
+    if with_batch:
+        start = time.perf_counter()
+        whole = solved if len(bounds) == 2 else _solve(raw, bounds[[0, -1]], piece_steps, max_iterations, tolerance,
+                                                       progress, pieces=(solved, maps))
+        result = dataclasses.replace(result, batch=_batch_result(whole, bounds, time.perf_counter() - start))
+    return result
+
+
+def batch(raw: RawData, bounds: Sequence[int] | None = None, *, piece_steps: int = PIECE_STEPS,
+          max_iterations: int = 100, tolerance: float = 1e-10, covariances: bool = True,
+          progress: Callable[[int, float], None] | None = None) -> RefineResult:
+    """The full batch SLAM solution, built as one local map (so from pieces, certified joins
+    and refinement): every feature and the poses at chain indices ``bounds[1:]`` (default:
+    every pose), pose k labelled k as the k-th built map's end pose is, in the frame of the
+    first pose, with marginal covariances (else unit variances). Warns when chi^2 is
+    implausible."""
+    bounds = np.arange(raw.steps + 1) if bounds is None else np.asarray(bounds, dtype=np.int64)
+    start = time.perf_counter()
+    solved = _solve(raw, np.array([0, raw.steps]), piece_steps, max_iterations, tolerance, progress)
+    return _batch_result(solved, bounds, time.perf_counter() - start, covariances)
+
+
+def _batch_result(solved: _Solved, bounds: np.ndarray, seconds: float, covariances: bool = True) -> RefineResult:
+    """The global map of a solved single map (the whole chain) at the poses ``bounds[1:]``."""
+    problem, found, layout = solved.problem, solved.minimum, solved.layout
+    poses, features = problem.unpack(found.x)
+    kept = bounds[1:] - 1                                   # blocks ending at those poses
+    start = time.perf_counter()
+    if covariances:
+        pose_covariances, feature_covariances = problem.marginals(found.final_factor(problem))
+        pose_covariances = pose_covariances[kept]
+        pose_variances = np.stack([(pose_covariances[:, 0, 0] + pose_covariances[:, 1, 1]) / 2,
+                                   pose_covariances[:, 2, 2]], axis=1)
+        feature_variances = np.trace(feature_covariances, axis1=1, axis2=2) / 2
+    else:
+        pose_covariances = feature_covariances = None
+        pose_variances, feature_variances = np.ones((len(kept), 2)), np.ones(len(features))
+    covariance_seconds = time.perf_counter() - start
+    name = layout.raw.name
+    global_map = GlobalMap(
+        feature_ids=layout.distinct[problem.feature_ids % layout.n_distinct], features=features,
+        feature_variances=feature_variances, pose_ids=np.arange(1, len(kept) + 1), poses=poses[kept],
+        pose_variances=pose_variances, provenance=Provenance((name,), "full", "gauss-newton", "batch"),
+        feature_covariances=feature_covariances, pose_covariances=pose_covariances, name=f"{name} (batch)")
+    result = RefineResult(
+        global_map=global_map, cost=found.cost, costs=tuple(found.costs), iterations=found.iterations,
+        converged=found.converged, reason=found.reason, seconds=seconds, covariance_seconds=covariance_seconds,
+        residuals=problem.n_residuals, unknowns=problem.n_unknowns,
+        gradient_norm=float(np.max(np.abs(found.gradient), initial=0.0)), rejected=found.rejected)
+    _check(np.array([result.cost]), np.array([result.degrees_of_freedom]), name)
+    return result
+
+
+# ---------------------------------------------------------------------------------------
+# The problem of consecutive local maps
+
+
+class _Layout:
+    """The measurement blocks of the local maps between chain indices ``bounds``.
+
+    Block k < P is odometry step k+1 (chain pose k to k+1) with the observations made from
+    chain pose k; block P, present when the last pose observed anything, holds those with
+    the virtual end pose. Internal pose ids: chain index for the steps' end poses, P + 1
+    for the virtual one, P + 2 + j for the origin of map j. Feature unknowns are per map:
+    id ``j * n_distinct + compact id``.
+    """
+
+    def __init__(self, raw: RawData, bounds: np.ndarray):
+        self.raw, self.bounds = raw, bounds
+        P = raw.steps
+        self.segments = S = len(bounds) - 1
+        virtual = bool((raw.observers == P).any())
+        self.n_blocks = K = P + virtual
+        end_step = np.minimum(np.arange(1, K + 1), P)          # chain index of each block's end pose
+        self.segment = np.searchsorted(bounds, end_step, side="left") - 1
+        first = np.arange(K) == bounds[self.segment]            # the map's first step: it starts at the origin
+        first[P:] = False
+        self.base = np.where(first, -1, np.arange(K) - 1)      # block holding the base pose (-1: the origin)
+        start_ids = np.where(first, P + 2 + self.segment, np.arange(K))
+        end_ids = np.arange(1, K + 1)
+        # observations: block of the observing pose, features per map
+        block = np.minimum(raw.observers, P)
+        order = np.argsort(block, kind="stable")
+        self.order = order
+        self.distinct, compact = np.unique(raw.feature_ids, return_inverse=True)
+        self.n_distinct = len(self.distinct)
+        self.observation_block = block[order]
+        self.unknown_ids = self.segment[block[order]] * self.n_distinct + compact.ravel()[order]
+        sizes = np.bincount(block, minlength=K)
+        self.first_observation = np.concatenate([[0], np.cumsum(sizes)])
+        pose_covariances = np.concatenate([raw.odometry_covariances, np.eye(3)[None].repeat(K - P, axis=0)])
+        observation_covariances = raw.observation_covariances[order]
+        measured = np.concatenate([raw.odometry, np.zeros((K - P, 3))])
+
+        def covariances(ks: np.ndarray) -> np.ndarray:
+            m = int(sizes[ks[0]])
+            stacked = np.zeros((len(ks), 3 + 2 * m, 3 + 2 * m))
+            stacked[:, :3, :3] = pose_covariances[ks]
+            if m:
+                rows = 3 + 2 * np.arange(m)[:, None] + np.arange(2)
+                which = self.first_observation[ks][:, None] + np.arange(m)
+                stacked[:, rows[:, :, None], rows[:, None, :]] = observation_covariances[which]
+            return stacked
+
+        def name(k: int) -> str:
+            if k < P:
+                return f"{raw.name}, odometry at {raw.where(raw.odometry_lines[k])}"
+            return f"{raw.name}, observations from the last pose"
+
+        self.blocks = Blocks(start_ids=start_ids, end_ids=end_ids, end_poses=measured, sizes=sizes,
+                             feature_ids=self.unknown_ids, features=raw.observations[order],
+                             covariances=covariances, names=name)
+        self.origins = P + 2 + np.arange(S)
+        # per map: residuals, unknowns
+        residuals_of_block = 3 + 2 * sizes
+        self.segment_residuals = np.bincount(self.segment, residuals_of_block, minlength=S).astype(np.int64)
+        features_of_map = np.bincount(np.unique(self.unknown_ids) // self.n_distinct, minlength=S)
+        self.segment_unknowns = (3 * np.bincount(self.segment, minlength=S) + 2 * features_of_map).astype(np.int64)
+
+    def dead_reckoning(self) -> np.ndarray:
+        """Each block's end pose in its map's frame by composing the odometry from the map's origin."""
+        raw = self.raw
+        heading = np.concatenate([[0.0], np.cumsum(raw.odometry[:, 2])])
+        c, s = np.cos(heading[:-1]), np.sin(heading[:-1])
+        dx, dy = raw.odometry[:, 0], raw.odometry[:, 1]
+        position = np.concatenate([[[0.0, 0.0]], np.cumsum(np.stack([c * dx - s * dy, s * dx + c * dy], 1), 0)])
+        chain = np.concatenate([position, heading[:, None]], axis=1)
+        ends = chain[np.minimum(np.arange(1, self.n_blocks + 1), raw.steps)]
+        return _relative(chain[self.bounds[self.segment]], ends)
+
+    def initial(self, poses: np.ndarray) -> np.ndarray:
+        """The unknowns from each block's end pose in its map's frame, each feature at the mean
+        of its observations placed from their observing (base) poses."""
+        base = self.base[self.observation_block]
+        observer = np.where(base[:, None] >= 0, poses[np.maximum(base, 0)], 0.0)
+        z = self.raw.observations[self.order]
+        c, s = np.cos(observer[:, 2]), np.sin(observer[:, 2])
+        placed = observer[:, :2] + np.stack([c * z[:, 0] - s * z[:, 1], s * z[:, 0] + c * z[:, 1]], axis=1)
+        _, which, count = np.unique(self.unknown_ids, return_inverse=True, return_counts=True)
+        which = which.ravel()
+        features = np.stack([np.bincount(which, placed[:, i]) for i in range(2)], axis=1) / count[:, None]
+        return np.concatenate([poses.ravel(), features.ravel()])
+
+    def selected(self, problem: ExactProblem) -> list[np.ndarray]:
+        """Per map, the unknowns of its state [end pose, features (ascending id)]."""
+        end_block = self.bounds[1:] - 1
+        feature_map = problem.feature_ids // self.n_distinct
+        starts = np.searchsorted(feature_map, np.arange(self.segments + 1))
+        base = 3 * problem.n_maps
+        return [np.concatenate([3 * end_block[j] + np.arange(3),
+                                base + np.arange(2 * starts[j], 2 * starts[j + 1])]) for j in range(self.segments)]
+
+
+def _relative(origin: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """``poses`` (n, 3) expressed in the frames ``origin`` (n, 3)."""
+    c, s = np.cos(origin[:, 2]), np.sin(origin[:, 2])
+    d = poses[:, :2] - origin[:, :2]
+    return np.stack([c * d[:, 0] + s * d[:, 1], c * d[:, 1] - s * d[:, 0], poses[:, 2] - origin[:, 2]], axis=1)
+
+
+def _compose(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Pose ``second`` (n, 3), given in the frames ``first`` (n, 3), in the frame of ``first``'s frame."""
+    c, s = np.cos(first[:, 2]), np.sin(first[:, 2])
+    return np.stack([first[:, 0] + c * second[:, 0] - s * second[:, 1], first[:, 1] + s * second[:, 0]
+                     + c * second[:, 1], first[:, 2] + second[:, 2]], axis=1)
+
+
+@dataclass
+class _Solved:
+    """A solved layout: the problem, where the solver stopped, and how many pieces led there."""
+
+    layout: _Layout
+    problem: ExactProblem
+    minimum: Minimum
+    pieces: int = 0
+
+    def segment_costs(self) -> np.ndarray:
+        r = self.problem.residual(self.minimum.x)
+        block = np.repeat(np.arange(self.layout.n_blocks), np.diff(self.problem.row0))
+        return np.bincount(self.layout.segment[block], r * r, minlength=self.layout.segments)
+
+    def local_maps(self, label: str) -> list[LocalMap]:
+        """The maps, map j from pose j to pose j + 1 (I-SLSJF's numbering, which every map
+        format holds; the name gives the raw pose ids): end pose, features (raw ids) and the
+        full covariance over both."""
+        layout, problem = self.layout, self.problem
+        raw = layout.raw
+        selected = layout.selected(problem)
+        covariances = _covariance_blocks(problem, self.minimum.data, selected)
+        x = self.minimum.x
+        maps = []
+        for j, (chosen, covariance) in enumerate(zip(selected, covariances)):
+            pose = x[chosen[:3]].copy()
+            pose[2] = math.remainder(pose[2], 2 * math.pi)
+            features = problem.feature_ids[(chosen[3::2] - 3 * problem.n_maps) // 2] % layout.n_distinct
+            a, b = raw.pose_ids[layout.bounds[j]], raw.pose_ids[layout.bounds[j + 1]]
+            maps.append(LocalMap.from_covariance(f"{label} poses {a}-{b}", j, j + 1, pose, layout.distinct[features],
+                                                 x[chosen[3:]].reshape(-1, 2), covariance))
+        return maps
+
+
+def _solve(raw: RawData, bounds: np.ndarray, piece_steps: int, max_iterations: int, tolerance: float,
+           progress: Callable[[int, float], None] | None = None,
+           pieces: tuple[_Solved, list[LocalMap]] | None = None) -> _Solved:
+    """Solve the maps between ``bounds``: from dead reckoning when each has at most
+    ``piece_steps`` steps, else from pieces of at most that many (``pieces``: solved maps
+    whose bounds refine ``bounds``, and their local maps), joined map by map."""
+    layout = _Layout(raw, bounds)
+    problem = ExactProblem(layout.blocks, origins=layout.origins)
+    if pieces is None and np.diff(bounds).max() > piece_steps:
+        counts = -(-np.diff(bounds) // piece_steps)
+        split = np.unique(np.concatenate([np.round(np.linspace(a, b, n + 1))
+                                          for a, b, n in zip(bounds[:-1], bounds[1:], counts)])).astype(np.int64)
+        solved = _solve(raw, split, piece_steps, max_iterations, tolerance)
+        pieces = solved, solved.local_maps(f"piece of {raw.name}")
+    poses = layout.dead_reckoning() if pieces is None else _joined(*pieces, bounds)
+    found = minimise(problem, layout.initial(poses), max_iterations=max_iterations, tolerance=tolerance,
+                     progress=progress)
+    if not found.converged:
+        log.warning("%s: the local maps' solve did not converge (%s after %d iterations): chi^2 = %.10g",
+                    raw.name, found.reason, found.iterations, found.cost)
+    return _Solved(layout, problem, found, 0 if pieces is None else len(pieces[1]))
+
+
+def _joined(solved: _Solved, pieces: list[LocalMap], bounds: np.ndarray) -> np.ndarray:
+    """Each block's end pose in the frame of its map between ``bounds``, from the solved
+    ``pieces`` (map i from pose i to i + 1) joined map by map with the certified one-step join."""
+    piece_bounds = solved.layout.bounds
+    local = solved.problem.unpack(solved.minimum.x)[0]       # each block's end pose in its piece's frame
+    start_of_piece = np.zeros((len(pieces), 3))              # each piece's start in its map's frame
+    owner = np.searchsorted(bounds, piece_bounds[:-1], side="right") - 1
+    with _quiet():
+        for j in range(len(bounds) - 1):
+            members = np.flatnonzero(owner == j)
+            if len(members) > 1:
+                joined = join_sequential([pieces[i] for i in members]).global_map
+                start_of_piece[members[1:]] = joined.poses[np.searchsorted(joined.pose_ids, members[1:])]
+    return _compose(start_of_piece[solved.layout.segment], local)
+
+
+@contextlib.contextmanager
+def _quiet() -> Iterator[None]:
+    """Silence the joins of internal pieces (their warnings name pieces the user never sees)."""
+    logger = logging.getLogger("mapjoin")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def _covariance_blocks(problem: ExactProblem, data: np.ndarray, selected: list[np.ndarray]) -> list[np.ndarray]:
+    """The covariance of each set of unknowns in ``selected`` (one set per local map; every
+    unknown not in a set is a pose inside a map), from J^T J at the optimum (``data``).
+
+    With the interior poses I and the selected unknowns S, the information of S with I
+    marginalised is the Schur complement ``A_SS - A_SI A_II^-1 A_IS``; A_II is banded (each
+    pose couples with its neighbours in the chain only), so it is factorised as a band
+    matrix. The maps are independent, so one right-hand side carries the i-th unknown of
+    every map at once. Each map's covariance is the inverse of its Schur complement.
+    """
+    chosen = np.concatenate(selected)
+    sizes = np.array([len(s) for s in selected])
+    interior = np.setdiff1d(np.arange(problem.n_unknowns), chosen, assume_unique=True)
+    order = problem.position[np.concatenate([interior, chosen])]
+    A = problem.normal_matrix(data).tocsr()[order][:, order].tocsc()
+    n = len(interior)
+    inner, outer, own = A[:n, :n].tocoo(), A[:n, n:].tocsr(), A[n:, n:].tocsr()
+    if n:
+        upper = inner.col >= inner.row
+        width = int((inner.col - inner.row)[upper].max())
+        band = np.zeros((width + 1, n))
+        band[width + inner.row[upper] - inner.col[upper], inner.col[upper]] = inner.data[upper]
+        factor = scipy.linalg.cholesky_banded(band, check_finite=False)
+    probe_row = np.arange(len(chosen))
+    probe_column = np.concatenate([np.arange(k) for k in sizes])
+    first = np.concatenate([[0], np.cumsum(sizes)])
+    schur = [np.empty((k, k)) for k in sizes]
+    for low in range(0, int(sizes.max()), _PROBES):
+        high = min(low + _PROBES, int(sizes.max()))
+        probes = np.zeros((len(chosen), high - low))
+        inside = (probe_column >= low) & (probe_column < high)
+        probes[probe_row[inside], probe_column[inside] - low] = 1.0
+        block = own @ probes
+        if n:
+            block -= outer.T @ scipy.linalg.cho_solve_banded((factor, False), outer @ probes, check_finite=False)
+        for j, k in enumerate(sizes):
+            if k > low:
+                schur[j][:, low:high] = block[first[j]:first[j + 1], :min(k, high) - low]
+    return [np.linalg.inv((s + s.T) / 2) for s in schur]
+
+
+def _check(costs: np.ndarray, dofs: np.ndarray, name: str) -> None:
+    """Warn when chi^2, in all and map by map, is outside the 99.9% interval of a chi-square
+    with its degrees of freedom."""
+    # the inverse survival function (scipy.stats is slow to import)
+    from scipy.special import chdtri
+
+    tail = (1 - CHI2_LEVEL) / 2
+    total, dof = float(costs.sum()), int(dofs.sum())
+    if dof > 0:
+        low, high = chdtri(dof, 1 - tail), chdtri(dof, tail)
+        if not low <= total <= high:
+            look = "pessimistic (too large)" if total < low else "optimistic (too small), or there are outliers"
+            log.warning("%s: chi^2 = %.6g is outside the %g%% interval [%.6g, %.6g] of a chi-square with %d degrees "
+                        "of freedom (chi^2/dof = %.3f): the noise numbers look %s", name, total, 100 * CHI2_LEVEL,
+                        low, high, dof, total / dof, look)
+    if len(costs) > 1:
+        dofs = np.maximum(dofs, 0)
+        outside = np.flatnonzero((dofs > 0) & ((costs < chdtri(np.maximum(dofs, 1), 1 - tail))
+                                               | (costs > chdtri(np.maximum(dofs, 1), tail))))
+        if outside.size:
+            j = int(outside[0])
+            log.warning("%s: %d of %d local maps have chi^2 outside the %g%% interval for their degrees of freedom "
+                        "(first: map %d, chi^2 %.4g for %d)", name, outside.size, len(costs), 100 * CHI2_LEVEL,
+                        j + 1, costs[j], dofs[j])

@@ -1,0 +1,112 @@
+"""``mapjoin build``: local maps from raw odometry and feature observations."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import click
+
+from .. import formats
+from ..errors import InputError
+from ..raw import RAW_FORMATS, read_raw
+from . import common, main
+from .common import format_option, say
+
+#: maps built when neither --maps nor --poses-per-map is given (the paper's Victoria Park experiment)
+DEFAULT_MAPS = 200
+
+
+@main.command()
+@click.argument("raw_path", metavar="RAW")
+@click.option("-o", "--output", required=True, metavar="DIR",
+              help="Folder for the maps, one localmap_<k> file each (map k from pose k-1 to pose k); a file name "
+                   "with an extension, or -, gets all maps in one stream.")
+@click.option("--maps", "map_count", type=click.IntRange(min=1),
+              help=f"Cut the odometry into N maps of (nearly) equal length [default: {DEFAULT_MAPS}, or one per "
+                   "step if there are fewer steps]. --maps 1 is the full batch SLAM solution.")
+@click.option("--poses-per-map", type=click.IntRange(min=1),
+              help="Instead, a new map every K odometry steps (the last one takes what is left).")
+@format_option(formats.MAP_FORMATS, "Format of the maps [default: from the -o extension, else yaml, which keeps "
+                                    "the full covariance].")
+@click.option("--raw-format", type=click.Choice(RAW_FORMATS),
+              help="Format of RAW when its name does not tell it (.mat: vicpark, .g2o: g2o; text is recognised by "
+                   "its first tag).")
+@click.option("--global-map", "global_path", metavar="FILE",
+              help="Also write the full batch solution as a global map (.csv or .yaml): every feature and the "
+                   "maps' end poses (pose k ends map k), with marginal covariances; compare it with `mapjoin join "
+                   "DIR` (`mapjoin compare`). Every pose: --poses-per-map 1.")
+@click.pass_context
+def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None, poses_per_map: int | None,
+          output_format: str | None, raw_format: str | None, global_path: str | None) -> None:
+    """Build local maps from raw odometry and feature observations.
+
+    The feature ids must be known (data association). RAW is I-SLSJF's preprocessed Victoria Park file (VicPark_clean_data.mat), iSAM text
+    (ODOMETRY/LANDMARK lines, covariances) or g2o 2D (VERTEX_SE2, VERTEX_XY, EDGE_SE2,
+    EDGE_SE2_XY, information matrices); README, "Raw data", says how each format's noise
+    numbers are read. The odometry is cut into consecutive maps; each map's full
+    least-squares problem is solved (its start pose fixed as the origin) with refine's
+    sparse Gauss-Newton, and written with its end pose, features and full covariance.
+    The summary gives chi^2 and its degrees of freedom; a warning says when they disagree.
+
+    \b
+    Examples:
+      mapjoin build ../shared/data/VicPark_200_local_maps/VicPark_clean_data.mat -o vicpark/
+      mapjoin join vicpark/ --refine -o vicpark.csv
+      mapjoin build ../shared/data/victoria_park_raw/victoria_park_isam.txt -o isam/ --maps 1
+      mapjoin build run.g2o -o maps.yaml --poses-per-map 50 --global-map batch.csv
+    """
+    from .. import build as builder  # scipy.sparse: imported only when building
+
+    if map_count is not None and poses_per_map is not None:
+        raise click.UsageError("give --maps or --poses-per-map, not both")
+    stream = output == "-" or os.path.splitext(output)[1] != ""
+    fmt = common.output_format(output, output_format, "yaml") if stream else output_format or "yaml"
+    start = time.perf_counter()
+    raw = read_raw(raw_path, raw_format)
+    reading = time.perf_counter() - start
+    if map_count is None and poses_per_map is None:
+        map_count = min(DEFAULT_MAPS, raw.steps)
+    bounds = builder.cut(raw.steps, map_count, poses_per_map)
+    planned = ([output] if output != "-" else []) if stream else _planned_folder(output, fmt, len(bounds) - 1)
+    formats.check_not_overwriting([raw_path], planned + ([global_path] if global_path else []))
+
+    def report(iteration: int, cost: float) -> None:
+        say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
+
+    result = builder.build(raw, bounds, progress=report if ctx.obj["verbose"] else None,
+                           with_batch=global_path is not None)
+    writing = time.perf_counter()
+    written = formats.write_maps(result.maps, output if stream else os.path.join(output, ""), fmt)
+    writing = time.perf_counter() - writing
+    dof = result.degrees_of_freedom
+    pieces = f", from {result.pieces} pieces joined" if result.pieces else ""
+    files = f" ({len(written)} files)" if len(written) > 1 else ""
+    say(ctx, f"built {len(result.maps)} local maps from {raw.name} ({raw.steps} steps, {len(raw.observations)} "
+             f"observations): chi^2 {result.cost:.6f} for {int(dof.sum())} degrees of freedom (per map "
+             f"{result.costs.min():.4g} to {result.costs.max():.4g}), {result.iterations} iterations{pieces}; "
+             f"{time.perf_counter() - start:.3f} s in all (reading {reading:.3f} s, solve {result.seconds:.3f} s, "
+             f"covariances {result.covariance_seconds:.3f} s, writing {writing:.3f} s) -> "
+             f"{output if output != '-' else 'stdout'}{files}")
+    if global_path:
+        solution = result.batch
+        formats.write_global_map(solution.global_map, global_path, common.output_format(global_path, None, "csv"))
+        say(ctx, f"batch solution: chi^2 {solution.cost:.6f} (half: {solution.cost / 2:.6f}) for "
+                 f"{solution.degrees_of_freedom} degrees of freedom, {solution.iterations} iterations "
+                 f"({solution.reason}), {solution.seconds + solution.covariance_seconds:.3f} s -> {global_path}")
+
+
+def _planned_folder(folder: str, fmt: str, count: int) -> list[str]:
+    """The files the maps go to; local maps already in the folder that they would not replace are an
+    error (they would be joined with the new ones)."""
+    planned = [os.path.join(folder, formats.map_file_name(k, fmt)) for k in range(1, count + 1)]
+    if os.path.isdir(folder):
+        try:
+            present = formats.resolve_inputs([folder])
+        except InputError:                           # no local maps in it
+            present = []
+        stale = sorted(set(map(os.path.normpath, present)) - set(map(os.path.normpath, planned)))
+        if stale:
+            raise InputError(f"holds local maps this build would not replace (e.g. {os.path.basename(stale[0])}), "
+                             "which would be joined with the new ones; choose a new or empty folder", folder)
+    return planned
