@@ -990,7 +990,21 @@ def _local_map_from_yaml(document: _YamlDocument, number: int | None) -> LocalMa
 
 
 def _dump_local_yaml(maps: Sequence[LocalMap]) -> str:
-    return _yaml_text([_local_map_document(local_map) for local_map in maps], explicit_start=True)
+    """A YAML stream of local maps; covariance rows are formatted here, as PyYAML's float representer
+    (a Python call per number) would take seconds for a few hundred maps."""
+    parts = []
+    for local_map in maps:
+        parts.append(_yaml_text([_local_map_document(local_map)], explicit_start=True))
+        if local_map.covariance is not None:
+            parts.append("covariance:\n" + "".join(f"- [{', '.join(map(_yaml_float, row))}]\n"
+                                                   for row in local_map.covariance.tolist()))
+    return "".join(parts)
+
+
+def _yaml_float(value: float) -> str:
+    """A finite float as PyYAML writes it: repr, with a dot before an exponent (YAML 1.1 needs one)."""
+    text = repr(value)
+    return text.replace("e", ".0e") if "e" in text and "." not in text else text
 
 
 def _local_map_document(local_map: LocalMap) -> dict[str, Any]:
@@ -1002,8 +1016,6 @@ def _local_map_document(local_map: LocalMap) -> dict[str, Any]:
         "features": _yaml_records({"id": local_map.feature_ids, "x": local_map.features[:, 0],
                                    "y": local_map.features[:, 1], "var": local_map.feature_variances}),
     }
-    if local_map.covariance is not None:
-        document["covariance"] = local_map.covariance.tolist()
     return document
 
 
