@@ -229,7 +229,7 @@ def test_tree_levels_pair_neighbours(count):
         assert record.a == pytest.approx(single.a, rel=1e-12) and record.phi == pytest.approx(single.phi, abs=1e-12)
     # the last join: the first 2^(L-1) maps (a full subtree) on the left, all the rest on the right
     split = 2 ** (len(expected) - 1)
-    rest = maps[split].name if split == count - 1 else f"{maps[split].name}..{maps[-1].name}"
+    rest = maps[split].name if split == count - 1 else f"{maps[split].name} to {maps[-1].name}"
     last = result.report[-1]
     assert (last.map, last.start_id, last.end_id) == (rest, maps[split].start_id, maps[-1].end_id)
 

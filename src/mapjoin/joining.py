@@ -55,7 +55,7 @@ STRATEGIES: tuple[str, ...] = ("sequential", "tree")
 class JoinRecord:
     """One join of the report: what came in, Theorem 2's certificate, and the optimum found.
 
-    ``map`` names the right piece (its first and last local map when it is a run of them),
+    ``map`` names the right piece ("first to last" local map when it is a run of them),
     ``start_id``/``end_id`` its first and last pose; ``level`` is the join's depth (the
     join number for the sequential strategy). ``phi`` is phi*, the orientation of right's
     start pose in left's frame, ``cost`` f_1(phi*); ``phi2``/``cost2`` the other local
@@ -180,7 +180,7 @@ def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray,
     for i, f in enumerate(found):
         name, start_id, end_id, size = describe(i)
         if not common[i]:
-            log.warning("%s shares no feature with the maps joined before it: it is placed by its "
+            log.warning("%s shares no feature with the maps it is joined onto: it is placed by its "
                         "start pose alone (no correction of the map so far)", name)
         other_cost = None
         if f.other_phi is not None:
@@ -268,7 +268,7 @@ class _Labels:
 
     def run(self, first: int, last: int) -> str:
         """The name of maps first .. last."""
-        return self.names[first] if first == last else f"{self.names[first]}..{self.names[last]}"
+        return self.names[first] if first == last else f"{self.names[first]} to {self.names[last]}"
 
 
 def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
