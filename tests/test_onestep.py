@@ -119,10 +119,10 @@ def test_batch_constants_equal_dense_formulas_problem_by_problem(problems, rando
     owner = np.concatenate([np.full(len(p.z0), i) for i, p in enumerate(problems)]).astype(np.intp)
     order = np.array(random.sample(range(len(owner)), len(owner)), dtype=np.intp)
     stack = lambda name: np.concatenate([getattr(p, name) for p in problems])[order]  # noqa: E731
-    k = batch_constants(owner[order], len(problems), stack("z0").reshape(-1, 2), stack("var0"),
-                        stack("z1").reshape(-1, 2), stack("var1"),
-                        np.array([p.odometry[:2] for p in problems]),
-                        np.array([p.odometry_variances for p in problems]))
+    points = lambda xy: xy.reshape(-1, 2) @ [1, 1j]  # noqa: E731
+    k = batch_constants(owner[order], len(problems), points(stack("z0")), stack("var0"), points(stack("z1")),
+                        stack("var1"), points(np.array([p.odometry[:2] for p in problems])),
+                        np.array([p.odometry_variances[0] for p in problems]))
     for i, problem in enumerate(problems):
         dense = Dense(problem)
         c0, a0, phi0 = dense.constants()

@@ -108,10 +108,11 @@ def check_chain(maps: Sequence[LocalMap]) -> None:
 class _Pieces:
     """Consecutive pieces of the chain as flat arrays, each in the frame of its own start pose.
 
-    Feature rows are grouped by piece (``feature_piece`` non-decreasing) and sorted by
-    compact id within a piece; pose rows are the end poses of the piece's maps, in chain
-    order, so a piece's last pose row is its end pose. ``first``/``last`` are the indices
-    of each piece's first and last local map.
+    Points are complex numbers ``x + iy`` (a rotation is one product). Feature rows are
+    grouped by piece (``feature_piece`` non-decreasing) and sorted by compact id within a
+    piece; pose rows are the end poses of the piece's maps, in chain order, so a piece's
+    last pose row is its end pose. ``first``/``last`` are the indices of each piece's first
+    and last local map.
     """
 
     feature_piece: np.ndarray
@@ -119,7 +120,8 @@ class _Pieces:
     features: np.ndarray
     feature_variances: np.ndarray
     pose_piece: np.ndarray
-    poses: np.ndarray
+    pose_xy: np.ndarray
+    pose_phi: np.ndarray
     pose_variances: np.ndarray
     first: np.ndarray
     last: np.ndarray
@@ -133,7 +135,7 @@ class _Pieces:
         f = slice(*np.searchsorted(self.feature_piece, [start, stop]))
         p = slice(*np.searchsorted(self.pose_piece, [start, stop]))
         return _Pieces(self.feature_piece[f] - start, self.feature_ids[f], self.features[f],
-                       self.feature_variances[f], self.pose_piece[p] - start, self.poses[p],
+                       self.feature_variances[f], self.pose_piece[p] - start, self.pose_xy[p], self.pose_phi[p],
                        self.pose_variances[p], self.first[start:stop], self.last[start:stop])
 
 
@@ -141,13 +143,12 @@ class _Pieces:
 class _Joins:
     """The outcome of ``count`` independent joins (left i + right i), as arrays over the joins.
 
-    ``rows`` are the joins' report entries: JoinRecord's fields after ``join``, which is
-    numbered once all joins are known.
+    ``turn`` is ``exp(i phi*)`` and ``t`` the translation (complex); ``rows`` are the joins'
+    report entries: JoinRecord's fields after ``join``, which is numbered once all joins are known.
     """
 
     phi: np.ndarray
-    cos: np.ndarray
-    sin: np.ndarray
+    turn: np.ndarray
     t: np.ndarray
     phi_variance: np.ndarray
     t_variance: np.ndarray
@@ -155,26 +156,27 @@ class _Joins:
 
 
 def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
-                 var1: np.ndarray, odometry: np.ndarray, odometry_variances: np.ndarray, solver: Solver,
+                 var1: np.ndarray, odometry_xy: np.ndarray, odometry_phi: np.ndarray,
+                 odometry_variances: np.ndarray, solver: Solver,
                  describe: Callable[[int], tuple[str, int, int, int]], level: int) -> _Joins:
     """Algorithm 1 for ``count`` joins at once: Theorem 1's constants as arrays, then the 1-D solve of each.
 
-    Common feature j belongs to join ``pair[j]``; ``odometry``/``odometry_variances`` are the
-    end pose of each left piece and its spherical variances. ``describe(i)`` names join i's
-    right piece (name, start id, end id, its number of features) for the report.
+    Common feature j belongs to join ``pair[j]``; ``odometry_*`` are the end pose of each left
+    piece and its spherical variances. ``describe(i)`` names join i's right piece (name,
+    start id, end id, its number of features) for the report.
     """
-    k = batch_constants(pair, count, z0, var0, z1, var1, odometry[:, :2], odometry_variances)
-    z_phi, p_phi = odometry[:, 2], odometry_variances[:, 1]
+    k = batch_constants(pair, count, z0, var0, z1, var1, odometry_xy, odometry_variances[:, 0])
+    p_phi = odometry_variances[:, 1]
     found = [global_orientation(*args, solver) for args in zip(k.a0.tolist(), k.phi0.tolist(),
-                                                                 z_phi.tolist(), p_phi.tolist())]
+                                                                 odometry_phi.tolist(), p_phi.tolist())]
     phi = np.array([f.phi for f in found])
-    cos, sin = np.cos(phi), np.sin(phi)
-    information = k.a0 * (cos * np.cos(k.phi0) + sin * np.sin(k.phi0)) + 1.0 / p_phi  # f_1''(phi*) / 2
+    information = k.a0 * np.cos(phi - k.phi0) + 1.0 / p_phi  # f_1''(phi*) / 2
     positive = information > 0
     phi_variance = np.where(positive, 1.0 / np.where(positive, information, 1.0), p_phi)
-    t = k.mean0 - _rotate(k.mean1, cos, sin)
-    t_variance = 1.0 / k.weight + (k.mean1 * k.mean1).sum(axis=1) * phi_variance / 2
-    costs = linked_cost(k, z_phi, p_phi, phi).tolist()
+    turn = np.exp(1j * phi)
+    t = k.mean0 - turn * k.mean1
+    t_variance = 1.0 / k.weight + _squared(k.mean1) * phi_variance / 2
+    costs = linked_cost(k, odometry_phi, p_phi, phi).tolist()
     common = np.bincount(pair, minlength=count).tolist()
     rows = []
     for i, f in enumerate(found):
@@ -184,10 +186,10 @@ def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray,
                         "start pose alone (no correction of the map so far)", name)
         other_cost = None
         if f.other_phi is not None:
-            other_cost = float(linked_cost(_one(k, i), z_phi[i], p_phi[i], f.other_phi))
+            other_cost = float(linked_cost(_one(k, i), odometry_phi[i], p_phi[i], f.other_phi))
         rows.append((name, start_id, end_id, common[i], size - common[i], f.minima.a, f.minima.c_phi,
                      f.minima.count, f.phi, costs[i], f.other_phi, other_cost, f.iterations, level))
-    return _Joins(phi, cos, sin, t, phi_variance, t_variance, rows)
+    return _Joins(phi, turn, t, phi_variance, t_variance, rows)
 
 
 def _report(rows: Sequence[tuple]) -> tuple[JoinRecord, ...]:
@@ -200,33 +202,28 @@ def _one(k: Constants, i: int) -> Constants:
     return Constants(k.c0[i], k.a0[i], k.phi0[i], k.mean0[i], k.mean1[i], k.weight[i])
 
 
-def _rotate(points: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
-    """R(phi_i) p_i for each row, given cos(phi_i) and sin(phi_i)."""
-    x, y = points[:, 0], points[:, 1]
-    return np.column_stack([cos * x - sin * y, sin * x + cos * y])
+def _squared(points: np.ndarray) -> np.ndarray:
+    """|z|^2 of complex points."""
+    return points.real**2 + points.imag**2
 
 
-def _place(joins: _Joins, pair: np.ndarray, points: np.ndarray, variances: np.ndarray
+def _place(joins: _Joins, pair: np.ndarray | int, points: np.ndarray, variances: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray]:
     """Points of right pieces (join ``pair[j]``) in left's frame, ``t + R(phi) z``, with their spherical variances."""
-    placed = _rotate(points, joins.cos[pair], joins.sin[pair]) + joins.t[pair]
-    spread = joins.t_variance[pair] + variances + (points * points).sum(axis=1) * joins.phi_variance[pair] / 2
-    return placed, spread
-
-
-def _place_poses(joins: _Joins, pair: np.ndarray, poses: np.ndarray, variances: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Poses of right pieces in left's frame, with their (var_xy, var_phi)."""
-    xy, var_xy = _place(joins, pair, poses[:, :2], variances[:, 0])
-    phi = wrap(joins.phi[pair] + poses[:, 2])
-    return np.column_stack([xy, phi]), np.column_stack([var_xy, joins.phi_variance[pair] + variances[:, 1]])
+    placed = joins.turn[pair] * points + joins.t[pair]
+    return placed, joins.t_variance[pair] + variances + _squared(points) * joins.phi_variance[pair] / 2
 
 
 def _fuse(z0: np.ndarray, var0: np.ndarray, placed: np.ndarray, var1: np.ndarray
           ) -> tuple[np.ndarray, np.ndarray]:
     """Theorem 1's X_L: each common feature as the information-weighted mean of both estimates."""
     w0, w1 = 1.0 / var0, 1.0 / var1
-    return (w0[:, None] * z0 + w1[:, None] * placed) / (w0 + w1)[:, None], 1.0 / (w0 + w1)
+    return (w0 * z0 + w1 * placed) / (w0 + w1), 1.0 / (w0 + w1)
+
+
+def _complex(xy: np.ndarray) -> np.ndarray:
+    """(n, 2) x/y rows as complex numbers."""
+    return xy[:, 0] + 1j * xy[:, 1]
 
 
 def _prepare(maps: Sequence[LocalMap], covariance: CovarianceMode) -> tuple[np.ndarray, _Pieces]:
@@ -239,8 +236,9 @@ def _prepare(maps: Sequence[LocalMap], covariance: CovarianceMode) -> tuple[np.n
     piece = np.repeat(np.arange(len(maps)), sizes)
     order = np.lexsort((compact, piece))  # maps' ids are unique but not necessarily sorted
     index = np.arange(len(maps))
-    pieces = _Pieces(piece, compact[order], np.concatenate([m.features for m in maps])[order],
-                     feature_variances[order], index, np.array([m.end_pose for m in maps]), pose_variances,
+    end_poses = np.array([m.end_pose for m in maps])
+    pieces = _Pieces(piece, compact[order], _complex(np.concatenate([m.features for m in maps]))[order],
+                     feature_variances[order], index, _complex(end_poses), end_poses[:, 2], pose_variances,
                      index, index)
     return feature_ids, pieces
 
@@ -248,9 +246,11 @@ def _prepare(maps: Sequence[LocalMap], covariance: CovarianceMode) -> tuple[np.n
 def _global_map(maps: Sequence[LocalMap], feature_ids: np.ndarray, pieces: _Pieces, covariance: str,
                 solver: str, strategy: str) -> GlobalMap:
     return GlobalMap(
-        feature_ids=feature_ids[pieces.feature_ids], features=pieces.features,
+        feature_ids=feature_ids[pieces.feature_ids],
+        features=np.column_stack([pieces.features.real, pieces.features.imag]),
         feature_variances=pieces.feature_variances, pose_ids=np.array([m.end_id for m in maps]),
-        poses=pieces.poses, pose_variances=pieces.pose_variances,
+        poses=np.column_stack([pieces.pose_xy.real, pieces.pose_xy.imag, pieces.pose_phi]),
+        pose_variances=pieces.pose_variances,
         provenance=Provenance(tuple(m.name for m in maps), covariance, solver, strategy))
 
 
@@ -285,12 +285,13 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     first_row = np.unique(pieces.feature_ids, return_index=True)[1]  # compact ids are 0 .. n-1
     seen_before = first_row[pieces.feature_ids] < offsets[pieces.feature_piece]
 
-    positions = np.zeros((len(feature_ids), 2))
+    positions = np.zeros(len(feature_ids), dtype=complex)
     position_variances = np.zeros(len(feature_ids))
-    poses, pose_variances = pieces.poses.copy(), pieces.pose_variances.copy()
+    pose_xy, pose_phi = pieces.pose_xy.copy(), pieces.pose_phi.copy()
+    pose_variances = pieces.pose_variances.copy()
     rows = pieces.feature_ids[:offsets[1]]
     positions[rows], position_variances[rows] = pieces.features[:offsets[1]], pieces.feature_variances[:offsets[1]]
-    rows: list[tuple] = []
+    report: list[tuple] = []
     if progress:
         progress(1)
     for k in range(1, len(maps)):
@@ -300,25 +301,27 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         shared, new = ids[common], ~common
         local_map = maps[k]
         joins = _solve_joins(np.zeros(len(shared), dtype=np.intp), 1, positions[shared],
-                             position_variances[shared], z[common], var[common], poses[k - 1:k],
-                             pose_variances[k - 1:k], solver,
+                             position_variances[shared], z[common], var[common], pose_xy[k - 1:k],
+                             pose_phi[k - 1:k], pose_variances[k - 1:k], solver,
                              lambda _: (local_map.name, local_map.start_id, local_map.end_id, local_map.size), k)
-        pair = np.zeros(len(ids), dtype=np.intp)
-        placed, spread = _place(joins, pair, z, var)
+        placed, spread = _place(joins, 0, z, var)
         positions[shared], position_variances[shared] = _fuse(positions[shared], position_variances[shared],
                                                               placed[common], var[common])
         positions[ids[new]], position_variances[ids[new]] = placed[new], spread[new]
-        poses[k - 1] = (*joins.t[0], joins.phi[0])
+        end = slice(k, k + 1)
+        pose_xy[end], pose_variances[end, 0] = _place(joins, 0, pose_xy[end], pose_variances[end, 0])
+        pose_phi[end] = wrap(joins.phi + pose_phi[end])
+        pose_variances[end, 1] += joins.phi_variance
+        pose_xy[k - 1], pose_phi[k - 1] = joins.t[0], joins.phi[0]
         pose_variances[k - 1] = (joins.t_variance[0], joins.phi_variance[0])
-        poses[k:k + 1], pose_variances[k:k + 1] = _place_poses(joins, np.zeros(1, dtype=np.intp), poses[k:k + 1],
-                                                               pose_variances[k:k + 1])
-        rows += joins.rows
+        report += joins.rows
         if progress:
             progress(k + 1)
     pieces = replace(pieces, feature_piece=np.zeros(len(feature_ids), dtype=np.intp),
                      feature_ids=np.arange(len(feature_ids)), features=positions,
-                     feature_variances=position_variances, poses=poses, pose_variances=pose_variances)
-    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"), _report(rows))
+                     feature_variances=position_variances, pose_xy=pose_xy, pose_phi=pose_phi,
+                     pose_variances=pose_variances)
+    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"), _report(report))
 
 
 def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
@@ -337,7 +340,6 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
 
     ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1  # each piece's end row
     left_end = ends[0:2 * count:2]
-    right_pieces = np.arange(1, 2 * count, 2)
     sizes = np.bincount(pieces.feature_piece, minlength=pieces.count)
 
     def describe(i: int) -> tuple[str, int, int, int]:
@@ -345,8 +347,8 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
         return labels.run(first, last), labels.start_ids[first], labels.end_ids[last], int(sizes[2 * i + 1])
 
     joins = _solve_joins(parent[rc], count, pieces.features[lc], pieces.feature_variances[lc],
-                         pieces.features[rc], pieces.feature_variances[rc], pieces.poses[left_end],
-                         pieces.pose_variances[left_end], solver, describe, level)
+                         pieces.features[rc], pieces.feature_variances[rc], pieces.pose_xy[left_end],
+                         pieces.pose_phi[left_end], pieces.pose_variances[left_end], solver, describe, level)
 
     features, feature_variances = pieces.features.copy(), pieces.feature_variances.copy()
     placed, spread = _place(joins, parent[right_rows], pieces.features[right_rows],
@@ -359,14 +361,16 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
     kept = np.flatnonzero(keep)
     order = kept[np.argsort(parent[kept] * span + pieces.feature_ids[kept], kind="stable")]
 
-    poses, pose_variances = pieces.poses.copy(), pieces.pose_variances.copy()
-    moved = np.flatnonzero(np.isin(pieces.pose_piece, right_pieces))
-    poses[moved], pose_variances[moved] = _place_poses(joins, pieces.pose_piece[moved] // 2, poses[moved],
-                                                       pose_variances[moved])
-    poses[left_end, :2], poses[left_end, 2] = joins.t, joins.phi
+    pose_xy, pose_phi, pose_variances = pieces.pose_xy.copy(), pieces.pose_phi.copy(), pieces.pose_variances.copy()
+    moved = np.flatnonzero((pieces.pose_piece % 2 == 1) & (pieces.pose_piece < 2 * count))
+    pair = pieces.pose_piece[moved] // 2
+    pose_xy[moved], pose_variances[moved, 0] = _place(joins, pair, pose_xy[moved], pose_variances[moved, 0])
+    pose_phi[moved] = wrap(joins.phi[pair] + pose_phi[moved])
+    pose_variances[moved, 1] += joins.phi_variance[pair]
+    pose_xy[left_end], pose_phi[left_end] = joins.t, joins.phi
     pose_variances[left_end] = np.column_stack([joins.t_variance, joins.phi_variance])
     joined = _Pieces(parent[order], pieces.feature_ids[order], features[order], feature_variances[order],
-                     pieces.pose_piece // 2, poses, pose_variances, pieces.first[0::2],
+                     pieces.pose_piece // 2, pose_xy, pose_phi, pose_variances, pieces.first[0::2],
                      np.append(pieces.last[1::2], pieces.last[-1:]) if pieces.count % 2 else pieces.last[1::2])
     return joined, joins.rows
 
@@ -431,8 +435,8 @@ def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:
 
     return _Pieces(np.concatenate([np.full(len(p.feature_ids), b) for b, p in blocks]), stack("feature_ids"),
                    stack("features"), stack("feature_variances"),
-                   np.concatenate([np.full(len(p.poses), b) for b, p in blocks]), stack("poses"),
-                   stack("pose_variances"), stack("first"), stack("last"))
+                   np.concatenate([np.full(len(p.pose_phi), b) for b, p in blocks]), stack("pose_xy"),
+                   stack("pose_phi"), stack("pose_variances"), stack("first"), stack("last"))
 
 
 def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection",

@@ -105,36 +105,44 @@ class Constants:
 
 def constants(problem: OneStepProblem) -> Constants:
     """c0, a0, phi0 of Theorem 1 in O(n) (see the module docstring for the derivation)."""
-    k = batch_constants(np.zeros(len(problem.z0), dtype=np.intp), 1, problem.z0, problem.var0, problem.z1,
-                        problem.var1, problem.odometry[None, :2], problem.odometry_variances[None, :1])
-    return Constants(float(k.c0[0]), float(k.a0[0]), float(k.phi0[0]), k.mean0[0], k.mean1[0],
-                     float(k.weight[0]))
+    def points(xy: np.ndarray) -> np.ndarray:
+        return xy[..., 0] + 1j * xy[..., 1]
+
+    k = batch_constants(np.zeros(len(problem.z0), dtype=np.intp), 1, points(problem.z0), problem.var0,
+                        points(problem.z1), problem.var1, points(problem.odometry[None, :2]),
+                        problem.odometry_variances[:1])
+    mean0, mean1 = complex(k.mean0[0]), complex(k.mean1[0])
+    return Constants(float(k.c0[0]), float(k.a0[0]), float(k.phi0[0]), np.array([mean0.real, mean0.imag]),
+                     np.array([mean1.real, mean1.imag]), float(k.weight[0]))
 
 
 def batch_constants(problem_of: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
-                    var1: np.ndarray, odometry: np.ndarray, odometry_variances: np.ndarray) -> Constants:
+                    var1: np.ndarray, odometry: np.ndarray, odometry_variance: np.ndarray) -> Constants:
     """Theorem 1's constants of ``count`` one-step problems at once, as arrays of length ``count``.
 
-    Common feature j belongs to problem ``problem_of[j]`` (any order, a problem may have none);
-    ``odometry`` (count x 2, the x/y of O) and ``odometry_variances[:, 0]`` (var_o) give each
-    problem's odometry point pair ``(O_xy, 0)`` with weight ``1 / var_o``, appended as one more pair.
+    Points are complex numbers ``x + iy`` (and so are the means returned). Common feature j
+    belongs to problem ``problem_of[j]`` (any order, a problem may have none); ``odometry``
+    (the x/y of each problem's O) and ``odometry_variance`` (var_o) give its odometry point
+    pair ``(O_xy, 0)`` with weight ``1 / var_o``, appended as one more pair. With complex
+    points ``A + iB = sum w q0 conj(q1)``.
     """
     group = np.concatenate([problem_of, np.arange(count)])
-    weights = 1.0 / np.concatenate([var0 + var1, odometry_variances[:, 0]])
+    weights = 1.0 / np.concatenate([var0 + var1, odometry_variance])
     p0 = np.concatenate([z0, odometry])
-    p1 = np.concatenate([z1, np.zeros((count, 2))])
+    p1 = np.concatenate([z1, np.zeros(count, dtype=complex)])
 
     def total(values: np.ndarray) -> np.ndarray:
         return np.bincount(group, weights * values, count)
 
+    def complex_total(values: np.ndarray) -> np.ndarray:
+        return total(values.real) + 1j * total(values.imag)
+
     weight = np.bincount(group, weights, count)
-    mean0 = np.column_stack([total(p0[:, 0]), total(p0[:, 1])]) / weight[:, None]
-    mean1 = np.column_stack([total(p1[:, 0]), total(p1[:, 1])]) / weight[:, None]
+    mean0, mean1 = complex_total(p0) / weight, complex_total(p1) / weight
     q0, q1 = p0 - mean0[group], p1 - mean1[group]
-    c0 = total((q0 * q0 + q1 * q1).sum(axis=1))
-    along = total((q0 * q1).sum(axis=1))
-    across = total(q0[:, 1] * q1[:, 0] - q0[:, 0] * q1[:, 1])
-    return Constants(c0, np.hypot(along, across), np.arctan2(across, along), mean0, mean1, weight)
+    c0 = total(q0.real**2 + q0.imag**2 + q1.real**2 + q1.imag**2)
+    moment = complex_total(q0 * q1.conj())
+    return Constants(c0, np.abs(moment), np.angle(moment), mean0, mean1, weight)
 
 
 def cost(problem: OneStepProblem, phi, consts: Constants | None = None):
