@@ -161,6 +161,24 @@ def test_shell_pipeline_simulate_join():
     assert "Traceback" not in result.stderr
 
 
+def test_check_minima_batch_reads_a_join_report_and_its_own_output(tmp_path):
+    """A report of `join --report` is a batch, and so is check-minima's output (.csv, .yaml, .json): the
+    same a and c_phi come back, with the minima count the join certified."""
+    examples = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "sim20")
+    report = tmp_path / "joins.csv"
+    assert run("-q", "join", examples, "-o", str(tmp_path / "g.csv"), "--report", str(report)).exit_code == 0
+    joins = rows(report.read_text())
+    for source in ("joins.csv", "joins.yaml", "joins.json"):
+        if source != "joins.csv":
+            assert run("check-minima", "--batch", str(report), "-o", str(tmp_path / source)).exit_code == 0
+        result = run("check-minima", "--batch", str(tmp_path / source))
+        assert result.exit_code == 0, result.stderr
+        table = rows(result.stdout)
+        assert [(r["a"], r["c_phi"], r["minima"]) for r in table] == \
+            [(r["a"], r["c_phi"], r["minima"]) for r in joins]
+    assert len(joins) == 19
+
+
 def test_check_minima_batch_agrees_with_brute_force_on_a_large_random_grid(tmp_path):
     from theorem_oracles import brute_count
 

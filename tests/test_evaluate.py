@@ -435,7 +435,8 @@ def test_evaluate_command_json_on_a_real_simulation_folder(data_dir, tmp_path):
 def test_evaluate_command_errors_are_one_line(simulated, data_dir):
     result = CliRunner().invoke(main, ["evaluate", str(simulated / "global.csv"), "--truth",
                                        str(data_dir / "VicPark_200_local_maps")])
-    assert result.exit_code == 1 and "store_robotTrue.mat: missing" in result.output
+    assert result.exit_code == 1 and "VicPark_200_local_maps: holds no ground truth; expected truth.yaml" in \
+        result.output
     assert len(result.output.strip().splitlines()) == 1
     assert CliRunner().invoke(main, ["evaluate", "-", "--truth", "-"]).exit_code == 2
     result = CliRunner().invoke(main, ["evaluate", str(simulated / "global.csv")])

@@ -441,12 +441,62 @@ def test_global_yaml_provenance_is_optional():
     assert global_map.feature_covariances is None and global_map.features.shape == (0, 2)
 
 
-def test_minima_queries(tmp_path):
-    assert formats.read_minima_queries(io.StringIO("a,c_phi\n5,2.5\n0.5,1\n")) == [(5.0, 2.5), (0.5, 1.0)]
-    path = tmp_path / "queries.txt"
-    path.write_text("a,c_phi\n-1,2\n")
-    with pytest.raises(InputError, match=re.escape(f"{path}, line 2, column a: expected a non-negative")):
-        formats.read_minima_queries(path)
+def minima_columns(table: formats.MinimaTable) -> tuple[list, list, list | None]:
+    return table.a.tolist(), table.c_phi.tolist(), None if table.join is None else table.join.tolist()
+
+
+@pytest.mark.parametrize("name, text", [
+    ("t.csv", "minima,c_phi,map,a\n1,2.5,\"x, y\",5\n2,1,z,0.5\n"),       # any column order, more columns
+    ("t.txt", "a,c_phi\n5,2.5\n\n0.5,1\n"),                                # other extension: CSV by content
+    ("t.yaml", "# a batch\n- {a: 5, c_phi: 2.5, minima: 2}\n- {c_phi: 1, a: 0.5}\n"),
+    ("t.json", '[{"a": 5, "c_phi": 2.5}, {"a": 0.5, "c_phi": 1.0}]'),
+    ("t.txt", '[{"a": 5, "c_phi": 2.5}, {"a": 0.5, "c_phi": 1.0}]'),         # JSON by content
+])
+def test_minima_table_without_a_join_column(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text)
+    for source in (path, io.StringIO(text)):
+        assert minima_columns(formats.read_minima_table(source)) == ([5.0, 0.5], [2.5, 1.0], None)
+
+
+@pytest.mark.parametrize("text", ["c_phi,join,a\n2.5,7,5\n1,9,0.5\n",
+                                  "- {join: 7, a: 5, c_phi: 2.5}\n- {join: 9, a: 0.5, c_phi: 1}\n"])
+def test_minima_table_with_a_join_column_from_stdin(text, monkeypatch):
+    monkeypatch.setattr("sys.stdin", io.StringIO(text))
+    table = formats.read_minima_table("-")
+    assert table.source == "<stdin>" and minima_columns(table) == ([5.0, 0.5], [2.5, 1.0], [7, 9])
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("q.txt", "a,c_phi\n-1,2\n", "q.txt, line 2, column a: expected a non-negative finite number, got '-1'"),
+    ("q.csv", "\na,phi\n1,2\n", "q.csv, line 2: expected a header with the columns a and c_phi"),
+    ("q.csv", "a,c_phi,join\n1,2,x\n", "q.csv, line 2, column join: expected a non-negative integer"),
+    ("q.csv", "a,c_phi\n1,2\n3\n", "q.csv, line 3: expected 2 fields, got 1"),
+    ("q.csv", "a,c_phi\n", "q.csv: expected at least one row with a and c_phi, found none"),
+    ("q.yaml", "- {join: 1, a: 1, c_phi: 0}\n- {a: 2, c_phi: 0}\n", "q.yaml, line 2, field [1].join: missing"),
+    ("q.yaml", "- {a: 1, c_phi: .nan}\n", "q.yaml, line 1, field [0].c_phi: expected a finite number"),
+    ("q.json", '{"a": 1, "c_phi": 0}', "q.json, line 1: expected a list"),
+    ("q.json", '[[1, 0]]', "q.json, line 1, field [0]: expected a mapping"),
+    ("q.mat", "a,c_phi\n1,2\n", "q.mat: expected a table with the columns a and c_phi (.csv, .yaml or .json)"),
+])
+def test_minima_table_errors_name_the_file_line_and_column(tmp_path, name, text, message):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(InputError, match=re.escape(os.path.join(tmp_path, message))):
+        formats.read_minima_table(path)
+
+
+def test_truth_of_a_simulate_folder_and_of_a_folder_without_truth(tmp_path, monkeypatch):
+    for name, fmt in (("truth.yml", "yaml"), ("truth.csv", "csv")):
+        folder = tmp_path / name.replace(".", "_")
+        folder.mkdir()
+        formats.write_truth(EXAMPLE_TRUTH, folder / name, fmt)
+        assert_same(formats.read_truth(folder), EXAMPLE_TRUTH, skip=("name",))
+        assert formats.read_truth(str(folder)).name == str(folder / name)
+    monkeypatch.setattr("sys.stdin", io.StringIO(written(formats.write_truth, EXAMPLE_TRUTH, "yaml")))
+    assert_same(formats.read_truth("-"), EXAMPLE_TRUTH, skip=("name",))
+    with pytest.raises(InputError, match=re.escape(f"{tmp_path}: holds no ground truth; expected truth.yaml")):
+        formats.read_truth(tmp_path)
 
 
 # ---------------------------------------------------------------------------------------
@@ -791,7 +841,7 @@ TEXT_READERS = [
     *(lambda text, fmt=fmt: formats.read_map_file(io.StringIO(text), fmt) for fmt in ("yaml", "csv", None)),
     *(lambda text, fmt=fmt: formats.read_global_map(io.StringIO(text), fmt) for fmt in ("yaml", "csv")),
     *(lambda text, fmt=fmt: formats.read_truth(io.StringIO(text), fmt) for fmt in ("yaml", "csv")),
-    lambda text: formats.read_minima_queries(io.StringIO(text)),
+    lambda text: formats.read_minima_table(io.StringIO(text)),
 ]
 VALID_TEXTS = [
     VALID_YAML, VALID_CSV, covariance_yaml("[[1, 0, 0], [0, 1, 0], [0, 0, 1]]"),

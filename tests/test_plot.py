@@ -142,7 +142,7 @@ def test_shell_pipelines_into_the_plot_commands(tmp_path):
 @functools.cache
 def drawn_region() -> list[Polygon]:
     """The two-minima polygons as drawn by plot-minima's figure (a up to 1e3)."""
-    points = figures.JoinPoints("test", np.array([1, 2]), np.array([0.5, 400.0]), np.array([0.0, 3.0]))
+    points = formats.MinimaTable("test", np.array([0.5, 400.0]), np.array([0.0, 3.0]))
     figure = figures.minima_figure(points)
     polygons = artists(figure, "two-minima")
     assert len(polygons) == 2 and figure.axes[0].get_ylim()[1] == 1000
@@ -199,13 +199,19 @@ def test_report_points_are_every_join_and_two_minima_are_highlighted(tmp_path):
     joins = tmp_path / "joins.yaml"
     joins.write_text("- {join: 7, a: 5.0, c_phi: 2.5}\n- {join: 9, a: 203570, c_phi: -0.0028}\n"
                      "- {join: 12, a: 0.0, c_phi: 1.0}\n")
-    points = figures.read_join_points(str(joins))
+    points = formats.read_minima_table(str(joins))
     figure = figures.minima_figure(points)
     two, one = artists(figure, "minima-2")[0].get_offsets(), artists(figure, "minima-1")[0].get_offsets()
     np.testing.assert_array_equal(two, [[2.5, 5.0]])                 # 5 sin 2.5 = 2.99 < pi: two minima
     assert len(one) == 2 and one[0][1] == 203570
     assert one[1][1] == figure.axes[0].get_ylim()[0] > 0             # a = 0 on the bottom edge of the log axis
     assert [t.get_text() for t in figure.axes[0].texts if t.get_text() == "7"] == ["7"]
+
+
+def test_a_batch_without_join_column_has_its_problems_numbered_by_row():
+    figure = figures.minima_figure(formats.MinimaTable("batch.csv", np.array([0.5, 5.0]), np.array([1.0, 2.5])))
+    assert [t.get_text() for t in figure.axes[0].texts if t.get_text().isdigit()] == ["2"]   # row 2: two minima
+    assert figure.axes[0].get_title() == "batch.csv: 2 problems, 1 with two minima"
 
 
 def test_a_report_reads_the_same_in_every_format_and_from_stdin(simulated_folder, tmp_path, monkeypatch):
@@ -215,8 +221,8 @@ def test_a_report_reads_the_same_in_every_format_and_from_stdin(simulated_folder
         formats.write_table(report, target)
         for source in (str(target), "-"):
             monkeypatch.setattr(sys, "stdin", io.StringIO(target.read_text()))
-            points = figures.read_join_points(source)
-            assert points.what == "join" and points.source == ("<stdin>" if source == "-" else str(target))
+            points = formats.read_minima_table(source)
+            assert points.source == ("<stdin>" if source == "-" else str(target))
             np.testing.assert_array_equal(points.join, [r.join for r in report])
             np.testing.assert_array_equal(points.a, [r.a for r in report])
             np.testing.assert_array_equal(points.c_phi, [r.c_phi for r in report])
@@ -285,7 +291,8 @@ def test_join_problem_is_the_problem_join_sequential_solved(simulated_folder):
      "bad_header.csv, line 1: expected a header with the columns a and c_phi"),
     (["plot-minima", "{tmp}/bad_value.csv", "-o", "{tmp}/m.png"], 1,
      "bad_value.csv, line 3, column c_phi: expected a finite number, got 'abc'"),
-    (["plot-minima", "{tmp}/negative.csv", "-o", "{tmp}/m.png"], 1, "line 2, column a: expected a finite number >= 0"),
+    (["plot-minima", "{tmp}/negative.csv", "-o", "{tmp}/m.png"], 1,
+     "line 2, column a: expected a non-negative finite number"),
     (["plot-minima", "{tmp}/no_c.yaml", "-o", "{tmp}/m.png"], 1, "no_c.yaml, line 2, field [1].c_phi: missing"),
     (["plot-minima", "{tmp}/empty.json", "-o", "{tmp}/m.png"], 1, "empty.json: expected at least one row"),
     (["plot", "{tmp}/old.png", "-o", "{tmp}/old.png"], 1, "old.png: is an input file"),

@@ -152,6 +152,7 @@ from .maps import SYMMETRY_TOLERANCE, GlobalMap, GroundTruth, LocalMap, Provenan
 __all__ = [
     "MAP_FORMATS",
     "TABLE_FORMATS",
+    "MinimaTable",
     "atomic_write",
     "check_not_overwriting",
     "detect_format",
@@ -160,7 +161,7 @@ __all__ = [
     "read_global_map",
     "read_map_file",
     "read_maps",
-    "read_minima_queries",
+    "read_minima_table",
     "read_truth",
     "read_truth_folder",
     "resolve_inputs",
@@ -177,6 +178,7 @@ TABLE_FORMATS: tuple[str, ...] = ("csv", "yaml", "json")
 STDIN = "-"
 #: I-SLSJF's ``StabNoise``: added to the end-pose variances of a map whose robot did not move.
 STAB_NOISE = 1e-6
+_TRUTH_FILES = ("truth.yaml", "truth.yml", "truth.csv")  # what `mapjoin simulate` writes into its folder
 
 _EXTENSIONS = {".yaml": "yaml", ".yml": "yaml", ".csv": "csv", ".mat": "mat", ".json": "json", ".g2o": "g2o"}
 _FORMATS = ("yaml", "csv", "mat", "linearslam", "json", "g2o")
@@ -313,7 +315,18 @@ def write_truth(truth: GroundTruth, target: Source, format: str | None = None) -
 
 
 def read_truth(source: Source, format: str | None = None) -> GroundTruth:
-    """Read ground truth written by :func:`write_truth`."""
+    """Ground truth: a file written by :func:`write_truth` (or ``-``, a stream), the folder ``mapjoin simulate``
+    wrote it into (``truth.yaml``, ``.yml`` or ``.csv`` inside), or an I-SLSJF simulation folder
+    (``store_robotTrue.mat``: :func:`read_truth_folder`)."""
+    if isinstance(source, (str, os.PathLike)) and os.fspath(source) != STDIN and os.path.isdir(source):
+        folder = os.fspath(source)
+        if os.path.exists(os.path.join(folder, "store_robotTrue.mat")):
+            return read_truth_folder(folder)
+        files = [os.path.join(folder, name) for name in _TRUTH_FILES]
+        source = next((path for path in files if os.path.isfile(path)), None)
+        if source is None:
+            raise InputError(f"holds no ground truth; expected {', '.join(_TRUTH_FILES)} (from `mapjoin "
+                             "simulate`) or store_robotTrue.mat and store_beaconsTrue.mat (I-SLSJF)", folder)
     return _read(source, format, _source_name(source), _TRUTH_CODECS, "ground truth")
 
 
@@ -378,9 +391,34 @@ def read_truth_folder(folder: str | Path, maps: int | None = None) -> GroundTrut
                        np.column_stack([(poses[:, :2] - (x0, y0)) @ to_start.T, phi]), name=folder)
 
 
-def read_minima_queries(source: Source) -> list[tuple[float, float]]:
-    """``(a, C_phi)`` pairs of Theorem 2 from a CSV with header ``a,c_phi`` (``-``: stdin)."""
-    return _read(source, "csv", _source_name(source), _QUERY_CODECS, "minima queries")
+@dataclasses.dataclass(frozen=True)
+class MinimaTable:
+    """Theorem 2's ``a`` and ``C_phi`` of each row of a table; ``join`` the join numbers when it has a join column."""
+
+    source: str
+    a: np.ndarray
+    c_phi: np.ndarray
+    join: np.ndarray | None = None
+
+
+def read_minima_table(source: Source) -> MinimaTable:
+    """The columns ``a`` and ``c_phi`` (and ``join``) of any table holding them: a ``join --report`` output,
+    a ``check-minima --batch`` input or output.
+
+    CSV, YAML or JSON by the extension; otherwise (``-``: stdin, ``.txt``, ...) YAML/JSON when
+    the text starts with ``[``, ``{``, ``-``, ``#`` or ``%``, else CSV.
+    """
+    name = _source_name(source)
+    fmt = _EXTENSIONS.get(os.path.splitext(name)[1].lower())
+    if fmt is not None and fmt not in TABLE_FORMATS:
+        raise InputError(f"expected a table with the columns a and c_phi (.csv, .yaml or .json), not {fmt}", name)
+    text = _read_text(source, name)
+    if fmt is None:
+        fmt = "yaml" if text.lstrip()[:1] in ("[", "{", "-", "#", "%") else "csv"
+    table = _read_minima_csv(text, name) if fmt == "csv" else _read_minima_records(text, name)
+    if not len(table.a):
+        raise InputError("expected at least one row with a and c_phi, found none", name)
+    return table
 
 
 def write_table(rows: Sequence[Any], target: Source, format: str | None = None) -> None:
@@ -459,6 +497,17 @@ def _read(source: Source, fmt: str | None, name: str, codecs: Mapping[str, _Code
     if isinstance(source, (str, os.PathLike)) and os.fspath(source) != STDIN:
         codec = _codec(detect_format(os.fspath(source), fmt), codecs, what, name)
         return codec.read(_read_file(os.fspath(source), name, codec.binary), name)
+    text = _read_text(source, name)
+    codec = _codec(detect_format(name, fmt) if fmt else _sniff(text, name), codecs, what, name)
+    if codec.binary:
+        raise InputError("a .mat file cannot be read from a text stream; give its path", name)
+    return codec.read(text, name)
+
+
+def _read_text(source: Source, name: str) -> str:
+    """The UTF-8 text of a path, ``-`` (stdin) or a stream (text or bytes), without a byte-order mark."""
+    if isinstance(source, (str, os.PathLike)) and os.fspath(source) != STDIN:
+        return _read_file(os.fspath(source), name, False)
     stream = sys.stdin if isinstance(source, (str, os.PathLike)) else source
     try:
         text = stream.read()
@@ -466,11 +515,7 @@ def _read(source: Source, fmt: str | None, name: str, codecs: Mapping[str, _Code
             text = text.decode("utf-8")
     except UnicodeDecodeError as error:
         raise _not_utf8(error, name) from None
-    text = text.removeprefix("\ufeff")
-    codec = _codec(detect_format(name, fmt) if fmt else _sniff(text, name), codecs, what, name)
-    if codec.binary:
-        raise InputError("a .mat file cannot be read from a text stream; give its path", name)
-    return codec.read(text, name)
+    return text.removeprefix("\ufeff")
 
 
 def _read_file(path: str, name: str, binary: bool) -> str | bytes:
@@ -809,9 +854,12 @@ def _stack(columns: Mapping[str, np.ndarray | None], *keys: str) -> np.ndarray:
 
 
 class _CsvTable:
-    """A CSV file as a 2-D object array of cells with the line of each row."""
+    """A CSV file as a 2-D object array of cells with the line of each row.
 
-    def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]]):
+    ``headers`` are the headers accepted; None accepts any (the reader checks its columns).
+    """
+
+    def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]] | None):
         self.source = source
         reader = csv.reader(io.StringIO(text, newline=""))
         rows: list[list[str]] = []
@@ -823,11 +871,12 @@ class _CsvTable:
                     lines.append(reader.line_num)
         except csv.Error as error:
             raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num}") from None
-        expected = " or ".join(",".join(header) for header in headers)
         header = tuple(cell.strip() for cell in rows[0]) if rows else ()
-        if header not in headers:
+        self.header_line = lines[0] if lines else 1
+        if headers is not None and header not in headers:
+            expected = " or ".join(",".join(header) for header in headers)
             raise InputError(f"expected the header {expected}, got {','.join(header) or 'nothing'}", source,
-                             f"line {lines[0] if lines else 1}")
+                             f"line {self.header_line}")
         self.header = header
         self.columns = {name: index for index, name in enumerate(header)}
         body = rows[1:]
@@ -1346,14 +1395,31 @@ def _dump_truth_csv(truth: GroundTruth) -> str:
 # Minima queries and tables
 
 
-_QUERY_HEADER = ("a", "c_phi")
+_MINIMA_COLUMNS = {"a": "nonnegative", "c_phi": "number"}  # column -> kind of its values; "join" ("id") optional
 
 
-def _read_queries_csv(text: str, source: str) -> list[tuple[float, float]]:
-    table = _CsvTable(text, source, [_QUERY_HEADER])
-    a = table.values(("a",), None, "nonnegative")[:, 0]
-    c_phi = table.values(("c_phi",), None, "number")[:, 0]
-    return list(zip(a.tolist(), c_phi.tolist()))
+def _read_minima_csv(text: str, source: str) -> MinimaTable:
+    """A CSV table whose header names a and c_phi (in any order, among any other columns)."""
+    table = _CsvTable(text, source, None)
+    if not set(_MINIMA_COLUMNS) <= set(table.header):
+        raise InputError(f"expected a header with the columns a and c_phi (as `mapjoin join --report` writes "
+                         f"them), got {','.join(table.header) or 'nothing'}", source, f"line {table.header_line}")
+    a, c_phi = (table.values((column,), None, kind)[:, 0] for column, kind in _MINIMA_COLUMNS.items())
+    join = table.values(("join",), None, "id")[:, 0] if "join" in table.header else None
+    return MinimaTable(source, a, c_phi, join)
+
+
+def _read_minima_records(text: str, source: str) -> MinimaTable:
+    """A YAML or JSON list of mappings with a and c_phi, and join in every one or none (JSON is read as
+    YAML, so that errors name lines)."""
+    document = _yaml_document(text, source)
+    records = document.get((), "list")
+    for row in range(len(records)):
+        document.get((row,), "mapping")
+    kinds = {**_MINIMA_COLUMNS, **({"join": "id"} if any("join" in record for record in records) else {})}
+    columns = {key: [document.get((row, key), kind) for row in range(len(records))] for key, kind in kinds.items()}
+    join = np.array(columns["join"], dtype=np.int64) if "join" in columns else None
+    return MinimaTable(source, np.array(columns["a"], dtype=float), np.array(columns["c_phi"], dtype=float), join)
 
 
 def _table(rows: Sequence[Any]) -> tuple[list[str], list[list[Any]]]:
@@ -1660,7 +1726,6 @@ _TRUTH_CODECS: dict[str, _Codec] = {
     "csv": _Codec(_read_truth_csv, _dump_truth_csv),
     "yaml": _Codec(_read_truth_yaml, _dump_truth_yaml),
 }
-_QUERY_CODECS: dict[str, _Codec] = {"csv": _Codec(_read_queries_csv, None)}
 _TABLE_CODECS: dict[str, _Codec] = {
     "csv": _Codec(None, _dump_table_csv),
     "yaml": _Codec(None, _dump_table_yaml),

@@ -12,16 +12,14 @@ data against the theory and against brute force.
 
 from __future__ import annotations
 
-import csv
 import io
 import itertools
 import math
 import os
-import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,14 +36,12 @@ if TYPE_CHECKING:
 __all__ = [
     "FIGURE_FORMATS",
     "JoinCurve",
-    "JoinPoints",
     "figure_format",
     "join_curve",
     "join_figure",
     "join_problem",
     "map_figure",
     "minima_figure",
-    "read_join_points",
     "save",
     "two_minima_region",
 ]
@@ -182,98 +178,6 @@ def _draw_ellipses(ax: Axes, global_map: GlobalMap, colour: str) -> str:
 # Theorem 2: the (C_phi, a) plane
 
 
-@dataclass(frozen=True)
-class JoinPoints:
-    """The (a, C_phi) of each join of a report (or of each problem of a batch), with its join number.
-
-    ``what`` names the rows: ``join`` for a report, ``problem`` for a table without a join column.
-    """
-
-    source: str
-    join: np.ndarray
-    a: np.ndarray
-    c_phi: np.ndarray
-    what: str = "join"
-
-
-def read_join_points(source: str) -> JoinPoints:
-    """``a`` and ``c_phi`` of every row of a table: a join report (``join --report``) or ``check-minima --batch``.
-
-    CSV, YAML or JSON by the extension (``-``: stdin, JSON/YAML if it starts with ``[``,
-    ``-`` or ``{``, else CSV). Rows are numbered by their ``join`` column when there is one.
-    """
-    name = "<stdin>" if source == "-" else source
-    if source == "-":
-        text = sys.stdin.read()
-        start = text.lstrip()[:1]
-        fmt = "yaml" if start in ("[", "-", "{") else "csv"
-    else:
-        fmt = formats.detect_format(source)
-        if fmt not in formats.TABLE_FORMATS:
-            raise InputError(f"expected a report table (.csv, .yaml or .json), not {fmt}", name)
-        text = formats._read_file(source, name, binary=False)
-    rows, numbered = _csv_rows(text, name) if fmt == "csv" else _record_rows(text, name)
-    if not rows:
-        raise InputError("expected at least one row with a and c_phi, found none", name)
-    join, a, c_phi = (np.array(column) for column in zip(*rows))
-    return JoinPoints(name, join.astype(np.int64), a.astype(float), c_phi.astype(float),
-                      "join" if numbered else "problem")
-
-
-def _row(values: Mapping[str, Any], number: int, error: Callable[[str, str], InputError]
-         ) -> tuple[int, float, float]:
-    """``(join, a, c_phi)`` of one row (numbers, or strings from CSV); the join is ``number`` when absent.
-
-    ``error(field, message)`` makes the InputError naming the row's line and the field.
-    """
-    def field(key: str, expected: str, valid: Callable[[float], bool]) -> float:
-        value = values.get(key)
-        if value is None or value == "":
-            raise error(key, "missing; a report needs the columns a and c_phi (as `mapjoin join --report` "
-                             "writes them)")
-        try:
-            parsed = math.nan if isinstance(value, bool) else float(value)
-        except (TypeError, ValueError):
-            parsed = math.nan
-        if not (math.isfinite(parsed) and valid(parsed)):
-            raise error(key, f"expected {expected}, got {value!r:.40}")
-        return parsed
-
-    join = number if values.get("join") in (None, "") else field("join", "an integer", lambda v: v == round(v))
-    return (int(join), field("a", "a finite number >= 0", lambda v: v >= 0),
-            field("c_phi", "a finite number", lambda v: True))
-
-
-def _csv_rows(text: str, name: str) -> tuple[list[tuple[int, float, float]], bool]:
-    """Rows of a CSV table, and whether it has a join column."""
-    reader = csv.DictReader(io.StringIO(text, newline=""))
-    try:
-        header = reader.fieldnames or []
-        missing = [key for key in ("a", "c_phi") if key not in header]
-        if missing:
-            raise InputError(f"expected a header with the columns a and c_phi (as written by `mapjoin join "
-                             f"--report`), got {','.join(header) or 'nothing'}", name, "line 1")
-        rows = [_row(row, number, lambda key, message: InputError(
-                    message, name, f"line {reader.line_num}, column {key}"))
-                for number, row in enumerate(reader, start=1)]
-        return rows, "join" in header
-    except csv.Error as error:
-        raise InputError(f"malformed CSV: {error}", name, f"line {reader.line_num}") from None
-
-
-def _record_rows(text: str, name: str) -> tuple[list[tuple[int, float, float]], bool]:
-    """Rows of a YAML or JSON list of mappings (JSON is read as YAML, so errors name lines), and
-    whether they have a join field."""
-    document = formats._yaml_document(text, name)
-    records = document.get((), "list")
-    rows = []
-    for number in range(len(records)):
-        document.get((number,), "mapping")
-        rows.append(_row(records[number], number + 1,
-                               lambda key, message, n=number: document.error((n, key), message)))
-    return rows, all("join" in record for record in records)
-
-
 def two_minima_region(a_max: float, samples: int = 400) -> tuple[np.ndarray, np.ndarray]:
     """Theorem 2's two-minima region of the (C_phi, a) plane up to ``a_max``: two closed polygons.
 
@@ -296,9 +200,13 @@ def two_minima_region(a_max: float, samples: int = 400) -> tuple[np.ndarray, np.
     return positive, positive * (-1.0, 1.0)
 
 
-def minima_figure(points: JoinPoints) -> Figure:
-    """Every join of a report in the (C_phi, a) plane over Theorem 2's two-minima region (the paper's Fig. 3)."""
+def minima_figure(points: formats.MinimaTable) -> Figure:
+    """Every join of a report in the (C_phi, a) plane over Theorem 2's two-minima region (the paper's Fig. 3).
+
+    A table without a join column (a ``check-minima --batch``) has problems numbered by row.
+    """
     mpl = _matplotlib()
+    what, numbers = ("join", points.join) if points.join is not None else ("problem", np.arange(1, len(points.a) + 1))
     counts = np.array([analyse_minima(a, c).count for a, c in zip(points.a.tolist(), points.c_phi.tolist())],
                       dtype=np.int64)
     positive = points.a[points.a > 0]
@@ -319,11 +227,11 @@ def minima_figure(points: JoinPoints) -> Figure:
     for count, style in ((1, {"marker": "o", "s": 16, "color": "#2166ac", "alpha": 0.7, "linewidths": 0}),
                          (2, {"marker": "D", "s": 40, "color": "#b2182b", "edgecolors": "k", "linewidths": 0.6})):
         chosen = counts == count
-        label = f"{_plural(int(chosen.sum()), points.what)} with {'one minimum' if count == 1 else 'two minima'}"
+        label = f"{_plural(int(chosen.sum()), what)} with {'one minimum' if count == 1 else 'two minima'}"
         ax.scatter(points.c_phi[chosen], shown[chosen], zorder=3, clip_on=False, gid=f"minima-{count}",
                    label=label, **style)
-    for join, c, a in list(zip(points.join[counts == 2], points.c_phi[counts == 2], shown[counts == 2]))[:30]:
-        ax.annotate(str(join), (c, a), textcoords="offset points", xytext=(5, 4), fontsize="x-small")
+    for number, c, a in list(zip(numbers[counts == 2], points.c_phi[counts == 2], shown[counts == 2]))[:30]:
+        ax.annotate(str(number), (c, a), textcoords="offset points", xytext=(5, 4), fontsize="x-small")
     if (points.a < bottom).any():
         ax.text(0.99, 0.01, "a = 0 drawn at the bottom edge", transform=ax.transAxes, ha="right",
                 fontsize="x-small", color="0.35")
@@ -333,7 +241,7 @@ def minima_figure(points: JoinPoints) -> Figure:
     ax.xaxis.set_major_formatter(mpl.ticker.FixedFormatter(["$-\\pi$", "$-\\pi/2$", "0", "$\\pi/2$", "$\\pi$"]))
     ax.set_xlabel("$C_\\varphi = \\mathrm{wrap}(z_\\varphi - \\varphi_0)$ (rad)")
     ax.set_ylabel("$a = a_0\\, p_\\varphi$ (dimensionless, log scale)")
-    ax.set_title(f"{points.source}: {_plural(len(counts), points.what)}, {int((counts == 2).sum())} with two "
+    ax.set_title(f"{points.source}: {_plural(len(counts), what)}, {int((counts == 2).sum())} with two "
                  "minima", fontsize="medium")
     ax.grid(True, which="major", linewidth=0.4, alpha=0.5)
     figure.legend(loc="outside lower center", fontsize="small", frameon=False, ncols=3)

@@ -21,7 +21,8 @@ from .common import covariance_option, input_format_option, output_option, solve
               help="a = a0 * p_phi of Theorem 2 (>= 0).")
 @click.option("--c-phi", "c_phi", type=float, callback=lambda c, p, v: _finite_option(p, v),
               help="C_phi = wrap(z_phi - phi0), radians.")
-@click.option("--batch", metavar="FILE", help="CSV with columns a,c_phi (header optional); - for stdin.")
+@click.option("--batch", metavar="FILE", help="A table (.csv, .yaml or .json) with columns a and c_phi, e.g. "
+                                             "a report of `mapjoin join --report`; - for stdin.")
 @output_option("Batch result (.csv, .yaml or .json); - for stdout.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable JSON instead of the human report.")
 @covariance_option
@@ -37,7 +38,8 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     (16)-(21) say which, and Algorithm 1 locates them.
 
     Give --a and --c-phi; or two local maps MAP_A MAP_B (MAP_B starting at MAP_A's end
-    pose), whose join is analysed; or --batch FILE with rows a,c_phi.
+    pose), whose join is analysed; or --batch FILE, any table with columns a and c_phi
+    (a report of `mapjoin join --report` too).
 
     Exit code: 0 when every problem has one minimum, 3 when any has two, 1 on bad input.
 
@@ -47,13 +49,14 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
       mapjoin check-minima --a 5 --c-phi 2.5 --json
       mapjoin check-minima maps/localmap_1.yaml maps/localmap_2.yaml
       printf 'a,c_phi\\n5,2.5\\n0.5,1\\n' | mapjoin check-minima --batch -
+      mapjoin join examples/sim20 --report - -o g.csv | mapjoin check-minima --batch - -o minima.yaml
     """
     modes = [bool(maps), a is not None or c_phi is not None, batch is not None]
     if sum(modes) != 1:
         raise click.UsageError("give exactly one of: --a A --c-phi C; two map files; --batch FILE")
     if batch is not None:
-        rows = [summarise_minima(ra, rc, solver) for ra, rc in formats.read_minima_queries(
-            batch)]
+        table = formats.read_minima_table(batch)
+        rows = [summarise_minima(ra, rc, solver) for ra, rc in zip(table.a.tolist(), table.c_phi.tolist())]
         formats.write_table(rows, output, common.output_format(output, None, "csv"))
         ctx.exit(EXIT_TWO_MINIMA if any(r.minima == 2 for r in rows) else 0)
     preamble: list[str] = []

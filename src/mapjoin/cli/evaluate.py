@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 
 import click
 
@@ -14,8 +13,6 @@ from ..evaluate import ALIGNMENTS, Evaluation
 from ..evaluate import evaluate as evaluate_map
 from ..maps import GlobalMap, GroundTruth
 from . import main
-
-_TRUTH_FILES = ("truth.yaml", "truth.yml", "truth.csv")  # what `mapjoin simulate` writes into its folder
 
 
 @main.command()
@@ -45,7 +42,7 @@ def evaluate(map_path: str, truth_path: str, align: str, as_json: bool) -> None:
     if map_path == "-" and truth_path == "-":
         raise click.UsageError("MAP and --truth cannot both be - (stdin can be read only once)")
     global_map = formats.read_global_map(map_path)
-    truth = _read_truth(truth_path)
+    truth = formats.read_truth(truth_path)
     result = evaluate_map(global_map, truth, align)
     covariances = _covariance_source(global_map)
     if as_json:
@@ -55,19 +52,6 @@ def evaluate(map_path: str, truth_path: str, align: str, as_json: bool) -> None:
                                for k, v in document.items()}, indent=2))
         return
     click.echo("\n".join(_human(global_map, truth, result, covariances)))
-
-
-def _read_truth(path: str) -> GroundTruth:
-    """A truth file, the folder `mapjoin simulate` wrote it into, or an I-SLSJF simulation folder."""
-    if path == "-":
-        return formats.read_truth("-")
-    if os.path.isdir(path) and not os.path.exists(os.path.join(path, "store_robotTrue.mat")):
-        for name in _TRUTH_FILES:
-            if os.path.isfile(os.path.join(path, name)):
-                return formats.read_truth(os.path.join(path, name))
-    if os.path.isdir(path):
-        return formats.read_truth_folder(path)
-    return formats.read_truth(path)
 
 
 def _covariance_source(global_map: GlobalMap) -> str:

@@ -14,7 +14,6 @@ from .. import formats
 from .. import plot as figures
 from . import main
 from .common import covariance_option, input_format_option, inputs_argument, say, solver_option
-from .evaluate import _read_truth
 
 figure_option = click.option("-o", "--output", required=True, metavar="FILE",
                               help="Figure file; its extension chooses the format: .png, .svg or .pdf.")
@@ -56,7 +55,7 @@ def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str
         raise click.UsageError("stdin (-) can be read only once")
     formats.check_not_overwriting([*maps, *([truth_path] if truth_path else [])], [output])
     global_maps = [formats.read_global_map(path) for path in maps]
-    truth = _read_truth(truth_path) if truth_path else None
+    truth = formats.read_truth(truth_path) if truth_path else None
     names = labels or [global_map.name for global_map in global_maps]
     figures.save(figures.map_figure(global_maps, names, truth, ellipses), output)
     say(ctx, f"plotted {len(global_maps)} map{'s' if len(global_maps) > 1 else ''}"
@@ -84,9 +83,10 @@ def plot_minima(ctx: click.Context, report: str, output: str) -> None:
     """
     figures.figure_format(output)
     formats.check_not_overwriting([report], [output])
-    points = figures.read_join_points(report)
-    figures.save(figures.minima_figure(points), output)
-    say(ctx, f"plotted {len(points.a)} {points.what}{'s' if len(points.a) != 1 else ''} -> {output}")
+    table = formats.read_minima_table(report)
+    figures.save(figures.minima_figure(table), output)
+    what = "join" if table.join is not None else "problem"
+    say(ctx, f"plotted {len(table.a)} {what}{'s' if len(table.a) != 1 else ''} -> {output}")
 
 
 @main.command("plot-join")
