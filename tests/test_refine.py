@@ -145,6 +145,24 @@ def test_normal_equations_and_newton_term_equal_dense_references(real):
     np.testing.assert_allclose(A + S, hessian, rtol=0, atol=1e-7 * np.abs(hessian).max())
 
 
+def test_uncoupled_features_leave_the_normal_matrix_sparser_and_still_exact():
+    """Maps without a full covariance (independent features) couple no two of their features:
+    those pairs are left out of J^T J's pattern, which still equals the dense J^T J."""
+    full, diagonal = sim_maps(6), spherical(sim_maps(6))
+    sizes = []
+    for maps in (full, diagonal):
+        problem = ExactProblem(maps)
+        x = problem.pack(join_sequential(maps).global_map) + np.random.default_rng(3).normal(0, 0.1,
+                                                                                           problem.n_unknowns)
+        data = problem.linearise(x)[0]
+        J = problem.jacobian(x).toarray()
+        order = problem.position
+        A = problem.normal_matrix(data).toarray()[np.ix_(order, order)]
+        np.testing.assert_allclose(A, J.T @ J, rtol=0, atol=1e-12 * np.abs(A).max())
+        sizes.append(problem.normal_matrix(data).nnz)
+    assert sizes[1] < sizes[0]
+
+
 def test_cost_is_chi2_of_each_maps_full_covariance_and_spherical_without():
     maps = sim_maps(5)
     guess = join_sequential(maps).global_map

@@ -429,7 +429,8 @@ def _covariance_blocks(problem: ExactProblem, data: np.ndarray, selected: list[n
         for j, k in enumerate(sizes):
             if k > low:
                 schur[j][:, low:high] = block[first[j]:first[j + 1], :min(k, high) - low]
-    return [np.linalg.inv((s + s.T) / 2) for s in schur]
+    covariances = [np.linalg.inv((s + s.T) / 2) for s in schur]
+    return [(c + c.T) / 2 for c in covariances]     # exactly symmetric (LocalMap then takes it as is)
 
 
 def _check(costs: np.ndarray, dofs: np.ndarray, name: str) -> None:

@@ -123,6 +123,7 @@ class _Group:
     rows: np.ndarray          # (G, d) residual rows (map order) of the reordered entries
     columns: np.ndarray       # (G, w) unknowns of the Jacobian block's columns
     nodes: np.ndarray         # (G, m + 2) nodes [pose k, features, base pose]
+    coupled: np.ndarray       # (G, m + 2, m + 2) node pairs whose block of J_k^T J_k can be non-zero
     rotated: tuple = ()       # parts of P_k^-1 = W^T W, see ExactProblem.linearise
     block_offset: int = 0     # where the group's J_k^T J_k blocks start in the flat buffer
     gradient_offset: int = 0  # where its J_k^T r_k start
@@ -257,7 +258,7 @@ class ExactProblem:
             nodes = np.concatenate([ks[:, None], N + fidx, b[:, None]], axis=1)
             rows = self.row0[ks][:, None] + local
             self.groups.append(_Group(ks, b, has_base, fidx, whitening, measurement[rows], rows, columns, nodes,
-                                      rotated))
+                                      _coupled(information), rotated))
         self._position = None
 
     # ---- packing ----------------------------------------------------------------------
@@ -351,12 +352,13 @@ class ExactProblem:
         N, n = self.n_maps, self.n_features
         n_nodes = N + n
         node_size = np.concatenate([np.full(N, 3), np.full(n, 2)])
-        # node pattern: one clique per map
+        # node pattern: per map, the node pairs its information couples (a clique for a full covariance)
         keys = []
         for group in self.groups:
             nodes = group.nodes
             w = nodes.shape[1]
-            keys.append((np.repeat(nodes, w, axis=1) * n_nodes + np.tile(nodes, (1, w))).ravel())
+            pairs = np.repeat(nodes, w, axis=1) * n_nodes + np.tile(nodes, (1, w))
+            keys.append(pairs[group.coupled.reshape(len(nodes), -1)])
         natural, inverse = np.unique(np.concatenate(keys), return_inverse=True)
         col, row = natural // n_nodes, natural % n_nodes
         # ordering: minimum degree on the node graph. The values make the matrix a weighted
@@ -433,10 +435,13 @@ class ExactProblem:
             m = m2 - 2
             local_node = np.concatenate([[0], 1 + np.arange(m), [0], 1 + np.arange(m), [0], [m + 1] * 3])
             local_offset = np.concatenate([[0], np.zeros(m, int), [1], np.ones(m, int), [2], [0, 1, 2]])
-            # slot[g, a, b]: the entry of column node a, row node b; t[g, i, j]: of row i, column j
-            t = slot.reshape(G, m2, m2)[:, local_node[None, :], local_node[:, None]]
+            # slot[g, a, b]: the entry of column node a, row node b (-1: uncoupled); t[g, i, j]: of row i, column j
+            full = np.full((G, m2, m2), -1, dtype=np.int64)
+            full[group.coupled] = slot
+            t = full[:, local_node[None, :], local_node[:, None]]
             where = position[group.columns]
-            at = indptr[where][:, None, :] + row_offset[t] + local_offset[None, :, None]
+            # an uncoupled pair's (zero) entries go to a spare slot past the end, then dropped
+            at = np.where(t >= 0, indptr[where][:, None, :] + row_offset[t] + local_offset[None, :, None], self._nnz)
             rows, cols = _piece_pairs(m + 1)
             lower = where[:, rows] >= where[:, cols]      # the entry of the pair on or below the diagonal
             pieces = np.where(lower, at[:, rows, cols], at[:, cols, rows])
@@ -553,11 +558,11 @@ class ExactProblem:
                 h[:, d + 2] = np.einsum("gp,gp->g", mx, lx) + np.einsum("gp,gp->g", my, ly)
                 h *= base
                 extra.append(h.ravel())
-        data = np.bincount(self._targets, buffer, minlength=self._nnz)[self._from_lower]
+        data = np.bincount(self._targets, buffer, minlength=self._nnz + 1)[self._from_lower]
         gradient = np.bincount(self._gradient_columns, gradient_buffer, minlength=self.n_unknowns)
         if not curvature:
             return data, gradient, cost
-        second = np.bincount(self._angle_targets, np.concatenate(extra), minlength=self._nnz)[self._from_lower]
+        second = np.bincount(self._angle_targets, np.concatenate(extra), minlength=self._nnz + 1)[self._from_lower]
         return data, gradient, cost, second
 
     def normal_matrix(self, data: np.ndarray) -> sp.csc_matrix:
@@ -868,6 +873,23 @@ def _selected_inverse(structure: _Supernodes, Lrow: np.ndarray, Lcol: np.ndarray
     if at is None:
         raise np.linalg.LinAlgError("a wanted entry of the inverse is outside the factor's pattern")
     return result[st.block_offset[J] + (cols - st.start[J]) * (st.size[J] + st.below[J]) + at]
+
+
+def _coupled(information: np.ndarray) -> np.ndarray:
+    """(G, m + 2, m + 2): which node pairs [pose k, features, base] of each map's block of
+    J^T J can be non-zero, from the map's information matrix (G, d, d) in the order [x of
+    the points, y of the points, phi]: two of its own nodes couple only through a non-zero
+    information entry (independent observations, as raw data has, do not couple); the
+    base pose couples with every node."""
+    G, d, _ = information.shape
+    p = (d - 1) // 2
+    magnitude = np.abs(information)
+    xy = magnitude[:, :2 * p, :2 * p].reshape(G, 2, p, 2, p).sum(axis=(1, 3))      # point by point
+    xy[:, 0, :] += magnitude[:, 2 * p, :2 * p].reshape(G, 2, p).sum(axis=1)        # phi is pose k's
+    xy[:, :, 0] += magnitude[:, :2 * p, 2 * p].reshape(G, 2, p).sum(axis=1)
+    coupled = np.ones((G, p + 1, p + 1), dtype=bool)
+    coupled[:, :p, :p] = xy > 0
+    return coupled
 
 
 def _triangular_inverse(L: np.ndarray) -> np.ndarray:
