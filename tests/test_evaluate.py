@@ -18,7 +18,7 @@ from mapjoin import formats
 from mapjoin.cli import main
 from mapjoin.errors import InputError
 from mapjoin.evaluate import compare, evaluate, nees_bounds
-from mapjoin.formats import _mat_variables
+from mapjoin.formats import mat_variables
 from mapjoin.joining import join_sequential
 from mapjoin.maps import GlobalMap, GroundTruth
 from mapjoin.onestep import wrap
@@ -242,7 +242,7 @@ def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _robot(folder) -> np.ndarray:
-    return _mat_variables((folder / "store_robotTrue.mat").read_bytes(), "robot")["store_robotTrue"]
+    return mat_variables((folder / "store_robotTrue.mat").read_bytes(), "robot")["store_robotTrue"]
 
 
 def _state_nees_per_dof(local_map, start: np.ndarray, end: np.ndarray, beacons: GroundTruth) -> float:
@@ -288,7 +288,7 @@ def test_truth_folder_step_rule_matches_the_local_maps(data_dir, name, steps, ma
 
 def test_truth_folder_ids_are_the_beacon_ids(data_dir):
     folder = data_dir / "8240_data_50_local_maps"
-    beacons = _mat_variables((folder / "store_beaconsTrue.mat").read_bytes(), "b")["store_beaconsTrue"]
+    beacons = mat_variables((folder / "store_beaconsTrue.mat").read_bytes(), "b")["store_beaconsTrue"]
     truth = formats.read_truth_folder(folder)
     np.testing.assert_array_equal(truth.feature_ids, beacons[:, 0])
     np.testing.assert_array_equal(truth.features, beacons[:, 1:])

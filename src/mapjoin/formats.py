@@ -160,6 +160,7 @@ __all__ = [
     "map_file_name",
     "read_global_map",
     "read_map_file",
+    "mat_variables",
     "read_maps",
     "read_minima_table",
     "read_truth",
@@ -367,7 +368,7 @@ def read_truth_folder(folder: str | Path, maps: int | None = None) -> GroundTrut
         if not os.path.isfile(path):
             raise InputError("missing; a simulation folder with ground truth holds store_robotTrue.mat "
                              "(3 x (steps+1)) and store_beaconsTrue.mat (rows [id, x, y])", path)
-        variables = _mat_variables(_read_file(path, path, True), path)
+        variables = mat_variables(_read_file(path, path, True), path)
         value = variables.get(name)
         if value is None or isinstance(value, str) or value.ndim != 2:
             raise InputError(f"expected a numeric matrix variable {name}, got "
@@ -1141,7 +1142,7 @@ def _read_local_mat(data: bytes, source: str) -> list[LocalMap]:
         raise InputError("cannot tell the map number k from the file name; name it localmap_<k>.mat with k >= 1 "
                          "(map k runs from pose k-1 to pose k)", source)
     k = int(match[1])
-    variables = _mat_variables(data, source)
+    variables = mat_variables(data, source)
     state, covariance = (_mat_matrix(variables, key, source) for key in _MAT_VARIABLES)
     rows = len(state)
     if state.shape[1] != 2 or rows < 3 or (rows - 3) % 2:
@@ -1198,7 +1199,7 @@ _MX_NUMERIC = range(6, 16)  # double, single, int8 ... uint64
 _MX_COMPLEX = 0x800
 
 
-def _mat_variables(data: bytes, source: str) -> dict[str, np.ndarray | str]:
+def mat_variables(data: bytes, source: str) -> dict[str, np.ndarray | str]:
     """The variables of a MATLAB v5 .mat file: real numeric arrays as float arrays, others as a description."""
     if len(data) < 128 or data[126:128] not in (b"IM", b"MI"):
         raise InputError("expected a MATLAB v5 .mat file (no MAT-file header)", source)

@@ -29,7 +29,6 @@ import logging
 import math
 import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -413,6 +412,8 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
         depth = int(math.floor(math.log2(len(maps) / jobs)))
         size = 2**depth
         blocks = [pieces.block(start, min(start + size, len(maps))) for start in range(0, len(maps), size)]
+        from concurrent.futures import ProcessPoolExecutor  # multiprocessing: imported only when used
+
         with ProcessPoolExecutor(max_workers=min(jobs, os.cpu_count() or jobs)) as pool:
             results = list(pool.map(_subtree, [(b, labels, solver) for b in blocks]))
         for _, block_records in results:

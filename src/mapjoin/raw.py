@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .formats import STAB_NOISE, _mat_variables
+from .formats import STAB_NOISE, mat_variables
 
 __all__ = ["RAW_FORMATS", "RawData", "read_raw"]
 
@@ -114,7 +114,7 @@ def read_raw(path: str, format: str | None = None) -> RawData:
 
 def _read_vicpark(data: bytes, name: str) -> RawData:
     """I-SLSJF's preprocessed Victoria Park rows (see the module docstring)."""
-    variables = _mat_variables(data, name)
+    variables = mat_variables(data, name)
     table = variables.get(_VICPARK_VARIABLE)
     if table is None:
         raise InputError(f"missing; expected the variable {_VICPARK_VARIABLE} (found: "

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import click
 
-from .. import datasets as catalogue
 from . import main
 from .common import progress_bar, say
 
@@ -44,6 +43,8 @@ def list_datasets(ctx: click.Context, into: Path | None) -> None:
       mapjoin datasets list
       mapjoin datasets list --into ./data
     """
+    from .. import datasets as catalogue  # urllib and http: imported only when used
+
     root = into or catalogue.default_cache()
     rows = [("NAME", "MAPS", "FORMAT", "FILES", "CHECKSUMS", "CACHED", "FROM", "WHAT")]
     for dataset in catalogue.DATASETS.values():
@@ -78,6 +79,8 @@ def fetch(ctx: click.Context, names: tuple[str, ...], into: Path | None, source:
       mapjoin datasets fetch sim-535 --source file:///work/shared/data --into ./data
       mapjoin join "$(mapjoin datasets fetch sim-8240)" -o sim.csv
     """
+    from .. import datasets as catalogue
+
     for dataset in [catalogue.get(name) for name in names]:
         with progress_bar(ctx, len(dataset.files), f"fetching {dataset.name}") as progress:
             result = catalogue.fetch(dataset.name, into, source, progress)
