@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import logging
 import os
 import statistics
 import time
@@ -11,6 +13,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("MAPJOIN_DATA", ROOT.parent / "shared" / "data"))
 README = ROOT / "benchmarks" / "README.md"
+
+
+def dataset_arguments(doc: str, datasets: tuple[str, ...]) -> argparse.Namespace:
+    """Command-line arguments of the scripts that run over real datasets: names, --repeat, --data."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("datasets", nargs="*", default=datasets)
+    parser.add_argument("--repeat", type=int, default=5, help="runs per measurement (medians)")
+    parser.add_argument("--data", type=Path, default=DATA, help="folder of the datasets (default: %(default)s)")
+    args = parser.parse_args()
+    logging.getLogger("mapjoin").setLevel(logging.ERROR)
+    return args
 
 
 def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, object]:

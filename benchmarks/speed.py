@@ -13,8 +13,6 @@ Results are printed and written between the ``speed`` markers of benchmarks/READ
 
 from __future__ import annotations
 
-import argparse
-import logging
 import os
 import statistics
 import subprocess
@@ -22,7 +20,7 @@ import sys
 import tempfile
 import time
 
-from common import DATA, median_seconds, write_section
+from common import dataset_arguments, median_seconds, write_section
 
 from mapjoin import formats
 from mapjoin.evaluate import compare
@@ -55,17 +53,13 @@ def whole_command(arguments: list[str], repeat: int) -> tuple[float, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("datasets", nargs="*", default=DATASETS)
-    parser.add_argument("--repeat", type=int, default=5)
-    args = parser.parse_args()
-    logging.getLogger("mapjoin").setLevel(logging.ERROR)
+    args = dataset_arguments(__doc__, DATASETS)
     inprocess = ["| dataset | maps | read (s) | sequential join (ms) | tree join (ms) | tree, 2 jobs (ms) | "
                  "refine (s) | sequential vs exact: x, y (m), phi (rad) | tree vs exact |",
                  "|---|---:|---:|---:|---:|---:|---:|---|---|"]
     commands = ["| dataset | " + " | ".join(COMMANDS) + " |", "|---|" + "---:|" * len(COMMANDS)]
     for name in args.datasets:
-        folder = str(DATA / name)
+        folder = str(args.data / name)
         read, maps = median_seconds(lambda: formats.read_maps([folder]), args.repeat)  # noqa: B023
         times, distances = {}, {}
         for label, strategy, jobs in (("sequential", "sequential", 1), ("tree", "tree", 1), ("tree2", "tree", 2)):

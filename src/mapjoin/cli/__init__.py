@@ -61,8 +61,13 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
     Examples:
       mapjoin join examples/sim20 -o global.csv --report report.csv
       mapjoin simulate -o - --maps 50 | mapjoin join - > global.csv
+      mapjoin join ../shared/data/VicPark_6898_local_maps --strategy tree --jobs 2 -o vp.csv
+      mapjoin join ../shared/data/VicPark_200_local_maps --refine -o exact.yaml
       mapjoin check-minima --a 203570 --c-phi -0.0028
       mapjoin evaluate global.csv --truth ../shared/data/535_data_5_local_maps
+      mapjoin plot global.csv exact.yaml -o maps.png
+      mapjoin build raw.g2o -o maps/ --maps 100
+      mapjoin datasets fetch vicpark-200
     """
     logger = logging.getLogger("mapjoin")
     saved = logger.handlers[:], logger.propagate, logger.level
