@@ -295,6 +295,42 @@ def test_a_blind_stretch_a_standstill_and_the_last_pose(tmp_path, caplog):
     assert last.any() and set(arrays[3][last]) <= set(result.maps[-1].feature_ids)
 
 
+def assert_same_maps(a, b, tolerance=1e-12):
+    """Two builds' maps: the same numbering, names and features; estimates to ``tolerance``
+    (m, rad), covariances to ``tolerance`` relative to each map's largest entry."""
+    assert [(m.name, m.start_id, m.end_id) for m in a.maps] == [(m.name, m.start_id, m.end_id) for m in b.maps]
+    for x, y in zip(a.maps, b.maps):
+        np.testing.assert_array_equal(x.feature_ids, y.feature_ids)
+        np.testing.assert_allclose(y.end_pose, x.end_pose, rtol=0, atol=tolerance)
+        np.testing.assert_allclose(y.features, x.features, rtol=0, atol=tolerance)
+        np.testing.assert_allclose(y.covariance, x.covariance, rtol=0, atol=tolerance * np.abs(x.covariance).max())
+    np.testing.assert_allclose(b.costs, a.costs, rtol=tolerance, atol=tolerance * a.costs.max())
+    np.testing.assert_array_equal(b.residuals, a.residuals)
+    np.testing.assert_array_equal(b.unknowns, a.unknowns)
+
+
+@pytest.mark.parametrize("jobs", [2, 9])
+def test_jobs_build_the_maps_of_one_process(tmp_path, jobs):
+    """Runs of consecutive maps built in worker processes (a blind map, maps long enough to
+    be built from pieces, the last pose's observations in the last run): the maps one process
+    builds and the independent solve's. Each run's solve stops on its own, so one may skip
+    a last step below the step tolerance (1e-10 (1 + max |x|)) that one process takes:
+    agreement to 1e-8 here (1e-12 on Victoria Park, below). The batch solution started from
+    them is the same optimum."""
+    arrays = synthetic(3, steps=16, blind=(4, 5, 6, 7))
+    raw = read_raw(write(tmp_path, "run.txt", isam_text(arrays)))
+    bounds = [0, 4, 8, 11, 16]
+    one = build(raw, bounds, piece_steps=2, with_batch=True)
+    several = build(raw, bounds, jobs=jobs, piece_steps=2, with_batch=True)
+    assert one.pieces == several.pieces == 9 and several.converged
+    assert_same_maps(one, several, 1e-8)
+    assert_maps_match_independent_solves(arrays, several, bounds)
+    assert several.batch.cost == pytest.approx(one.batch.cost, rel=1e-12)
+    np.testing.assert_allclose(several.batch.global_map.poses, one.batch.global_map.poses, rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="jobs must be at least 1"):
+        build(raw, bounds, jobs=0)
+
+
 def test_noise_free_data_gives_the_true_relative_poses(tmp_path):
     arrays = list(synthetic(4, steps=8))
     odometry, _, observer, feature, z, _ = arrays
@@ -413,6 +449,13 @@ def test_vicpark_200_maps_are_the_shipped_ones(data_dir):
     assert_maps_match_independent_solves(arrays_of(raw), one, None, [(bounds[j], bounds[j + 1]) for j in differing])
 
 
+def test_vicpark_200_maps_with_two_jobs(data_dir):
+    """Two worker processes, 100 maps each, build the maps one process builds (to rounding)."""
+    raw = read_raw(str(data_dir / VICPARK))
+    bounds = cut(raw.steps, maps=200)
+    assert_same_maps(build(raw, bounds), build(raw, bounds, jobs=2))
+
+
 def test_vicpark_batch_is_the_global_optimum(data_dir):
     """The batch solution (from the 200 built maps, and --maps 1 from pieces of 50 steps):
     chi^2 9012.72, the optimum I-SLSJF and the independent oracle reach for the exact join
@@ -526,3 +569,10 @@ def test_cli_builds_a_folder_that_joins(tmp_path):
     assert run("build", path, "-o", str(out), "--poses-per-map", "5").exit_code == 0
     csv = run("build", path, "-o", "-", "--maps", "2", "--format", "csv")
     assert csv.exit_code == 0 and csv.stdout.startswith("map,start_id,end_id,kind")
+    parallel = run("build", path, "-o", str(tmp_path / "two.csv"), "--maps", "2", "-j", "2")
+    assert parallel.exit_code == 0, parallel.output
+    assert run("build", path, "-o", str(tmp_path / "one.csv"), "--maps", "2").exit_code == 0
+    for a, b in zip(formats.read_maps([str(tmp_path / "one.csv")]), formats.read_maps([str(tmp_path / "two.csv")])):
+        assert (a.start_id, a.end_id) == (b.start_id, b.end_id)
+        np.testing.assert_allclose(b.features, a.features, rtol=0, atol=1e-8)
+    assert run("build", path, "-o", "-", "-j", "0").exit_code == 2

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import logging
 import math
 import time
@@ -115,36 +116,88 @@ def cut(steps: int, maps: int | None = None, poses_per_map: int | None = None) -
     return np.unique(np.append(np.arange(0, steps, poses_per_map), steps)).astype(np.int64)
 
 
-def build(raw: RawData, bounds: Sequence[int], *, piece_steps: int = PIECE_STEPS, max_iterations: int = 100,
-          tolerance: float = 1e-10, progress: Callable[[int, float], None] | None = None,
+def build(raw: RawData, bounds: Sequence[int], *, jobs: int = 1, piece_steps: int = PIECE_STEPS,
+          max_iterations: int = 100, tolerance: float = 1e-10, progress: Callable[[int, float], None] | None = None,
           with_batch: bool = False) -> BuildResult:
     """Solve the local maps between consecutive chain indices ``bounds`` (see :func:`cut`)
     and return them with their full covariances; ``progress(iteration, chi^2)`` follows the
-    final solves. ``with_batch``: also the batch solution (:func:`batch`), started from
-    these maps joined. Warns when chi^2 is implausible."""
+    final solves (with one job). ``jobs > 1``: the maps, independent problems, are cut into
+    that many runs of consecutive maps, each built in a worker process exactly as one job
+    builds all (the solver stops per run, so results agree to rounding, not bit for bit).
+    ``with_batch``: also the batch solution (:func:`batch`), started from these maps joined.
+    Warns when chi^2 is implausible."""
+    if jobs < 1:
+        raise ValueError(f"jobs must be at least 1, got {jobs}")
     bounds = np.asarray(bounds, dtype=np.int64)
-    start = time.perf_counter()
-    solved = _solve(raw, bounds, piece_steps, max_iterations, tolerance, progress)
-    seconds = time.perf_counter() - start
-    start = time.perf_counter()
-    maps = solved.local_maps(raw.name)
-    covariance_seconds = time.perf_counter() - start
-    layout = solved.layout
+    runs = np.round(np.linspace(0, len(bounds) - 1, min(jobs, len(bounds) - 1) + 1)).astype(np.int64)
+    if len(runs) == 2:
+        *part, solved = _build_run(raw, bounds, 0, piece_steps, max_iterations, tolerance, progress)
+        parts = [tuple(part)]
+    else:
+        # multiprocessing: imported only when used
+        from concurrent.futures import ProcessPoolExecutor
+
+        work = [(_stretch(raw, bounds[i], bounds[k]), bounds[i:k + 1] - bounds[i], int(i), piece_steps,
+                 max_iterations, tolerance) for i, k in itertools.pairwise(runs)]
+        with ProcessPoolExecutor(max_workers=len(work)) as pool:
+            parts = list(pool.map(_run_in_worker, work))
+    poses = np.concatenate([p for _, p in parts])
+    parts = [part for part, _ in parts]
+    maps = [m for part in parts for m in part.maps]
     empty = [m.name for m in maps if not m.size]
     if empty:
         log.warning("%d local map(s) see no feature (first: %s): written with their end pose only; a join places "
                     "each by its start pose alone", len(empty), empty[0])
-    result = BuildResult(maps=tuple(maps), costs=solved.segment_costs(), residuals=layout.segment_residuals,
-                         unknowns=layout.segment_unknowns, iterations=solved.minimum.iterations,
-                         converged=solved.minimum.converged, reason=solved.minimum.reason, seconds=seconds,
-                         covariance_seconds=covariance_seconds, pieces=solved.pieces)
+    result = BuildResult(maps=tuple(maps), costs=np.concatenate([p.costs for p in parts]),
+                         residuals=np.concatenate([p.residuals for p in parts]),
+                         unknowns=np.concatenate([p.unknowns for p in parts]),
+                         iterations=max(p.iterations for p in parts), converged=all(p.converged for p in parts),
+                         reason=next((p.reason for p in parts if not p.converged), parts[0].reason),
+                         seconds=max(p.seconds for p in parts),
+                         covariance_seconds=max(p.covariance_seconds for p in parts),
+                         pieces=sum(p.pieces for p in parts))
     _check(result.costs, result.degrees_of_freedom, raw.name)
     if with_batch:
         start = time.perf_counter()
+        pieces = _Pieces(bounds, poses, maps)
         whole = solved if len(bounds) == 2 else _solve(raw, bounds[[0, -1]], piece_steps, max_iterations, tolerance,
-                                                       progress, pieces=(solved, maps))
+                                                       progress, pieces=pieces)
         result = dataclasses.replace(result, batch=_batch_result(whole, bounds, time.perf_counter() - start))
     return result
+
+
+def _build_run(raw: RawData, bounds: np.ndarray, first: int, piece_steps: int, max_iterations: int,
+               tolerance: float, progress: Callable[[int, float], None] | None = None
+               ) -> tuple[BuildResult, np.ndarray, _Solved]:
+    """Solve the maps between ``bounds`` of ``raw`` together, numbered from map ``first``: the
+    result (no batch), each measurement block's end pose in its map's frame, the solve."""
+    start = time.perf_counter()
+    solved = _solve(raw, bounds, piece_steps, max_iterations, tolerance, progress)
+    seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    maps = solved.local_maps(raw.name, first)
+    covariance_seconds = time.perf_counter() - start
+    found, layout = solved.minimum, solved.layout
+    run = BuildResult(tuple(maps), solved.segment_costs(), layout.segment_residuals, layout.segment_unknowns,
+                      found.iterations, found.converged, found.reason, seconds, covariance_seconds, solved.pieces)
+    return run, solved.block_poses(), solved
+
+
+def _run_in_worker(job: tuple) -> tuple[BuildResult, np.ndarray]:
+    """A worker process's share of :func:`build`: one run of maps (see :func:`_build_run`)."""
+    return _build_run(*job)[:2]
+
+
+def _stretch(raw: RawData, a: int, b: int) -> RawData:
+    """The raw data of chain poses ``a`` to ``b`` (pose a the origin): the steps between them
+    and the observations made from poses a to b - 1, and from b when it is the last pose
+    (else they belong to the next map)."""
+    keep = (raw.observers >= a) & ((raw.observers < b) | (b == raw.steps))
+    return dataclasses.replace(
+        raw, pose_ids=raw.pose_ids[a:b + 1], odometry=raw.odometry[a:b], odometry_covariances=raw.odometry_covariances[a:b],
+        observers=raw.observers[keep] - a, feature_ids=raw.feature_ids[keep], observations=raw.observations[keep],
+        observation_covariances=raw.observation_covariances[keep], odometry_lines=raw.odometry_lines[a:b],
+        observation_lines=raw.observation_lines[keep])
 
 
 def batch(raw: RawData, bounds: Sequence[int] | None = None, *, piece_steps: int = PIECE_STEPS,
@@ -212,8 +265,7 @@ class _Layout:
         self.segments = S = len(bounds) - 1
         virtual = bool((raw.observers == P).any())
         self.n_blocks = K = P + virtual
-        end_step = np.minimum(np.arange(1, K + 1), P)          # chain index of each block's end pose
-        self.segment = np.searchsorted(bounds, end_step, side="left") - 1
+        self.segment = _segment_of_blocks(bounds, K, P)
         first = np.arange(K) == bounds[self.segment]            # the map's first step: it starts at the origin
         first[P:] = False
         self.base = np.where(first, -1, np.arange(K) - 1)      # block holding the base pose (-1: the origin)
@@ -292,6 +344,12 @@ class _Layout:
                                 base + np.arange(2 * starts[j], 2 * starts[j + 1])]) for j in range(self.segments)]
 
 
+def _segment_of_blocks(bounds: np.ndarray, blocks: int, steps: int) -> np.ndarray:
+    """The map (between ``bounds``) of each of ``blocks`` measurement blocks of a chain of ``steps``."""
+    end_step = np.minimum(np.arange(1, blocks + 1), steps)     # chain index of each block's end pose
+    return np.searchsorted(bounds, end_step, side="left") - 1
+
+
 def _relative(origin: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """``poses`` (n, 3) expressed in the frames ``origin`` (n, 3)."""
     c, s = np.cos(origin[:, 2]), np.sin(origin[:, 2])
@@ -320,10 +378,14 @@ class _Solved:
         block = np.repeat(np.arange(self.layout.n_blocks), np.diff(self.problem.row0))
         return np.bincount(self.layout.segment[block], r * r, minlength=self.layout.segments)
 
-    def local_maps(self, label: str) -> list[LocalMap]:
+    def block_poses(self) -> np.ndarray:
+        """Each measurement block's end pose in its map's frame."""
+        return self.problem.unpack(self.minimum.x)[0]
+
+    def local_maps(self, label: str, first: int = 0) -> list[LocalMap]:
         """The maps, map j from pose j to pose j + 1 (I-SLSJF's numbering, which every map
-        format holds; the name gives the raw pose ids): end pose, features (raw ids) and the
-        full covariance over both."""
+        format holds, counted from ``first``; the name gives the raw pose ids): end pose,
+        features (raw ids) and the full covariance over both."""
         layout, problem = self.layout, self.problem
         raw = layout.raw
         selected = layout.selected(problem)
@@ -335,14 +397,13 @@ class _Solved:
             pose[2] = math.remainder(pose[2], 2 * math.pi)
             features = problem.feature_ids[(chosen[3::2] - 3 * problem.n_maps) // 2] % layout.n_distinct
             a, b = raw.pose_ids[layout.bounds[j]], raw.pose_ids[layout.bounds[j + 1]]
-            maps.append(LocalMap.from_covariance(f"{label} poses {a}-{b}", j, j + 1, pose, layout.distinct[features],
+            maps.append(LocalMap.from_covariance(f"{label} poses {a}-{b}", first + j, first + j + 1, pose, layout.distinct[features],
                                                  x[chosen[3:]].reshape(-1, 2), covariance))
         return maps
 
 
 def _solve(raw: RawData, bounds: np.ndarray, piece_steps: int, max_iterations: int, tolerance: float,
-           progress: Callable[[int, float], None] | None = None,
-           pieces: tuple[_Solved, list[LocalMap]] | None = None) -> _Solved:
+           progress: Callable[[int, float], None] | None = None, pieces: _Pieces | None = None) -> _Solved:
     """Solve the maps between ``bounds``: from dead reckoning when each has at most
     ``piece_steps`` steps, else from pieces of at most that many (``pieces``: solved maps
     whose bounds refine ``bounds``, and their local maps), joined map by map."""
@@ -353,30 +414,39 @@ def _solve(raw: RawData, bounds: np.ndarray, piece_steps: int, max_iterations: i
         split = np.unique(np.concatenate([np.round(np.linspace(a, b, n + 1))
                                           for a, b, n in zip(bounds[:-1], bounds[1:], counts)])).astype(np.int64)
         solved = _solve(raw, split, piece_steps, max_iterations, tolerance)
-        pieces = solved, solved.local_maps(f"piece of {raw.name}")
-    poses = layout.dead_reckoning() if pieces is None else _joined(*pieces, bounds)
+        pieces = _Pieces(split, solved.block_poses(), solved.local_maps(f"piece of {raw.name}"))
+    poses = layout.dead_reckoning() if pieces is None else _joined(pieces, bounds, raw.steps)
     found = minimise(problem, layout.initial(poses), max_iterations=max_iterations, tolerance=tolerance,
                      progress=progress)
     if not found.converged:
         log.warning("%s: the local maps' solve did not converge (%s after %d iterations): chi^2 = %.10g",
                     raw.name, found.reason, found.iterations, found.cost)
-    return _Solved(layout, problem, found, 0 if pieces is None else len(pieces[1]))
+    return _Solved(layout, problem, found, 0 if pieces is None else len(pieces.maps))
 
 
-def _joined(solved: _Solved, pieces: list[LocalMap], bounds: np.ndarray) -> np.ndarray:
-    """Each block's end pose in the frame of its map between ``bounds``, from the solved
-    ``pieces`` (map i from pose i to i + 1) joined map by map with the certified one-step join."""
-    piece_bounds = solved.layout.bounds
-    local = solved.problem.unpack(solved.minimum.x)[0]       # each block's end pose in its piece's frame
-    start_of_piece = np.zeros((len(pieces), 3))              # each piece's start in its map's frame
+@dataclass(frozen=True)
+class _Pieces:
+    """Solved maps between ``bounds`` (map i from pose i to i + 1) and each measurement
+    block's end pose in its map's frame, to start a solve of coarser maps from."""
+
+    bounds: np.ndarray
+    block_poses: np.ndarray
+    maps: list[LocalMap]
+
+
+def _joined(pieces: _Pieces, bounds: np.ndarray, steps: int) -> np.ndarray:
+    """Each block's end pose in the frame of its map between ``bounds`` (a chain of ``steps``),
+    from the solved ``pieces``, joined map by map with the certified one-step join."""
+    piece_bounds, local = pieces.bounds, pieces.block_poses
+    start_of_piece = np.zeros((len(pieces.maps), 3))         # each piece's start in its map's frame
     owner = np.searchsorted(bounds, piece_bounds[:-1], side="right") - 1
     with _quiet():
         for j in range(len(bounds) - 1):
             members = np.flatnonzero(owner == j)
             if len(members) > 1:
-                joined = join_sequential([pieces[i] for i in members]).global_map
+                joined = join_sequential([pieces.maps[i] for i in members]).global_map
                 start_of_piece[members[1:]] = joined.poses[np.searchsorted(joined.pose_ids, members[1:])]
-    return _compose(start_of_piece[solved.layout.segment], local)
+    return _compose(start_of_piece[_segment_of_blocks(piece_bounds, len(local), steps)], local)
 
 
 @contextlib.contextmanager

@@ -36,9 +36,12 @@ DEFAULT_MAPS = 200
               help="Also write the full batch solution as a global map (.csv or .yaml): every feature and the "
                    "maps' end poses (pose k ends map k), with marginal covariances; compare it with `mapjoin join "
                    "DIR` (`mapjoin compare`). Every pose: --poses-per-map 1.")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Worker processes: the maps are cut into this many runs of consecutive maps, built in parallel "
+                   "(the same maps, to rounding).")
 @click.pass_context
 def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None, poses_per_map: int | None,
-          output_format: str | None, raw_format: str | None, global_path: str | None) -> None:
+          output_format: str | None, raw_format: str | None, global_path: str | None, jobs: int) -> None:
     """Build local maps from raw odometry and feature observations.
 
     The feature ids must be known (data association). RAW is I-SLSJF's preprocessed Victoria Park file (VicPark_clean_data.mat), iSAM text
@@ -51,7 +54,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
 
     \b
     Examples:
-      mapjoin build ../shared/data/VicPark_200_local_maps/VicPark_clean_data.mat -o vicpark/
+      mapjoin build ../shared/data/VicPark_200_local_maps/VicPark_clean_data.mat -o vicpark/ -j 2
       mapjoin join vicpark/ --refine -o vicpark.csv
       mapjoin build ../shared/data/victoria_park_raw/victoria_park_isam.txt -o isam/ --maps 1
       mapjoin build run.g2o -o maps.yaml --poses-per-map 50 --global-map batch.csv
@@ -74,7 +77,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     def report(iteration: int, cost: float) -> None:
         say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
 
-    result = builder.build(raw, bounds, progress=report if ctx.obj["verbose"] else None,
+    result = builder.build(raw, bounds, jobs=jobs, progress=report if ctx.obj["verbose"] else None,
                            with_batch=global_path is not None)
     writing = time.perf_counter()
     written = formats.write_maps(result.maps, output if stream else os.path.join(output, ""), fmt)
