@@ -435,3 +435,23 @@ def test_cli_reports_non_convergence_refuses_to_overwrite_and_has_examples(simul
     result = CliRunner().invoke(main, ["refine", simulated_folder, "-o", str(target)])
     assert result.exit_code == 1 and "is an input file" in result.output and target.read_text() == before
     assert "Examples:" in run("refine", "--help").output
+
+
+def test_cli_start_from_the_tree_reaches_the_same_optimum(data_dir, tmp_path):
+    """DLR 200 from the tree's start (chi^2 2.8e6 against 7.4e4 from the sequential one): the same optimum."""
+    folder = str(data_dir / "DLR_200_local_maps")
+    outputs = {}
+    for start in ("sequential", "tree"):
+        out = tmp_path / f"{start}.csv"
+        result = run("refine", folder, "--start", start, "--no-covariances", "-o", str(out))
+        assert result.exit_code == 0, result.output
+        assert "chi^2" in result.stderr and "-> 11163.643" in result.stderr
+        outputs[start] = formats.read_global_map(out)
+    np.testing.assert_allclose(outputs["tree"].features, outputs["sequential"].features, atol=1e-6)
+    np.testing.assert_allclose(outputs["tree"].poses, outputs["sequential"].poses, atol=1e-6)
+
+
+def test_cli_tolerance_default_is_the_library_default():
+    from mapjoin.refine import TOLERANCE
+
+    assert f"[default: ({TOLERANCE:g}); x>=0.0]" in " ".join(run("refine", "--help").output.split())

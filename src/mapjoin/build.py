@@ -52,7 +52,7 @@ from .errors import InputError
 from .joining import join_sequential
 from .maps import GlobalMap, LocalMap, Provenance
 from .raw import RawData
-from .refine import Blocks, ExactProblem, Minimum, RefineResult, minimise
+from .refine import TOLERANCE, Blocks, ExactProblem, Minimum, RefineResult, minimise
 
 __all__ = ["PIECE_STEPS", "BuildResult", "batch", "build", "cut"]
 
@@ -117,7 +117,7 @@ def cut(steps: int, maps: int | None = None, poses_per_map: int | None = None) -
 
 
 def build(raw: RawData, bounds: Sequence[int], *, jobs: int = 1, piece_steps: int = PIECE_STEPS,
-          max_iterations: int = 100, tolerance: float = 1e-10, progress: Callable[[int, float], None] | None = None,
+          max_iterations: int = 100, tolerance: float = TOLERANCE, progress: Callable[[int, float], None] | None = None,
           with_batch: bool = False) -> BuildResult:
     """Solve the local maps between consecutive chain indices ``bounds`` (see :func:`cut`)
     and return them with their full covariances; ``progress(iteration, chi^2)`` follows the
@@ -201,7 +201,7 @@ def _stretch(raw: RawData, a: int, b: int) -> RawData:
 
 
 def batch(raw: RawData, bounds: Sequence[int] | None = None, *, piece_steps: int = PIECE_STEPS,
-          max_iterations: int = 100, tolerance: float = 1e-10, covariances: bool = True,
+          max_iterations: int = 100, tolerance: float = TOLERANCE, covariances: bool = True,
           progress: Callable[[int, float], None] | None = None) -> RefineResult:
     """The full batch SLAM solution, built as one local map (so from pieces, certified joins
     and refinement): every feature and the poses at chain indices ``bounds[1:]`` (default:

@@ -8,11 +8,18 @@ import time
 import click
 
 from .. import formats
-from ..joining import join_sequential
+from ..joining import STRATEGIES, join
 from . import common, main
 from .common import format_option, input_format_option, inputs_argument, output_option, progress_bar, say
 
 log = logging.getLogger("mapjoin")
+
+def _default_tolerance() -> float:
+    """refine's default stopping tolerance (asked for only when the command runs: refine imports scipy)."""
+    from ..refine import TOLERANCE
+
+    return TOLERANCE
+
 
 #: two-sided probability of the chi-square interval outside which the final chi^2 is flagged
 CHI2_LEVEL = 0.999
@@ -25,20 +32,24 @@ CHI2_LEVEL = 0.999
                "g2o: VERTEX_SE2 poses and VERTEX_XY features, for g2o's viewer or GTSAM.")
 @click.option("--max-iterations", type=click.IntRange(min=0), default=100, show_default=True,
               help="At most this many (accepted) Gauss-Newton/Newton steps.")
-@click.option("--tolerance", type=click.FloatRange(min=0.0), default=1e-10, show_default=True,
+@click.option("--tolerance", type=click.FloatRange(min=0.0), default=lambda: _default_tolerance(), show_default="1e-12",
               help="Stop when a step changes chi^2 by at most this (relative) or moves no unknown by more "
                    "than this times (1 + largest |unknown|).")
+@click.option("--start", "strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
+              help="The fast join to start from. On long runs with loop closures the tree's start can "
+                   "converge where the sequential one creeps (benchmarks/README.md, 'Synthetic scale series').")
 @click.option("--no-covariances", is_flag=True,
               help="Skip the marginal covariances (faster): no cov columns, the fast join's variances.")
 @input_format_option
 @click.pass_context
 def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
-           max_iterations: int, tolerance: float, no_covariances: bool, input_format: str | None) -> None:
+           max_iterations: int, tolerance: float, strategy: str, no_covariances: bool,
+           input_format: str | None) -> None:
     """Join local maps exactly: the least-squares optimum.
 
     Solves the problem I-SLSJF solves: all end poses and features at once, each local
     map weighted by its full covariance, by sparse Gauss-Newton with Levenberg-Marquardt
-    safeguards (Newton steps near the optimum) from the fast sequential join. The global
+    safeguards (Newton steps near the optimum) from the fast join (--start). The global
     map holds the marginal covariance of every feature and pose (cov_* columns in CSV,
     cov in YAML) unless --no-covariances. With -v, chi^2 is printed after every step; a
     warning says when the final chi^2 is implausible for its degrees of freedom. A
@@ -50,6 +61,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
       mapjoin refine ../shared/data/VicPark_200_local_maps -o vicpark_exact.csv
       mapjoin -v refine 'maps/localmap_*.yaml' --format yaml -o exact.yaml
       mapjoin simulate -o - | mapjoin refine - --no-covariances > exact.csv
+      mapjoin refine ../shared/data/VicPark_6898_local_maps --start tree -o vp_exact.csv
     """
     from ..refine import refine as refine_maps  # scipy.sparse: imported only when refining
 
@@ -60,7 +72,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
 
     joined = time.perf_counter()
     with progress_bar(ctx, len(maps), "fast join") as progress:
-        initial = join_sequential(maps, progress=progress)
+        initial = join(maps, strategy=strategy, progress=progress)
     joined = time.perf_counter() - joined
 
     def report(iteration: int, cost: float) -> None:
