@@ -7,7 +7,7 @@ sequential join, the tree join with 1 and 2 processes, the exact refinement (sol
 marginal covariances), and each fast join's distance from the exact one (the paper's
 metric: mean absolute x, y, phi). Whole commands (a fresh interpreter per run, as a
 user types them; medians of ``--repeat``): ``mapjoin join`` with each strategy and
-``mapjoin refine``, with the peak resident memory of the process (its rusage).
+``mapjoin refine``, with the peak resident memory of the process (its VmHWM, Linux).
 Results are printed and written between the ``speed`` markers of benchmarks/README.md.
 """
 
@@ -36,19 +36,31 @@ COMMANDS = {
 }
 
 
+# the command in a fresh interpreter that reports its own peak resident set on exit: VmHWM
+# belongs to the process's new address space, while rusage's maxrss would carry over the
+# high-water mark of this (large) benchmark process through fork and exec (Linux only)
+_RUN_AND_REPORT_PEAK = """
+import runpy, sys
+sys.argv = ["mapjoin", *sys.argv[1:]]
+try:
+    runpy.run_module("mapjoin", run_name="__main__", alter_sys=True)
+finally:
+    status = open("/proc/self/status").read()
+    print("VmHWM", status.split("VmHWM:")[1].split()[0], file=sys.stderr)
+"""
+
+
 def whole_command(arguments: list[str], repeat: int) -> tuple[float, float]:
     """Median wall time (s) and largest peak RSS (MB) of ``mapjoin ARGUMENTS`` in a fresh interpreter."""
     times, peaks = [], []
-    command = [sys.executable, "-m", "mapjoin", "-q", *arguments]
+    command = [sys.executable, "-c", _RUN_AND_REPORT_PEAK, "-q", *arguments]
     for _ in range(repeat):
         start = time.perf_counter()
-        process = subprocess.Popen(command, stdout=subprocess.DEVNULL)
-        _, status, usage = os.wait4(process.pid, 0)
+        process = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         times.append(time.perf_counter() - start)
-        process.returncode = os.waitstatus_to_exitcode(status)
         if process.returncode:
-            raise SystemExit(f"{' '.join(command)} exited with {process.returncode}")
-        peaks.append(usage.ru_maxrss / 1024)
+            raise SystemExit(f"mapjoin {' '.join(arguments)} exited with {process.returncode}: {process.stderr}")
+        peaks.append(int(process.stderr.split("VmHWM")[-1].split()[0]) / 1024)
     return statistics.median(times), max(peaks)
 
 
