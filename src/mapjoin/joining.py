@@ -213,6 +213,21 @@ def _place(joins: _Joins, pair: np.ndarray | int, points: np.ndarray, variances:
     return placed, joins.t_variance[pair] + variances + _squared(points) * joins.phi_variance[pair] / 2
 
 
+def _move_poses(joins: _Joins, pair: np.ndarray | int, rows: np.ndarray | slice, pose_xy: np.ndarray,
+                pose_phi: np.ndarray, pose_variances: np.ndarray) -> None:
+    """Poses ``rows`` of right pieces (join ``pair``) into left's frame, with their (var_xy, var_phi), in place."""
+    pose_xy[rows], pose_variances[rows, 0] = _place(joins, pair, pose_xy[rows], pose_variances[rows, 0])
+    pose_phi[rows] = wrap(joins.phi[pair] + pose_phi[rows])
+    pose_variances[rows, 1] += joins.phi_variance[pair]
+
+
+def _set_junctions(joins: _Joins, rows: np.ndarray | slice, pose_xy: np.ndarray, pose_phi: np.ndarray,
+                   pose_variances: np.ndarray) -> None:
+    """Each left piece's end pose (``rows``, one per join) becomes the joined pose r1 = (t*, phi*), in place."""
+    pose_xy[rows], pose_phi[rows] = joins.t, joins.phi
+    pose_variances[rows, 0], pose_variances[rows, 1] = joins.t_variance, joins.phi_variance
+
+
 def _fuse(z0: np.ndarray, var0: np.ndarray, placed: np.ndarray, var1: np.ndarray
           ) -> tuple[np.ndarray, np.ndarray]:
     """Theorem 1's X_L: each common feature as the information-weighted mean of both estimates."""
@@ -307,12 +322,8 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         positions[shared], position_variances[shared] = _fuse(positions[shared], position_variances[shared],
                                                               placed[common], var[common])
         positions[ids[new]], position_variances[ids[new]] = placed[new], spread[new]
-        end = slice(k, k + 1)
-        pose_xy[end], pose_variances[end, 0] = _place(joins, 0, pose_xy[end], pose_variances[end, 0])
-        pose_phi[end] = wrap(joins.phi + pose_phi[end])
-        pose_variances[end, 1] += joins.phi_variance
-        pose_xy[k - 1], pose_phi[k - 1] = joins.t[0], joins.phi[0]
-        pose_variances[k - 1] = (joins.t_variance[0], joins.phi_variance[0])
+        _move_poses(joins, 0, slice(k, k + 1), pose_xy, pose_phi, pose_variances)
+        _set_junctions(joins, slice(k - 1, k), pose_xy, pose_phi, pose_variances)
         report += joins.rows
         if progress:
             progress(k + 1)
@@ -362,12 +373,8 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
 
     pose_xy, pose_phi, pose_variances = pieces.pose_xy.copy(), pieces.pose_phi.copy(), pieces.pose_variances.copy()
     moved = np.flatnonzero((pieces.pose_piece % 2 == 1) & (pieces.pose_piece < 2 * count))
-    pair = pieces.pose_piece[moved] // 2
-    pose_xy[moved], pose_variances[moved, 0] = _place(joins, pair, pose_xy[moved], pose_variances[moved, 0])
-    pose_phi[moved] = wrap(joins.phi[pair] + pose_phi[moved])
-    pose_variances[moved, 1] += joins.phi_variance[pair]
-    pose_xy[left_end], pose_phi[left_end] = joins.t, joins.phi
-    pose_variances[left_end] = np.column_stack([joins.t_variance, joins.phi_variance])
+    _move_poses(joins, pieces.pose_piece[moved] // 2, moved, pose_xy, pose_phi, pose_variances)
+    _set_junctions(joins, left_end, pose_xy, pose_phi, pose_variances)
     joined = _Pieces(parent[order], pieces.feature_ids[order], features[order], feature_variances[order],
                      pieces.pose_piece // 2, pose_xy, pose_phi, pose_variances, pieces.first[0::2],
                      np.append(pieces.last[1::2], pieces.last[-1:]) if pieces.count % 2 else pieces.last[1::2])
