@@ -59,7 +59,7 @@ from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
-from common import ROOT, median_seconds, write_section
+from common import ROOT, compile_mapjoin, median_seconds, write_section
 
 from mapjoin import formats
 from mapjoin.joining import join
@@ -212,6 +212,7 @@ def command_parts(stream: str) -> dict[str, float]:
 def command_rows(size: int, runs: int, folder: Path) -> list[str]:
     """Wall times of ``mapjoin join`` on a CSV stream of ``size`` maps per strategy, and of their parts."""
     mapjoin = mapjoin_command()
+    compile_mapjoin()  # fresh interpreters below: leave compiling mapjoin out of their times
     stream, target = folder / f"maps-{size}.csv", folder / "global.csv"
     with open(stream, "w") as out:
         subprocess.run([*mapjoin, "-q", "simulate", "-o", "-", "--maps", str(size), "--seed", str(SEED),
@@ -411,7 +412,8 @@ def report(results: Results) -> str:
             "", "### Whole command: `mapjoin -q join maps.csv -o global.csv --strategy S --jobs J`", "",
             ("The maps as one CSV stream from `mapjoin simulate -o - --format csv` (spherical variances "
              "only: CSV carries no full covariances; YAML with them is about 45 MB per 1000 maps), the "
-             "command timed as a subprocess; its parts timed beside it in fresh interpreters (one per run, "
+             "command timed as a subprocess (mapjoin's bytecode compiled beforehand, as an installed "
+             "package's is); its parts timed beside it in fresh interpreters (one per run, "
              "each reading the file, joining it with every strategy and writing the result once), medians "
              "of the same number of runs: start-up = `mapjoin join --help` (interpreter, imports), read = "
              "`formats.read_maps`, join = the read maps joined, write = `formats.write_global_map`, rest = "

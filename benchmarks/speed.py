@@ -20,7 +20,7 @@ import sys
 import tempfile
 import time
 
-from common import dataset_arguments, median_seconds, write_section
+from common import compile_mapjoin, dataset_arguments, median_seconds, write_section
 
 from mapjoin import formats
 from mapjoin.evaluate import compare
@@ -70,6 +70,7 @@ def main() -> None:
                  "refine (s) | sequential vs exact: x, y (m), phi (rad) | tree vs exact |",
                  "|---|---:|---:|---:|---:|---:|---:|---|---|"]
     commands = ["| dataset | " + " | ".join(COMMANDS) + " |", "|---|" + "---:|" * len(COMMANDS)]
+    compiled = compile_mapjoin()
     for name in args.datasets:
         folder = str(args.data / name)
         read, maps = median_seconds(lambda: formats.read_maps([folder]), args.repeat)  # noqa: B023
@@ -97,8 +98,8 @@ def main() -> None:
         print(inprocess[-1], commands[-1], sep="\n", file=sys.stderr)
     text = "\n".join([f"In-process, maps loaded, medians of {args.repeat} (2-core shared machine, "
                       f"{os.cpu_count()} CPUs visible):", "", *inprocess, "",
-                      f"Whole commands (`python -m mapjoin -q ... DATASET -o out.csv`, fresh interpreter, "
-                      f"reading included), median wall time of {args.repeat} and peak RSS:", "", *commands])
+                      f"Whole commands (`python -m mapjoin -q ... DATASET -o out.csv`, a fresh `{sys.executable}` "
+                      f"per run, {compiled}, reading included), median wall time of {args.repeat} and peak RSS:", "", *commands])
     print(text)
     write_section("speed", text)
 
