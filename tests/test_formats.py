@@ -834,6 +834,18 @@ def test_outputs_that_are_links_to_inputs_are_refused(tmp_path):
     formats.check_not_overwriting([str(source), "-"], [str(tmp_path / "new.csv"), "-"])
 
 
+def test_outputs_reached_through_a_linked_folder_are_refused_whether_or_not_they_exist(tmp_path):
+    folder = tmp_path / "maps"
+    folder.mkdir()
+    (folder / "localmap_1.yaml").write_text(VALID_YAML)
+    (tmp_path / "alias").symlink_to(folder)
+    for name in ("localmap_1.yaml", "not_yet.csv"):  # the same file, or the same path once links are resolved
+        with pytest.raises(InputError, match=f"alias/{name}: is the input file .*maps/{name}"):
+            formats.check_not_overwriting([str(folder / "missing.yaml"), str(folder / name)],
+                                          [str(tmp_path / "alias" / name)])
+    formats.check_not_overwriting([str(folder / "localmap_1.yaml")], [str(tmp_path / "alias" / "not_yet.csv")])
+
+
 # ---------------------------------------------------------------------------------------
 # Garbage: reading raises InputError or succeeds, never anything else
 

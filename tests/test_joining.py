@@ -235,14 +235,46 @@ def test_tree_levels_pair_neighbours(count):
 
 
 def test_tree_of_two_maps_is_the_sequential_join():
+    """The same join, computed as arrays (tree) and on Python numbers (sequential): equal to rounding."""
     maps = noisy_chain(7, 2)
     tree, sequential = join_tree(maps), join_sequential(maps)
-    np.testing.assert_array_equal(tree.global_map.features, sequential.global_map.features)
-    np.testing.assert_array_equal(tree.global_map.poses, sequential.global_map.poses)
+    for field in ("features", "feature_variances", "poses", "pose_variances"):
+        np.testing.assert_allclose(getattr(tree.global_map, field), getattr(sequential.global_map, field),
+                                   rtol=1e-13, atol=1e-13)
+    (a,), (b,) = tree.report, sequential.report
+    assert (a.map, a.common, a.new, a.minima, a.iterations) == (b.map, b.common, b.new, b.minima, b.iterations)
+    for field in ("a", "c_phi", "phi", "cost"):
+        assert getattr(a, field) == pytest.approx(getattr(b, field), rel=1e-12, abs=1e-12)
     assert tree.global_map.provenance.strategy == "tree"
 
 
-@pytest.mark.parametrize("count, jobs", [(37, 2), (16, 4), (9, 3)])
+@pytest.mark.parametrize("solver", ["bisection", "golden"])
+def test_each_sequential_join_is_the_one_step_problem_of_the_map_so_far(solver):
+    """Join k, rebuilt from the documented per-join API: the global map of maps 1..k-1 (common
+    features, their variances, the last pose as odometry) and map k go into ``onestep.solve``."""
+    from mapjoin.maps import spherical_variances
+    from mapjoin.onestep import OneStepProblem, solve
+
+    maps = noisy_chain(3, 7)
+    records = join_sequential(maps, "information", solver).report
+    for k in range(1, len(maps)):
+        so_far = join_sequential(maps[:k], "information", solver).global_map
+        incoming = maps[k]
+        row = {int(i): n for n, i in enumerate(so_far.feature_ids)}
+        common = np.array([int(i) in row for i in incoming.feature_ids])
+        rows = [row[int(i)] for i in incoming.feature_ids[common]]
+        problem = OneStepProblem(so_far.features[rows], so_far.feature_variances[rows], incoming.features[common],
+                                 spherical_variances(incoming, "information")[0][common], so_far.poses[-1],
+                                 so_far.pose_variances[-1])
+        expected, record = solve(problem, solver), records[k - 1]
+        assert record.common == common.sum() and record.minima == expected.minima.count
+        assert record.a == pytest.approx(expected.minima.a, rel=1e-12)
+        assert record.c_phi == pytest.approx(expected.minima.c_phi, abs=1e-12)
+        assert record.phi == pytest.approx(expected.phi, abs=1e-12 if solver == "bisection" else 1e-7)
+        assert record.cost == pytest.approx(expected.cost, rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("count, jobs", [(37, 2), (16, 4), (9, 3), (64, 2)])
 def test_tree_result_does_not_depend_on_jobs(count, jobs):
     maps = noisy_chain(count, count)
     one, many = join_tree(maps), join_tree(maps, jobs=jobs)
@@ -259,3 +291,40 @@ def test_tree_and_sequential_agree_on_maps_sharing_no_feature(caplog):
     tree = join_tree(disjoint)
     assert "shares no feature" in caplog.text
     np.testing.assert_allclose(tree.global_map.poses, join_sequential(disjoint).global_map.poses, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- information-mode summary
+
+
+def _random_spd(rng, size: int, condition: float) -> np.ndarray:
+    """A random symmetric positive definite matrix with eigenvalues spread over ``condition``."""
+    basis, _ = np.linalg.qr(rng.normal(size=(size, size)))
+    return (basis * np.logspace(0, np.log10(condition), size)) @ basis.T
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), sizes=st.lists(st.integers(0, 40), min_size=1, max_size=12),
+       log_condition=st.floats(0, 8))
+def test_information_variances_are_those_of_the_dense_inverse(seed, sizes, log_condition):
+    """``information`` mode (maps of one size summarised as one stack) against each map's own dense inverse:
+    sigma^2 = 2 / trace of each 2x2 block of P^-1, 1 / Lambda_phiphi for the pose orientation."""
+    from mapjoin.maps import batch_spherical_variances
+
+    rng = np.random.default_rng(seed)
+    maps = []
+    for k, m in enumerate(sizes):
+        covariance = _random_spd(rng, 3 + 2 * m, 10**log_condition) * 10 ** rng.uniform(-4, 2)
+        maps.append(LocalMap(f"m{k}", k, k + 1, np.zeros(3), np.arange(m), np.zeros((m, 2)), np.ones(m),
+                             np.ones(2), (covariance + covariance.T) / 2))
+    features, poses = batch_spherical_variances(maps, "information")
+    start = 0
+    for k, local_map in enumerate(maps):
+        inverse = np.linalg.inv(local_map.covariance)
+        information = np.diagonal(inverse)
+        # the rounding errors of an inverse scale with its norm: compare 1 / sigma^2 on that scale
+        scale, tolerance = np.abs(inverse).max(), 1e-14 * 10**log_condition * len(inverse)
+        expected = np.concatenate([information[3:].reshape(-1, 2).mean(axis=1), [information[:2].mean()],
+                                   information[2:3]])
+        found = 1 / np.concatenate([features[start:start + local_map.size], poses[k]])
+        np.testing.assert_allclose(found / scale, expected / scale, rtol=0, atol=tolerance)
+        start += local_map.size

@@ -33,7 +33,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from theorem_oracles import _h_g, brute_count
 
-from mapjoin.onestep import analyse_minima, minimise_reduced
+from mapjoin.onestep import (
+    _FEW,
+    TOLERANCE,
+    _batch_brackets,
+    analyse_minima,
+    batch_orientation,
+    global_orientation,
+    minimise_reduced,
+)
 
 PI = math.pi
 # arcsin(pi / sqrt(pi^2 + 1)) = arctan(pi): the paper's bound on |C| for two minima.
@@ -443,3 +451,130 @@ def test_bad_arguments_raise(a, c):
 def test_unknown_solver_raises():
     with pytest.raises(ValueError):
         minimise_reduced(analyse_minima(2.0, 1.0), "newton")
+
+
+# --------------------------------------------------------------------------- 6. many problems at once
+
+def _boundary_points(a: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(a, C) on the boundaries of the two-minima region, moved by ``offset`` (in C, or in a for a = 1):
+    h(-+pi) = 0 (17, 20), h(phi1) = 0 (18), h(phi2) = 0 (19), a = 1 (16), C = +-arctan(pi), C = +-pi."""
+    root = np.sqrt(np.maximum(a * a - 1, 0.0))
+    alpha = np.arccos(-1 / np.maximum(a, 1.0))
+    families = [
+        (a, np.arcsin(np.minimum(PI / a, 1.0)) + offset), (a, -np.arcsin(np.minimum(PI / a, 1.0)) + offset),
+        (a, wrap(alpha + root + offset)), (a, wrap(-alpha - root + offset)),
+        (1.0 + offset, wrap(a)), (a, C_STAR + offset), (a, -C_STAR + offset), (a, wrap(PI + offset)),
+    ]
+    a_all = np.concatenate([np.broadcast_to(x, np.shape(a)) for x, _ in families])
+    c_all = np.concatenate([np.broadcast_to(c, np.shape(a)) for _, c in families])
+    keep = (a_all >= 0) & (c_all >= -PI) & (c_all < PI)
+    return a_all[keep], c_all[keep]
+
+
+def _special_points() -> tuple[np.ndarray, np.ndarray]:
+    """Random, adversarial, two-minima and boundary (a, C) pairs: a few thousand."""
+    rng = np.random.default_rng(2013)
+    a = [10 ** rng.uniform(-3, 6, 3000), np.array([p[0] for p in ADVERSARIAL + TWO_REGION])]
+    c = [rng.uniform(-PI, PI, 3000), np.array([p[1] for p in ADVERSARIAL + TWO_REGION])]
+    grid_a, grid_c = np.meshgrid(np.linspace(1.0, 30.0, 30), np.concatenate([np.linspace(1.2, PI, 20),
+                                                                             -np.linspace(1.2, PI, 20)]))
+    a.append(grid_a.ravel())
+    c.append(grid_c.ravel())
+    for offset in (0.0, 1e-12, -1e-12, 1e-7, -1e-7):
+        boundary = _boundary_points(np.linspace(1.0, 12.0, 60), np.full(60, offset))
+        a.append(boundary[0])
+        c.append(boundary[1])
+    return np.concatenate(a), np.concatenate(c)
+
+
+def _scalar_orientations(a0, phi0, z_phi, p_phi, solver, tolerance=TOLERANCE):
+    found = [global_orientation(*args, solver, tolerance)
+             for args in zip(a0.tolist(), phi0.tolist(), z_phi.tolist(), p_phi.tolist())]
+    return {"phi": np.array([f.phi for f in found]),
+            "other_phi": np.array([np.nan if f.other_phi is None else f.other_phi for f in found]),
+            "a": np.array([f.minima.a for f in found]), "c_phi": np.array([f.minima.c_phi for f in found]),
+            "count": np.array([f.minima.count for f in found]), "iterations": np.array([f.iterations for f in found])}
+
+
+def _assert_batch_is_scalar(a0, phi0, z_phi, p_phi, solver, tolerance=TOLERANCE):
+    """batch_orientation gives exactly the numbers of global_orientation, problem by problem."""
+    batch = batch_orientation(a0, phi0, z_phi, p_phi, solver, tolerance)
+    for field, expected in _scalar_orientations(a0, phi0, z_phi, p_phi, solver, tolerance).items():
+        got = getattr(batch, field)
+        same = (got == expected) | (np.isnan(got) & np.isnan(expected))
+        assert same.all(), (field, np.flatnonzero(~same)[:5], got[~same][:5], expected[~same][:5])
+    return batch
+
+
+def test_batch_brackets_are_those_of_analyse_minima():
+    """Theorem 2 as array expressions: the same brackets, bit for bit, on random, adversarial,
+    two-minima and boundary points (each boundary exactly and 1e-12, 1e-7 either side)."""
+    a, c = _special_points()
+    low, high, two = _batch_brackets(a, c)
+    for i, (ai, ci) in enumerate(zip(a.tolist(), c.tolist())):
+        brackets = analyse_minima(ai, ci).brackets
+        assert two[i] == (len(brackets) == 2), (ai, ci)
+        assert (low[0, i], high[0, i]) == brackets[0], (ai, ci)
+        if two[i]:
+            assert (low[1, i], high[1, i]) == brackets[1], (ai, ci)
+    assert 0.05 < two.mean() < 0.5  # the points do cover the two-minima region
+
+
+@pytest.mark.parametrize("solver", ["bisection", "golden"])
+@pytest.mark.parametrize("tolerance", [1e-3, TOLERANCE, 1e-17])
+def test_batch_orientation_is_global_orientation(solver, tolerance):
+    """The lockstep searches (bisection with its sure steps, golden section) against the scalar
+    ones on thousands of problems: the same minima, values and steps, bit for bit; a tolerance
+    below the rounding of the angles makes the midpoint rule stop the bisection."""
+    a, c = _special_points()
+    rng = np.random.default_rng(7)
+    phi0 = rng.uniform(-4, 4, len(a))
+    p_phi = 10 ** rng.uniform(-4, 1, len(a))
+    _assert_batch_is_scalar(a / p_phi, phi0, phi0 + c, p_phi, solver, tolerance)
+
+
+@pytest.mark.parametrize("solver", ["bisection", "golden"])
+@settings(max_examples=60, deadline=None)
+@given(problems=st.lists(st.tuples(st.floats(0, 1e6), st.floats(-10, 10), st.floats(-10, 10), st.floats(1e-6, 10)),
+                         min_size=1, max_size=3 * _FEW),
+       near=st.lists(st.tuples(st.floats(1, 40), st.floats(-1e-6, 1e-6)), max_size=2 * _FEW))
+def test_batch_orientation_is_global_orientation_property(problems, near, solver):
+    """Any problems, with boundary points of the two-minima region mixed in; small batches take
+    the scalar path, large ones the array path: the same numbers either way."""
+    a0, phi0, z_phi, p_phi = (np.array(column, dtype=float) for column in zip(*problems))
+    if near:
+        a, c = _boundary_points(*(np.array(column) for column in zip(*near)))
+        a0, phi0 = np.concatenate([a0, a]), np.concatenate([phi0, np.zeros(len(a))])
+        z_phi, p_phi = np.concatenate([z_phi, c]), np.concatenate([p_phi, np.ones(len(a))])
+    _assert_batch_is_scalar(a0, phi0, z_phi, p_phi, solver)
+
+
+def test_batch_orientation_against_brute_force():
+    """Independent of the scalar path: the number of minima is the certified brute-force count, and
+    the minimum found is a root of h where fbar is lowest on a fine grid (the global minimum)."""
+    a, c = _special_points()
+    batch = batch_orientation(a, np.zeros(len(a)), c, np.ones(len(a)))
+    expected, resolved = brute_count(batch.a, batch.c_phi)
+    assert resolved.mean() > 0.95
+    assert (batch.count[resolved] == expected[resolved]).all()
+    varphi = wrap(batch.phi - c)
+    h = _h_g(batch.a, batch.c_phi, varphi)[0]
+    assert (np.abs(h) <= 1e-9 * (batch.a + 1)).all()
+    grid = np.linspace(-PI, PI, 4001)
+    for chunk in np.array_split(np.arange(len(a)), 8):
+        lowest = fbar(batch.a[chunk, None], batch.c_phi[chunk, None], grid).min(axis=1)
+        found = fbar(batch.a[chunk], batch.c_phi[chunk], varphi[chunk])
+        assert (found <= lowest + 1e-11 * (batch.a[chunk] + PI**2)).all()
+    two = batch.count == 2
+    other = wrap(batch.other_phi[two] - c[two])
+    assert (np.abs(_h_g(batch.a[two], batch.c_phi[two], other)[0]) <= 1e-9 * (batch.a[two] + 1)).all()
+    higher = fbar(batch.a[two], batch.c_phi[two], other) - fbar(batch.a[two], batch.c_phi[two], varphi[two])
+    assert (higher >= -1e-12 * (batch.a[two] + PI**2)).all()  # the other minimum is not lower (up to a tie)
+
+
+@pytest.mark.parametrize("a0,phi0", [(math.nan, 0.0), (-1.0, 0.0), (1.0, math.inf)])
+def test_batch_orientation_bad_arguments_raise(a0, phi0):
+    with pytest.raises(ValueError, match="finite a >= 0"), np.errstate(invalid="ignore"):
+        batch_orientation(np.full(_FEW, a0), np.full(_FEW, phi0), np.zeros(_FEW), np.ones(_FEW))
+    with pytest.raises(ValueError, match="unknown solver"):
+        batch_orientation(np.ones(3), np.zeros(3), np.zeros(3), np.ones(3), "newton")

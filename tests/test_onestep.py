@@ -30,6 +30,7 @@ from theorem_oracles import Dense, my_wrap, rot
 from mapjoin.onestep import (
     OneStepProblem,
     batch_constants,
+    point_constants,
     constants,
     cost,
     recover,
@@ -130,6 +131,26 @@ def test_batch_constants_equal_dense_formulas_problem_by_problem(problems, rando
         assert abs(k.c0[i] - c0) <= tol and abs(k.a0[i] - a0) <= tol
         if a0 > 1e-5 * dense.scale:
             assert angle_diff(k.phi0[i], phi0) <= 1e-9 * dense.scale / a0
+
+
+@FAST
+@given(raw_problems(n_min=0))
+def test_point_constants_equal_batch_constants(problem):
+    """One problem's constants on Python numbers (the sequential join's) and as a batch of one: the same
+    sums in another order, equal to rounding (relative to S, see the module docstring)."""
+    points = lambda xy: xy.reshape(-1, 2) @ [1, 1j]  # noqa: E731
+    z0, z1, odometry = points(problem.z0), points(problem.z1), points(problem.odometry[:2])
+    one = point_constants(z0, problem.var0, z1, problem.var1, complex(odometry[0]),
+                          float(problem.odometry_variances[0]))
+    batch = batch_constants(np.zeros(len(z0), dtype=np.intp), 1, z0, problem.var0, z1, problem.var1, odometry,
+                            problem.odometry_variances[:1])
+    scale = Dense(problem).scale
+    assert abs(one.c0 - batch.c0[0]) <= 1e-12 * scale and abs(one.a0 - batch.a0[0]) <= 1e-12 * scale
+    if batch.a0[0] > 1e-6 * scale:
+        assert angle_diff(one.phi0, batch.phi0[0]) <= 1e-12 * scale / batch.a0[0]
+    size = np.abs(np.concatenate([z0, z1, odometry])).max()
+    assert abs(one.mean0 - batch.mean0[0]) <= 1e-13 * size and abs(one.mean1 - batch.mean1[0]) <= 1e-13 * size
+    assert one.weight == pytest.approx(batch.weight[0], rel=1e-14)
 
 
 @FAST

@@ -5,15 +5,8 @@ Dissanayake, "The nonlinearity structure of point feature SLAM problems with sph
 covariance matrices", Automatica 49 (2013) 3112-3119.
 """
 
-from importlib.metadata import PackageNotFoundError, version
-
 from .errors import InputError, JoinError, MapjoinError
 from .maps import COVARIANCE_MODES, GlobalMap, GroundTruth, LocalMap, Provenance, spherical_variances
-
-try:
-    __version__ = version("mapjoin")
-except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0.0.0+unknown"
 
 __all__ = [
     "COVARIANCE_MODES",
@@ -27,3 +20,18 @@ __all__ = [
     "spherical_variances",
     "__version__",
 ]
+
+
+def __getattr__(name: str) -> str:
+    """``__version__``, looked up the first time it is asked for: importing importlib.metadata costs more
+    than mapjoin's own modules."""
+    if name != "__version__":
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        found = version("mapjoin")
+    except PackageNotFoundError:  # running from a source tree that is not installed
+        found = "0.0.0+unknown"
+    globals()["__version__"] = found
+    return found

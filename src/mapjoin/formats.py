@@ -126,28 +126,31 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import functools
 import io
-import json
 import logging
 import math
 import os
 import re
 import reprlib
-import secrets
+import stat
 import struct
 import sys
 import zlib
 from collections.abc import Callable, Mapping, Sequence
-from glob import glob
 from itertools import chain
-from pathlib import Path
-from typing import Any, NamedTuple, TextIO
+from typing import TYPE_CHECKING, Any, NamedTuple, TextIO
 
 import numpy as np
-import yaml
 
 from .errors import InputError
-from .maps import SYMMETRY_TOLERANCE, GlobalMap, GroundTruth, LocalMap, Provenance
+from .maps import (SYMMETRY_TOLERANCE, GlobalMap, GroundTruth, LocalMap, Provenance, StackedMaps, first_duplicate,
+                   first_flagged, marginal_variances, size_groups)
+
+if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written; pathlib only names a path type here
+    from pathlib import Path
+
+    import yaml
 
 __all__ = [
     "MAP_FORMATS",
@@ -188,7 +191,7 @@ _LINEARSLAM_FILE = re.compile(r"localmap_[0-9]+\.txt", re.IGNORECASE)  # .txt is
 _FILE_EXTENSIONS = {"linearslam": "txt"}  # format -> extension, where they differ
 _GLOB_CHARACTERS = re.compile(r"[*?[]")
 
-Source = str | Path | TextIO
+Source = str | os.PathLike | TextIO  # os.PathLike: e.g. a pathlib.Path
 
 
 class _Codec(NamedTuple):
@@ -237,14 +240,16 @@ def resolve_inputs(inputs: Sequence[str]) -> list[str]:
         item = os.fspath(item)
         if item == STDIN:
             paths.append(item)
-        elif os.path.exists(item):
-            paths.extend(_expand(item))
+        elif (files := _expand(item)) is not None:
+            paths.extend(files)
         elif _GLOB_CHARACTERS.search(item):
+            from glob import glob
+
             matches = sorted(glob(item, recursive=True), key=_natural_key)
             if not matches:
                 raise InputError("no file matches this pattern", item)
             for match in matches:
-                paths.extend(_expand(match))
+                paths.extend(_expand(match) or [match])
         else:
             raise InputError("no such file or folder", item)
     return paths
@@ -254,19 +259,28 @@ def read_maps(inputs: Sequence[str], *, stdin: TextIO | None = None, format: str
     """All local maps of all inputs (see :func:`resolve_inputs`), in order; ``-`` reads ``stdin`` once.
 
     ``format`` is for the inputs whose names do not tell it (stdin, unknown extensions), so
-    e.g. a folder of .mat files and CSV on stdin can be read together.
+    e.g. a folder of .mat files and CSV on stdin can be read together. Consecutive .mat files
+    (an I-SLSJF folder of thousands) are parsed and checked together, with the errors and
+    warnings of reading them one by one.
     """
     paths = resolve_inputs(inputs)
     if paths.count(STDIN) > 1:
         raise InputError("stdin (-) is given more than once; it can be read only once", "<stdin>")
     maps: list[LocalMap] = []
+    mat_files: list[str] = []  # consecutive .mat files, read together (a folder of thousands)
     for path in paths:
+        suffix = os.path.splitext(path)[1].lower()
+        explicit = None if suffix in _EXTENSIONS else format
+        if path != STDIN and (explicit or _EXTENSIONS.get(suffix)) == "mat":
+            mat_files.append(path)
+            continue
+        maps.extend(_read_local_mat_files(mat_files))
+        mat_files = []
         if path == STDIN:
             maps.extend(read_map_file(stdin or sys.stdin, format, name="<stdin>"))
         else:
-            named = os.path.splitext(path)[1].lower() in _EXTENSIONS
-            maps.extend(read_map_file(path, None if named else format))
-    return maps
+            maps.extend(read_map_file(path, explicit))
+    return maps + _read_local_mat_files(mat_files)
 
 
 def read_map_file(source: Source, format: str | None = None, name: str | None = None) -> list[LocalMap]:
@@ -428,21 +442,45 @@ def write_table(rows: Sequence[Any], target: Source, format: str | None = None) 
 
 
 def check_not_overwriting(inputs: Sequence[str], outputs: Sequence[str]) -> None:
-    """Refuse an output that is an input file (same path after resolving links, or a hard link).
+    """Refuse an output that is an input file: the same file (device and inode, so also a hard or symbolic
+    link to it) or the same path after resolving links.
 
-    Pass the input files (:func:`resolve_inputs`); outputs need not exist yet.
+    Pass the input files (:func:`resolve_inputs`); outputs need not exist yet. Each input costs
+    one ``stat``; its path is resolved only when that fails or an output cannot be examined
+    for another reason than not existing (an existing file is found by its inode).
     """
-    files: dict[object, str] = {}
-    for path in inputs:
-        if os.fspath(path) != STDIN:
-            for key in _file_keys(path):
-                files[key] = os.fspath(path)
-    for output in outputs:
-        if os.fspath(output) != STDIN:
-            clash = next((files[key] for key in _file_keys(output) if key in files), None)
-            if clash is not None:
-                which = "an input file" if clash == os.fspath(output) else f"the input file {clash}"
-                raise InputError(f"is {which}; choose another output so the input is kept", os.fspath(output))
+    targets = [os.fspath(output) for output in outputs if os.fspath(output) != STDIN]
+    if not targets:
+        return
+    resolved = {os.path.realpath(output): output for output in targets}
+    identities: dict[tuple[int, int], str] = {}
+    resolve_every_input = False
+    for output in targets:
+        try:
+            status = os.stat(output)
+        except (FileNotFoundError, NotADirectoryError):
+            continue  # no file there yet: only an input that does not exist either can resolve to its path
+        except OSError:
+            resolve_every_input = True
+        else:
+            identities[(status.st_dev, status.st_ino)] = output
+    clashes: dict[str, str] = {}  # output -> the (last) input it is
+    for path in map(os.fspath, inputs):
+        if path == STDIN:
+            continue
+        try:
+            status = os.stat(path)
+        except OSError:
+            status = None
+        output = None if status is None else identities.get((status.st_dev, status.st_ino))
+        if output is None and (status is None or resolve_every_input):
+            output = resolved.get(os.path.realpath(path))
+        if output is not None:
+            clashes[output] = path
+    for output in targets:
+        if output in clashes:
+            which = "an input file" if clashes[output] == output else f"the input file {clashes[output]}"
+            raise InputError(f"is {which}; choose another output so the input is kept", output)
 
 
 def atomic_write(path: str | Path, text: str | bytes) -> None:
@@ -452,7 +490,7 @@ def atomic_write(path: str | Path, text: str | bytes) -> None:
     """
     path = os.fspath(path)
     folder, base = os.path.split(path)
-    temporary = os.path.join(folder, f".{base}.{secrets.token_hex(4)}.tmp")
+    temporary = os.path.join(folder, f".{base}.{os.urandom(4).hex()}.tmp")
     try:
         with open(temporary, "xb") if isinstance(text, bytes) else open(
                 temporary, "x", encoding="utf-8", newline="") as file:
@@ -521,12 +559,28 @@ def _read_text(source: Source, name: str) -> str:
 
 def _read_file(path: str, name: str, binary: bool) -> str | bytes:
     try:
-        with open(path, "rb") if binary else open(path, encoding="utf-8-sig", newline="") as file:
+        if binary:
+            return _read_bytes(path)
+        with open(path, encoding="utf-8-sig", newline="") as file:
             return file.read()
     except UnicodeDecodeError as error:
         raise _not_utf8(error, name) from None
     except OSError as error:
         raise InputError(f"cannot read ({error.strerror or error})", name) from None
+
+
+def _read_bytes(path: str) -> bytes:
+    """The bytes of a file; a regular file in one ``read`` (a file object costs as much as reading a small file)."""
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        status = os.fstat(descriptor)
+        chunks = [os.read(descriptor, status.st_size + 1)]  # fewer bytes than asked: the end of a regular file
+        if len(chunks[0]) > status.st_size or not stat.S_ISREG(status.st_mode):
+            while chunks[-1]:
+                chunks.append(os.read(descriptor, 1 << 20))
+        return chunks[0] if len(chunks) == 1 else b"".join(chunks)
+    finally:
+        os.close(descriptor)
 
 
 def _not_utf8(error: UnicodeDecodeError, name: str) -> InputError:
@@ -563,7 +617,7 @@ def _write(text: str | bytes, target: Source) -> list[str]:
 def _write_map_folder(maps: Sequence[LocalMap], folder: str, fmt: str, codec: _Codec) -> list[str]:
     """One file per map; every map is encoded first, so a map the format cannot hold writes nothing."""
     paths = [os.path.join(folder, map_file_name(local_map.end_id, fmt)) for local_map in maps]
-    duplicate = _first_duplicate(np.array([local_map.end_id for local_map in maps], dtype=np.int64))
+    duplicate = first_duplicate(np.array([local_map.end_id for local_map in maps], dtype=np.int64))
     if duplicate is not None:
         raise InputError(f"two maps end at pose {maps[duplicate].end_id}, so both would be "
                          f"{os.path.basename(paths[duplicate])}; write them to one file instead", folder)
@@ -577,52 +631,38 @@ def _write_map_folder(maps: Sequence[LocalMap], folder: str, fmt: str, codec: _C
     return paths
 
 
-def _expand(path: str) -> list[str]:
-    return _folder_maps(path) if os.path.isdir(path) else [path]
+def _expand(path: str) -> list[str] | None:
+    """The files ``path`` stands for: a folder's local maps, else itself; None if it does not exist (one ``stat``)."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    return _folder_maps(path) if stat.S_ISDIR(mode) else [path]
 
 
 def _folder_maps(folder: str) -> list[str]:
     """The local-map files of ``folder``, ordered by their number k."""
     try:
         with os.scandir(folder) as entries:
-            names = [entry.name for entry in entries if _LOCAL_MAP_FILE.fullmatch(entry.name) and entry.is_file()]
+            found = [(match, entry.path) for entry in entries
+                     if (match := _LOCAL_MAP_FILE.fullmatch(entry.name)) and entry.is_file()]
     except OSError as error:
         raise InputError(f"cannot list the folder ({error.strerror or error})", folder) from None
-    numbered: dict[int, str] = {}
-    for name in names:
-        k = int(_LOCAL_MAP_FILE.fullmatch(name)[1])
+    numbered: dict[int, tuple[str, str]] = {}  # k -> (file name, path)
+    for match, path in found:
+        k = int(match[1])
         if k in numbered:
-            raise InputError(f"holds both {numbered[k]} and {name} for map {k}; keep one", folder)
-        numbered[k] = name
+            raise InputError(f"holds both {numbered[k][0]} and {match[0]} for map {k}; keep one", folder)
+        numbered[k] = (match[0], path)
     if not numbered:
         raise InputError("expected local-map files named localmap_<k>.mat, .yaml, .yml, .csv or .txt (Linear SLAM); found none",
                          folder)
-    return [os.path.join(folder, numbered[k]) for k in sorted(numbered)]
+    return [numbered[k][1] for k in sorted(numbered)]
 
 
 def _natural_key(text: str) -> list[str | int]:
     """Sort key that orders embedded numbers by value (``a9`` before ``a10``)."""
     return [int(part) if index % 2 else part for index, part in enumerate(re.split(r"([0-9]+)", text))]
-
-
-def _file_keys(path: str | Path) -> list[object]:
-    """What identifies a file: its resolved path and, if it exists, its (device, inode)."""
-    keys: list[object] = [os.path.realpath(path)]
-    with contextlib.suppress(OSError):
-        status = os.stat(path)
-        keys.append((status.st_dev, status.st_ino))
-    return keys
-
-
-def _first_duplicate(values: np.ndarray, groups: np.ndarray | None = None) -> int | None:
-    """Index of the first entry that repeats an earlier (group, value) pair, or None."""
-    keys = (values,) if groups is None else (values, groups)
-    order = np.lexsort(keys)  # stable: within equal keys, earlier entries first
-    same = values[order[1:]] == values[order[:-1]]
-    if groups is not None:
-        same &= groups[order[1:]] == groups[order[:-1]]
-    repeats = order[1:][same]
-    return int(repeats.min()) if repeats.size else None
 
 
 # ---------------------------------------------------------------------------------------
@@ -633,28 +673,33 @@ _YAML_FLOAT = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$")
 _PLAIN_FLOAT = re.compile(r"[-+]?[0-9]+\.[0-9]*(?:[eE][-+][0-9]+)?")  # as repr writes them; YAML 1.1 floats
 
 
-class _Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
-    """Safe loader that also reads ``1e-6`` (no dot: a string in YAML 1.1) as a float, and reads floats faster."""
+@functools.cache
+def _yaml_classes() -> tuple[type, type]:
+    """mapjoin's YAML loader and dumper, made (and PyYAML imported) on first use: commands that read and write
+    no YAML do not pay for importing it."""
+    import yaml
 
-    def resolve(self, kind: type, value: str, implicit: tuple[bool, bool]) -> str:
-        if kind is yaml.ScalarNode and implicit[0] and _PLAIN_FLOAT.fullmatch(value):
-            return "tag:yaml.org,2002:float"  # what PyYAML's resolver says too, without its slow search
-        return super().resolve(kind, value, implicit)
+    class Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
+        """Safe loader that also reads ``1e-6`` (no dot: a string in YAML 1.1) as a float, and reads floats faster."""
 
-    def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
-        try:  # the common decimal forms; .inf, .nan and base 60 take PyYAML's slower path
-            return float(node.value)
-        except ValueError:
-            return super().construct_yaml_float(node)
+        def resolve(self, kind: type, value: str, implicit: tuple[bool, bool]) -> str:
+            if kind is yaml.ScalarNode and implicit[0] and _PLAIN_FLOAT.fullmatch(value):
+                return "tag:yaml.org,2002:float"  # what PyYAML's resolver says too, without its slow search
+            return super().resolve(kind, value, implicit)
 
+        def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
+            try:  # the common decimal forms; .inf, .nan and base 60 take PyYAML's slower path
+                return float(node.value)
+            except ValueError:
+                return super().construct_yaml_float(node)
 
-class _Dumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # type: ignore[misc]
-    """Safe dumper that quotes strings :class:`_Loader` would read as floats."""
+    class Dumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # type: ignore[misc]
+        """Safe dumper that quotes strings the loader would read as floats."""
 
-
-_Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML_FLOAT, list("-+.0123456789"))
-_Loader.add_constructor("tag:yaml.org,2002:float", _Loader.construct_yaml_float)
-_Dumper.add_implicit_resolver("tag:yaml.org,2002:float", _YAML_FLOAT, list("-+.0123456789"))
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML_FLOAT, list("-+.0123456789"))
+    Loader.add_constructor("tag:yaml.org,2002:float", Loader.construct_yaml_float)
+    Dumper.add_implicit_resolver("tag:yaml.org,2002:float", _YAML_FLOAT, list("-+.0123456789"))
+    return Loader, Dumper
 
 
 _NUMBER_TYPES = frozenset({int, float})
@@ -759,7 +804,7 @@ class _YamlDocument:
             columns[key] = (np.array([item[key] for item in items]).reshape(-1, *shape)
                             if items and all(present) else None)
         if "id" in fields:
-            duplicate = _first_duplicate(columns["id"])
+            duplicate = first_duplicate(columns["id"])
             if duplicate is not None:
                 raise self.error((*path, duplicate, "id"), f"duplicate id {columns['id'][duplicate]}")
         return columns
@@ -787,6 +832,8 @@ class _YamlDocument:
 
     def _line(self, path: _FieldPath) -> int:
         """Line (1-based) of the deepest node of ``path`` that exists."""
+        import yaml
+
         node = self.node
         for key in path:
             if isinstance(node, yaml.MappingNode):
@@ -811,7 +858,9 @@ def _render(path: _FieldPath) -> str:
 
 
 def _yaml_documents(text: str, source: str) -> list[_YamlDocument]:
-    loader = _Loader(text)
+    import yaml
+
+    loader = _yaml_classes()[0](text)
     documents = []
     try:
         while loader.check_node():
@@ -836,8 +885,10 @@ def _yaml_document(text: str, source: str) -> _YamlDocument:
 
 
 def _yaml_text(documents: Sequence[Any], *, explicit_start: bool = False) -> str:
-    return yaml.dump_all(documents, Dumper=_Dumper, sort_keys=False, default_flow_style=None, allow_unicode=True,
-                         width=1 << 30, explicit_start=explicit_start)
+    import yaml
+
+    return yaml.dump_all(documents, Dumper=_yaml_classes()[1], sort_keys=False, default_flow_style=None,
+                         allow_unicode=True, width=1 << 30, explicit_start=explicit_start)
 
 
 def _yaml_records(columns: Mapping[str, np.ndarray | None]) -> list[dict[str, Any]]:
@@ -929,7 +980,7 @@ class _CsvTable:
     def ids(self, rows: np.ndarray, groups: np.ndarray | None = None, what: str = "") -> np.ndarray:
         """The ``id`` column at ``rows``, unique within each group."""
         ids = self.values(("id",), rows, "id")[:, 0]
-        duplicate = _first_duplicate(ids, groups)
+        duplicate = first_duplicate(ids, groups)
         if duplicate is not None:
             raise self.error(int(rows[duplicate]), "id", f"duplicate id {ids[duplicate]}{what}")
         return ids
@@ -1094,7 +1145,7 @@ def _read_local_csv(text: str, source: str) -> list[LocalMap]:
         row = int(first[np.flatnonzero(pose_counts == 0)[0]])
         raise table.error(row, "kind",
                           f"map {reprlib.repr(names[row])} has no pose row; expected one (its end pose)")
-    second = _first_duplicate(group[poses])
+    second = first_duplicate(group[poses])
     if second is not None:
         raise table.error(int(poses[second]), "kind",
                           f"map {reprlib.repr(names[poses[second]])} has a second pose row; expected one")
@@ -1137,135 +1188,406 @@ def _dump_local_csv(maps: Sequence[LocalMap]) -> str:
 
 def _read_local_mat(data: bytes, source: str) -> list[LocalMap]:
     """One I-SLSJF local map; k from the file name (see the module docstring)."""
+    return _mat_local_maps([data], [source])
+
+
+def _read_local_mat_files(paths: Sequence[str]) -> list[LocalMap]:
+    """The I-SLSJF local maps of many .mat files, parsed and checked all at once: a bad file raises the
+    error (after the warnings) that reading the files one by one with :func:`_read_local_mat` gives."""
+    files: list[bytes] = []
+    for path in paths:
+        try:
+            files.append(_read_file(path, path, True))
+        except InputError:
+            _mat_local_maps(files, paths[:len(files)])  # an error in an earlier file comes first
+            raise
+    return _mat_local_maps(files, paths)
+
+
+def _mat_local_maps(files: Sequence[bytes], sources: Sequence[str]) -> list[LocalMap]:
+    """The maps of I-SLSJF .mat files, map k from pose k-1 to pose k, as ``LocalMap.from_covariance`` makes
+    them after I-SLSJF's stabilisation (see the module docstring).
+
+    All files are parsed, checked and summarised at once, the maps of one size together; the
+    first file that fails raises the error that reading the files one by one gives, after the
+    warnings that reading logs before it.
+    """
+    table, errors = _mat_files(files, sources)
+    numbers: list[int] = []  # k of each file, up to the first that fails
+    failure: tuple[int, Callable[[int], InputError] | InputError | None] = (len(files), None)
+    for i, source in enumerate(sources):
+        try:
+            numbers.append(_mat_map_number(source))
+            if i in errors:
+                raise errors[i]
+        except InputError as error:
+            failure = (i, error)
+            break
+    count = len(numbers)
+    state_row, covariance_row = (table.named(key, count) for key in _MAT_VARIABLES)
+    (state_matrix, sizes, state_columns), (covariance_matrix, covariance_rows, covariance_columns) = (
+        table.matrices(rows) for rows in (state_row, covariance_row))
+    count = first_flagged(~state_matrix | ~covariance_matrix | (state_columns != 2) | (sizes < 3)
+                          | ((sizes - 3) % 2 != 0), np.arange(count + 1))  # the files whose variables pass
+    sizes = sizes[:count]
+    starts = np.concatenate([[0], np.cumsum(sizes)])  # map i's localmap_st rows: starts[i] to starts[i + 1]
+    first_row = np.repeat(starts[:-1], sizes)
+    state = table.floats(state_row[:count])  # map i's ids, then its values, from 2 * starts[i]
+    ids = state[np.arange(starts[-1]) + first_row]
+    values = state[np.arange(starts[-1]) + first_row + np.repeat(sizes, sizes)]
+    failed, error = min([  # (first file failing a check, its error), in the order one file is checked
+        failure,
+        (count, lambda i: _local_mat_error(table.variables(i), sources[i])),
+        *((first_flagged(bad, starts), functools.partial(_mat_id_error, fault, table, state_row, sources))
+          for fault, bad in enumerate(_mat_id_faults(ids, np.arange(starts[-1]) - first_row))),
+        (first_flagged((covariance_rows[:count] != sizes) | (covariance_columns[:count] != sizes),
+                       np.arange(count + 1)),
+         lambda i: InputError("expected {0}x{0} (the size of localmap_st), got {1}".format(
+             sizes[i], table.array(covariance_row[i]).shape), sources[i], "localmap_P")),
+    ], key=lambda failure: failure[0])  # ties: the earlier check
+
+    stacks = []  # (maps, StackedMaps) of each size, before the first failure
+    stabilised: list[tuple[int, np.ndarray]] = []  # (map, its end-pose variances) where STAB_NOISE is added
+    for group in size_groups(sizes[:failed]):
+        n, m = int(sizes[group[0]]), int(sizes[group[0]] - 3) // 2
+        rows = starts[group, np.newaxis] + np.arange(n)
+        covariances = table.floats(covariance_row[group]).reshape(-1, n, n).transpose(0, 2, 1)  # column-major
+        pose_variances = np.diagonal(covariances, axis1=1, axis2=2)[:, :3].copy()
+        still = np.flatnonzero(pose_variances.min(axis=1) < STAB_NOISE)
+        covariances[still[:, np.newaxis], np.arange(3), np.arange(3)] += STAB_NOISE
+        stabilised += zip(group[still].tolist(), pose_variances[still])
+        group_values = values[rows]
+        stacks.append((group.tolist(), StackedMaps(
+            [sources[i] for i in group.tolist()], group_values[:, :3], ids[rows[:, 3::2]].astype(np.int64),
+            group_values[:, 3:].reshape(len(group), m, 2), *marginal_variances(covariances), covariances)))
+    invalid = min([(group[found[0]], found[1]) for group, stack in stacks if (found := stack.first_invalid())],
+                  key=lambda failure: failure[0], default=None)
+    last = invalid[0] if invalid else failed - 1  # the last map that one-by-one reading gets to
+    for i, pose_variances in sorted(stabilised, key=lambda item: item[0]):
+        if i <= last:
+            log.warning("%s: end-pose variances %s include one below %g (the robot did not move); added %g to the "
+                        "three pose diagonal entries, as I-SLSJF does", sources[i],
+                        np.array2string(pose_variances, precision=3), STAB_NOISE, STAB_NOISE)
+    if invalid:
+        raise invalid[1]
+    if error is not None:
+        raise error if isinstance(error, InputError) else error(failed)
+    maps: list[LocalMap] = [None] * failed  # type: ignore[list-item]  # every entry set below
+    for group, stack in stacks:
+        for i, local_map in zip(group, stack.local_maps([numbers[i] - 1 for i in group], [numbers[i] for i in group])):
+            maps[i] = local_map
+    return maps
+
+
+def _mat_map_number(source: str) -> int:
+    """k of a file named ``localmap_<k>.mat`` (map k runs from pose k-1 to pose k)."""
     match = _MAT_NUMBER.search(os.path.basename(source))
     if not match or int(match[1]) < 1:
         raise InputError("cannot tell the map number k from the file name; name it localmap_<k>.mat with k >= 1 "
                          "(map k runs from pose k-1 to pose k)", source)
-    k = int(match[1])
-    variables = mat_variables(data, source)
-    state, covariance = (_mat_matrix(variables, key, source) for key in _MAT_VARIABLES)
-    rows = len(state)
-    if state.shape[1] != 2 or rows < 3 or (rows - 3) % 2:
-        raise InputError(f"expected (3+2m)x2 [id, value] rows, got shape {state.shape}", source, "localmap_st")
-    ids = state[:, 0]
-    for row in range(3):
-        if ids[row] != 0:
-            raise InputError(f"expected id 0 on the three end-pose rows, got {ids[row]:g}", source,
-                             f"localmap_st row {row + 1}")
-    feature_ids = ids[3:]
-    if feature_ids.size and not (feature_ids.min() >= 0 and feature_ids.max() < 2**53  # NaN fails
-                                 and (feature_ids == np.round(feature_ids)).all()):
-        bad = np.flatnonzero(~((feature_ids >= 0) & (feature_ids < 2**53) & (feature_ids == np.round(feature_ids))))
-        raise InputError(f"expected a non-negative integer feature id, got {ids[3 + bad[0]]:g}", source,
-                         f"localmap_st row {bad[0] + 4}")
-    if (ids[3::2] != ids[4::2]).any():
-        mismatch = np.flatnonzero(ids[3::2] != ids[4::2])
-        row = 3 + 2 * int(mismatch[0])
-        raise InputError(f"feature id {ids[row]:g} on the x row but {ids[row + 1]:g} on the y row "
-                         f"(row {row + 2}); expected the same id on both rows of a feature", source,
-                         f"localmap_st row {row + 1}")
-    if covariance.shape != (rows, rows):
-        raise InputError(f"expected {rows}x{rows} (the size of localmap_st), got {covariance.shape}", source,
-                         "localmap_P")
-    pose_variances = covariance.diagonal()[:3]
-    if pose_variances.min() < STAB_NOISE:
-        log.warning("%s: end-pose variances %s include one below %g (the robot did not move); added %g to the "
-                    "three pose diagonal entries, as I-SLSJF does", source,
-                    np.array2string(pose_variances, precision=3), STAB_NOISE, STAB_NOISE)
-        covariance[np.arange(3), np.arange(3)] += STAB_NOISE
-    return [LocalMap.from_covariance(source, k - 1, k, state[:3, 1], ids[3::2].astype(np.int64),
-                                     state[3:, 1].reshape(-1, 2), covariance)]
+    return int(match[1])
 
 
-def _mat_matrix(variables: Mapping[str, np.ndarray | str], key: str, source: str) -> np.ndarray:
-    """Variable ``key`` of a .mat file as a (writable) 2-D float matrix."""
-    if key not in variables:
-        raise InputError(f"missing; expected the I-SLSJF variables {' and '.join(_MAT_VARIABLES)}", source, key)
-    value = variables[key]
-    if isinstance(value, str) or value.ndim != 2:
-        got = value if isinstance(value, str) else f"{value.ndim}-D array"
-        raise InputError(f"expected a real numeric matrix, got a {got}", source, key)
-    return value
+def _local_mat_error(variables: Mapping[str, _MatArray | str], source: str) -> InputError | None:
+    """What is wrong with the variables of an I-SLSJF .mat file, if anything (their values aside): it must hold
+    the real matrices ``localmap_st``, of (3+2m) x 2 [id, value] rows, and ``localmap_P``."""
+    for key in _MAT_VARIABLES:
+        if key not in variables:
+            return InputError(f"missing; expected the I-SLSJF variables {' and '.join(_MAT_VARIABLES)}", source, key)
+        value = variables[key]
+        if isinstance(value, str) or len(value.shape) != 2:
+            got = value if isinstance(value, str) else f"{len(value.shape)}-D array"
+            return InputError(f"expected a real numeric matrix, got a {got}", source, key)
+    shape = variables["localmap_st"].shape
+    if shape[1] != 2 or shape[0] < 3 or (shape[0] - 3) % 2:
+        return InputError(f"expected (3+2m)x2 [id, value] rows, got shape {shape}", source, "localmap_st")
+    return None
+
+
+def _mat_id_faults(ids: np.ndarray, row: np.ndarray) -> list[np.ndarray]:
+    """Masks over ``localmap_st`` rows (``row``: the row within its map) of each fault of their ids, in the
+    order they are checked: a pose row without id 0, a feature id that is not an integer in [0, 2^53), an x
+    row whose y row has another id."""
+    pose, x = row < 3, (row >= 3) & (row % 2 == 1)
+    mismatch = np.zeros(len(ids), dtype=bool)
+    mismatch[x] = ids[x] != ids[np.flatnonzero(x) + 1]
+    return [pose & (ids != 0), ~pose & ~((ids >= 0) & (ids < 2**53) & (ids == np.round(ids))), mismatch]
+
+
+def _mat_id_error(fault: int, table: _MatTable, state_row: np.ndarray, sources: Sequence[str], i: int) -> InputError:
+    """The error of map i's first ``localmap_st`` row with ``fault`` (an index into :func:`_mat_id_faults`)."""
+    ids = table.array(state_row[i]).value()[:, 0]
+    row = int(np.argmax(_mat_id_faults(ids, np.arange(len(ids)))[fault]))
+    if fault == 0:
+        message = f"expected id 0 on the three end-pose rows, got {ids[row]:g}"
+    elif fault == 1:
+        message = f"expected a non-negative integer feature id, got {ids[row]:g}"
+    else:
+        message = (f"feature id {ids[row]:g} on the x row but {ids[row + 1]:g} on the y row (row {row + 2}); "
+                   "expected the same id on both rows of a feature")
+    return InputError(message, sources[i], f"localmap_st row {row + 1}")
 
 
 # MAT-file level 5 (MathWorks, "MAT-File Format"). scipy.io.loadmat crashes the interpreter
 # (segfault) on some corrupt files, e.g. one flipped byte in an element's type code, so the
-# few element kinds local maps use are parsed here, checking every length and code.
+# few element kinds local maps use are parsed here, checking every length and code. Many
+# files are parsed at once (a folder of thousands of small ones): their bytes are joined, each
+# walk over data elements reads the k-th tag of every buffer in one numpy step, and the
+# variables found form one table.
 _MI_INT8, _MI_INT32, _MI_UINT32, _MI_MATRIX, _MI_COMPRESSED = 1, 5, 6, 14, 15
 _MI_NUMERIC = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 9: "f8", 12: "i8", 13: "u8"}
 _MX_CLASSES = {1: "cell array", 2: "struct", 3: "object", 4: "char array", 5: "sparse matrix", 16: "function",
                17: "opaque object"}
 _MX_NUMERIC = range(6, 16)  # double, single, int8 ... uint64
 _MX_COMPLEX = 0x800
+_MAT_DTYPES = {(big, kind): np.dtype((">" if big else "<") + code) for kind, code in _MI_NUMERIC.items()
+               for big in (False, True)}
+_MAT_ITEMSIZES = np.array([_MAT_DTYPES.get((False, kind), np.dtype("u1")).itemsize for kind in range(16)])
 
 
 def mat_variables(data: bytes, source: str) -> dict[str, np.ndarray | str]:
     """The variables of a MATLAB v5 .mat file: real numeric arrays as float arrays, others as a description."""
-    if len(data) < 128 or data[126:128] not in (b"IM", b"MI"):
-        raise InputError("expected a MATLAB v5 .mat file (no MAT-file header)", source)
-    endian = "<" if data[126:128] == b"IM" else ">"
-    version = struct.unpack_from(endian + "H", data, 124)[0]
-    if version != 0x0100:
-        raise InputError(f"expected a MATLAB v5 .mat file, got version {version:#06x} (save with -v7 or -v6)",
-                         source)
-    variables = {}
-    for kind, payload in _mat_elements(data, 128, endian, source, padded=False):
+    table, errors = _mat_files([data], [source])
+    if errors:
+        raise errors[0]
+    return {name: value if isinstance(value, str) else value.value() for name, value in table.variables(0).items()}
+
+
+class _MatArray(NamedTuple):
+    """A real numeric array as a .mat file stores it: its dimensions and its column-major data of ``dtype``."""
+
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    data: memoryview
+
+    def value(self) -> np.ndarray:
+        return np.frombuffer(self.data, self.dtype).astype(float).reshape(self.shape, order="F")
+
+
+class _MatTable(NamedTuple):
+    """The variables of many .mat files, one row each, in file order (all of a file's when it has no error):
+    where in ``buffer`` its name and, for a real numeric array, its dimensions and data are."""
+
+    buffer: bytes  # the files' top-level elements, decompressed
+    file: np.ndarray  # the file each variable is in
+    big: np.ndarray  # its byte order is big-endian
+    name: np.ndarray  # (start, end) of its name
+    descriptions: dict[int, str]  # the variables that are not real numeric arrays
+    kind: np.ndarray  # the data type of a real numeric array
+    rank: np.ndarray  # its number of dimensions
+    dimensions: np.ndarray  # where they start
+    content: np.ndarray  # (start, end) of its data
+
+    def variables(self, file: int) -> dict[str, _MatArray | str]:
+        """Name and value of each variable of ``file``, later ones of a name replacing earlier ones."""
+        return {self.name_of(row): self.array(row) for row in np.flatnonzero(self.file == file).tolist()}
+
+    def name_of(self, row: int) -> str:
+        return str(memoryview(self.buffer)[slice(*self.name[row])], "latin-1")
+
+    def array(self, row: int) -> _MatArray | str:
+        """Variable ``row`` as stored, or its description."""
+        if row in self.descriptions:
+            return self.descriptions[row]
+        big, kind = bool(self.big[row]), int(self.kind[row])
+        shape = struct.unpack_from(f"{'>' if big else '<'}{self.rank[row]}i", self.buffer, self.dimensions[row])
+        return _MatArray(shape, _MAT_DTYPES[big, kind], memoryview(self.buffer)[slice(*self.content[row])])
+
+    def named(self, name: str, files: int) -> np.ndarray:
+        """The row of the (last) variable called ``name`` of each of the first ``files`` files; -1 if none."""
+        text = np.frombuffer(name.encode("latin-1"), np.uint8)
+        rows = np.flatnonzero((self.name[:, 1] - self.name[:, 0] == len(text)) & (self.file < files))
+        rows = rows[(np.frombuffer(self.buffer, np.uint8)[self.name[rows, :1] + np.arange(len(text))] == text).all(1)]
+        found = np.full(files, -1)
+        np.maximum.at(found, self.file[rows], rows)
+        return found
+
+    def matrices(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Whether each of ``rows`` (-1: none) is a real numeric matrix, and its numbers of rows and columns."""
+        matrix = rows >= 0
+        matrix[matrix] = (self.rank[rows[matrix]] == 2) & (self.kind[rows[matrix]] >= 0)
+        shape = np.zeros((len(rows), 2), dtype=np.int64)
+        shape[matrix] = _mat_int32(np.frombuffer(self.buffer, np.uint8), self.dimensions[rows[matrix], np.newaxis]
+                                   + [0, 4], self.big[rows[matrix], np.newaxis])
+        return matrix, shape[:, 0], shape[:, 1]
+
+    def floats(self, rows: np.ndarray) -> np.ndarray:
+        """The data of the real numeric arrays ``rows`` as floats, each column-major, one after the other."""
+        view, types = memoryview(self.buffer), set(zip(self.big[rows].tolist(), self.kind[rows].tolist()))
+        if len(types) > 1:
+            return np.concatenate([self.array(row).value().ravel(order="F") for row in rows.tolist()])
+        data = bytearray().join([view[start:end] for start, end in self.content[rows].tolist()])  # writable
+        return np.frombuffer(data, _MAT_DTYPES[types.pop()] if types else float).astype(float, copy=False)
+
+
+def _mat_files(files: Sequence[bytes], sources: Sequence[str]) -> tuple[_MatTable, dict[int, InputError]]:
+    """The variables of many .mat files, and the error of each file that has one: the first that reading its
+    elements in order meets."""
+    errors: dict[int, str] = {}
+    big = np.zeros(len(files), dtype=bool)  # big-endian
+    for i, data in enumerate(files):
+        if len(data) < 128 or data[126:128] not in (b"IM", b"MI"):
+            errors[i] = "expected a MATLAB v5 .mat file (no MAT-file header)"
+            continue
+        big[i] = data[126:128] == b"MI"
+        version = struct.unpack_from(">H" if big[i] else "<H", data, 124)[0]
+        if version != 0x0100:
+            errors[i] = f"expected a MATLAB v5 .mat file, got version {version:#06x} (save with -v7 or -v6)"
+    elements, owner, element_errors = _mat_top_level(files, big, errors)
+    table = _mat_variables(elements, owner, big[np.array(owner, dtype=np.intp)], element_errors)
+    for e, message in sorted(element_errors.items()):
+        errors.setdefault(owner[e], message)  # the file's first element with an error
+    return table, {i: InputError(message, sources[i]) for i, message in errors.items()}
+
+
+def _mat_top_level(files: Sequence[bytes], big: np.ndarray, errors: dict[int, str]
+                   ) -> tuple[list[bytes | memoryview], list[int], dict[int, str]]:
+    """The top-level data elements of the files without ``errors``, each alone (decompressed, or as it is);
+    the file of each; and the error of each that cannot be decompressed. A file's walk error goes to ``errors``."""
+    joined = b"".join(files)
+    end = np.cumsum([len(data) for data in files], dtype=np.int64)
+    begin = end - [len(data) - 128 for data in files]
+    begin[list(errors)] = end[list(errors)]
+    top, walk_errors = _mat_walk(np.frombuffer(joined, np.uint8), begin, end, big, padded=False)
+    errors.update(walk_errors)
+    elements: list[bytes | memoryview] = []
+    owner: list[int] = []
+    element_errors: dict[int, str] = {}
+    view = memoryview(joined)
+    for file, kind, tag, start, size in zip(*(column.tolist() for column in top)):
+        if file in errors:
+            continue
         if kind == _MI_COMPRESSED:
             try:
-                payload = zlib.decompress(payload)
+                elements.append(zlib.decompress(view[start:start + size]))
             except zlib.error as error:
-                raise InputError(f"corrupt compressed data in the .mat file ({error})", source) from None
-            [(kind, payload)] = _mat_elements(payload, 0, endian, source, padded=False, count=1)
-        if kind != _MI_MATRIX:
-            raise InputError(f"corrupt .mat file: expected a matrix element, got element type {kind}", source)
-        name, value = _mat_array(payload, endian, source)
-        variables[name] = value
-    return variables
-
-
-def _mat_elements(buffer: bytes, offset: int, endian: str, source: str, *, padded: bool,
-                  count: int | None = None) -> list[tuple[int, bytes]]:
-    """(type, data) of the data elements in ``buffer`` from ``offset`` (exactly ``count`` if given)."""
-    elements = []
-    while offset < len(buffer):
-        if offset + 8 > len(buffer):
-            raise InputError("truncated .mat file (an element tag is cut off)", source)
-        kind, size = struct.unpack_from(endian + "II", buffer, offset)
-        if kind >> 16:  # small data element: up to 4 bytes of data inside the tag
-            kind, size, start, end = kind & 0xFFFF, kind >> 16, offset + 4, offset + 8
-            if size > 4:
-                raise InputError(f"corrupt .mat file: small element of {size} bytes", source)
+                element_errors[len(elements)] = f"corrupt compressed data in the .mat file ({error})"
+                elements.append(b"")
         else:
-            start = offset + 8
-            end = start + size + (-size % 8 if padded else 0)
-            if start + size > len(buffer):
-                raise InputError("truncated .mat file (an element is cut off)", source)
-        elements.append((kind, buffer[start:start + size]))
-        offset = end
-    if count is not None and len(elements) != count:
-        raise InputError(f"corrupt .mat file: expected {count} element(s), got {len(elements)}", source)
-    return elements
+            elements.append(view[tag:max(start + size, tag + 8)])
+        owner.append(file)
+    return elements, owner, element_errors
 
 
-def _mat_array(payload: bytes, endian: str, source: str) -> tuple[str, np.ndarray | str]:
-    """Name and value of one miMATRIX element (a real numeric array, else a description of it)."""
-    parts = _mat_elements(payload, 0, endian, source, padded=True)
-    kinds = [kind for kind, _ in parts[:3]]
-    if kinds != [_MI_UINT32, _MI_INT32, _MI_INT8] or len(parts[0][1]) != 8:
-        raise InputError(f"corrupt .mat file: matrix subelements of types {kinds}", source)
-    flags = struct.unpack_from(endian + "I", parts[0][1])[0]
-    name = parts[2][1].decode("latin-1")
-    if flags & 0xFF not in _MX_NUMERIC or flags & _MX_COMPLEX:
-        return name, _MX_CLASSES.get(flags & 0xFF, "complex array" if flags & _MX_COMPLEX else "unknown class")
-    if len(parts[1][1]) % 4 or len(parts) != 4 or parts[3][0] not in _MI_NUMERIC:
-        raise InputError(f"corrupt .mat file: numeric array {name!r} is malformed", source)
-    shape = tuple(np.frombuffer(parts[1][1], endian + "i4").tolist())
-    if min(shape, default=-1) < 0:
-        raise InputError(f"corrupt .mat file: {name!r} has dimensions {shape}", source)
-    dtype = np.dtype(endian + _MI_NUMERIC[parts[3][0]])
-    if len(parts[3][1]) != math.prod(shape) * dtype.itemsize:
-        raise InputError(f"corrupt .mat file: {name!r} holds {len(parts[3][1])} bytes for shape {shape}", source)
-    return name, np.frombuffer(parts[3][1], dtype).astype(float).reshape(shape, order="F")
+def _mat_variables(elements: Sequence[bytes | memoryview], owner: Sequence[int], big: np.ndarray,
+                   errors: dict[int, str]) -> _MatTable:
+    """The variables that top-level data elements hold, each a miMATRIX element; the first error of each
+    element that is not one, or not a well-formed one, goes to ``errors``."""
+    buffer = b"".join(elements)
+    data, count = np.frombuffer(buffer, np.uint8), len(elements)
+    end = np.cumsum([len(element) for element in elements], dtype=np.int64)
+    inner, walk_errors = _mat_walk(data, end - [len(element) for element in elements], end, big, padded=False)
+    found, only = inner.counts(count), inner.nth(0, count)
+    for e, message in walk_errors.items():
+        errors.setdefault(e, message)
+    for e in np.flatnonzero(found != 1).tolist():
+        errors.setdefault(e, f"corrupt .mat file: expected 1 element(s), got {found[e]}")
+    for e in np.flatnonzero((found == 1) & (only.kind != _MI_MATRIX)).tolist():
+        errors.setdefault(e, f"corrupt .mat file: expected a matrix element, got element type {only.kind[e]}")
+    matrix = np.ones(count, dtype=bool)
+    matrix[list(errors)] = False
+    parts, walk_errors = _mat_walk(data, np.where(matrix, only.start, 0), np.where(matrix, only.start + only.size, 0),
+                                   big, padded=True)
+    for e, message in walk_errors.items():
+        errors.setdefault(e, message)
+    matrix[list(errors)] = False
+
+    # a miMATRIX element's subelements: array flags, dimensions, name, then a numeric array's data
+    flags, dimensions, name, content = (parts.nth(k, count) for k in range(4))
+    found = parts.counts(count)
+    kinds = np.column_stack([flags.kind, dimensions.kind, name.kind])
+    layout = (kinds == [_MI_UINT32, _MI_INT32, _MI_INT8]).all(axis=1) & (flags.size == 8)
+    for e in np.flatnonzero(matrix & ~layout).tolist():
+        errors[e] = f"corrupt .mat file: matrix subelements of types {kinds[e, :min(found[e], 3)].tolist()}"
+    matrix &= layout
+    array_flags = np.zeros(count, dtype=np.int64)
+    array_flags[matrix] = _mat_int32(data, flags.start[matrix, np.newaxis], big[matrix, np.newaxis])[:, 0]
+    real = matrix & np.isin(array_flags & 0xFF, _MX_NUMERIC) & (array_flags & _MX_COMPLEX == 0)
+    descriptions = {e: _MX_CLASSES.get(flag & 0xFF, "complex array" if flag & _MX_COMPLEX else "unknown class")
+                    for e, flag in zip(np.flatnonzero(matrix & ~real).tolist(), array_flags[matrix & ~real].tolist())}
+    malformed = real & ((dimensions.size % 4 != 0) | (found != 4) | ~np.isin(content.kind, list(_MI_NUMERIC)))
+    real &= ~malformed
+    rank = np.where(real, dimensions.size // 4, 0)
+    owner_of_dimension = np.repeat(np.arange(count), rank)
+    first_dimension = np.cumsum(rank) - rank
+    dimension = _mat_int32(data, (dimensions.start[owner_of_dimension] + 4 * (np.arange(rank.sum())
+                                  - first_dimension[owner_of_dimension]))[:, np.newaxis],
+                           big[owner_of_dimension, np.newaxis])[:, 0]
+    negative = real & (rank == 0)  # min(shape, default=-1) < 0
+    negative[owner_of_dimension[dimension < 0]] = True
+    entries = np.zeros(count)  # the product of the dimensions (exact: < 2^53 whenever it matters)
+    sized = np.flatnonzero(rank > 0)
+    entries[sized] = np.multiply.reduceat(dimension.astype(float), first_dimension[sized]) if sized.size else 0
+    wrong_size = real & ~negative & (entries * _MAT_ITEMSIZES[np.where(real, content.kind, 0)] != content.size)
+    table = _MatTable(buffer, np.array(owner, dtype=np.intp), big,
+                      np.column_stack([name.start, name.start + name.size]), descriptions,
+                      np.where(real, content.kind, -1), rank, dimensions.start,
+                      np.column_stack([content.start, content.start + content.size]))
+    for e in np.flatnonzero(malformed).tolist():
+        errors[e] = f"corrupt .mat file: numeric array {table.name_of(e)!r} is malformed"
+    for e in np.flatnonzero(negative | wrong_size).tolist():
+        shape = table.array(e).shape
+        errors[e] = (f"corrupt .mat file: {table.name_of(e)!r} has dimensions {shape}" if negative[e] else
+                     f"corrupt .mat file: {table.name_of(e)!r} holds {content.size[e]} bytes for shape {shape}")
+    return table
+
+
+class _MatElements(NamedTuple):
+    """Data elements found by :func:`_mat_walk`, ordered by buffer, then position."""
+
+    buffer: np.ndarray  # the buffer each is in
+    kind: np.ndarray  # its data type
+    tag: np.ndarray  # where its tag starts
+    start: np.ndarray  # where its data starts
+    size: np.ndarray  # its byte count, without padding
+
+    def counts(self, buffers: int) -> np.ndarray:
+        """How many elements each of the ``buffers`` holds."""
+        return np.bincount(self.buffer, minlength=buffers)
+
+    def nth(self, k: int, buffers: int) -> "_MatElements":
+        """Each buffer's k-th element (0-based); -1 in every field for a buffer with fewer."""
+        count = self.counts(buffers)
+        index = np.where(count > k, np.cumsum(count) - count + k, len(self.buffer))
+        return _MatElements(*(np.append(column, -1)[index] for column in self))
+
+
+def _mat_walk(data: np.ndarray, begin: np.ndarray, end: np.ndarray, big: np.ndarray, *, padded: bool
+              ) -> tuple[_MatElements, dict[int, str]]:
+    """The data elements in the byte ranges ``data[begin[i]:end[i]]`` (``big``: big-endian), found all at once:
+    step k reads the k-th tag of every range. Also the error of each range with a cut-off or corrupt element
+    (the elements before it are kept). A step costs some tens of microseconds whatever the number of ranges,
+    so a range of thousands of elements (a big cell or struct array, which is only described) is slow."""
+    found, errors = [], {}
+    ranges = np.flatnonzero(begin < end)
+    offset = begin[ranges]
+    while len(ranges):
+        whole = offset + 8 <= end[ranges]
+        errors.update(dict.fromkeys(ranges[~whole].tolist(), "truncated .mat file (an element tag is cut off)"))
+        ranges, offset = ranges[whole], offset[whole]
+        kind, size = _mat_int32(data, offset[:, np.newaxis] + [0, 4], big[ranges, np.newaxis], unsigned=True).T
+        small = kind >> 16 > 0  # a small data element: up to 4 bytes of data inside its tag
+        kind, size = np.where(small, kind & 0xFFFF, kind), np.where(small, kind >> 16, size)
+        start = offset + np.where(small, 4, 8)
+        oversized, cut = small & (size > 4), ~small & (start + size > end[ranges])
+        for i, bytes_ in zip(ranges[oversized].tolist(), size[oversized].tolist()):
+            errors[i] = f"corrupt .mat file: small element of {bytes_} bytes"
+        errors.update(dict.fromkeys(ranges[cut].tolist(), "truncated .mat file (an element is cut off)"))
+        good = ~(oversized | cut)
+        found.append((ranges[good], kind[good], offset[good], start[good], size[good]))
+        following = np.where(small, offset + 8, start + size + (-size % 8 if padded else 0))
+        more = good & (following < end[ranges])
+        ranges, offset = ranges[more], following[more]
+    columns = [np.concatenate(column) for column in zip(*found)] if found else [np.zeros(0, np.int64)] * 5
+    order = np.argsort(columns[0], kind="stable")  # by buffer, then position
+    return _MatElements(*(column[order] for column in columns)), errors
+
+
+def _mat_int32(data: np.ndarray, offset: np.ndarray, big: np.ndarray, *, unsigned: bool = False) -> np.ndarray:
+    """The 32-bit integers at ``offset`` (any shape) of ``data``, each in the byte order ``big`` (broadcast)."""
+    raw = np.ascontiguousarray(data[offset[..., np.newaxis] + np.arange(4)])
+    code = "u4" if unsigned else "i4"
+    return np.where(big, raw.view(">" + code)[..., 0], raw.view("<" + code)[..., 0]).astype(np.int64)
 
 
 # ---------------------------------------------------------------------------------------
@@ -1454,6 +1776,8 @@ def _dump_table_yaml(rows: Sequence[Any]) -> str:
 
 
 def _dump_table_json(rows: Sequence[Any]) -> str:
+    import json
+
     names, values = _table(rows)
     return json.dumps([dict(zip(names, row)) for row in values], indent=2) + "\n"
 
@@ -1588,7 +1912,7 @@ def _linearslam_layout(ids: np.ndarray, start_id: int, source: str) -> tuple[np.
         i = split[0]
         raise InputError(f"expected the y row of feature {ids[x[i]]} (x on line {x[i] + 3}), got id {ids[y[i]]}",
                          source, f"line {y[i] + 3}")
-    duplicate = _first_duplicate(ids[x])
+    duplicate = first_duplicate(ids[x])
     if duplicate is not None:
         earlier = x[np.flatnonzero(ids[x] == ids[x[duplicate]])[0]]
         raise InputError(f"duplicate feature id {ids[x[duplicate]]} (also on line {earlier + 3})", source,

@@ -7,14 +7,19 @@ full covariance of its state vector ``[x, y, phi, f1x, f1y, f2x, ...]``.
 
 The joiner needs spherical covariances (method.md, Definition 2). ``spherical_variances``
 derives them from a map in one of the documented ``COVARIANCE_MODES``.
+
+The values of local maps are checked on stacks of maps of one size (:class:`StackedMaps`):
+the constructor checks a stack of one, and readers of thousands of files check theirs with
+a few numpy calls per size.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -27,7 +32,9 @@ __all__ = [
     "GlobalMap",
     "GroundTruth",
     "Provenance",
+    "StackedMaps",
     "batch_spherical_variances",
+    "marginal_variances",
     "spherical_variances",
 ]
 
@@ -36,9 +43,8 @@ COVARIANCE_MODES: tuple[str, ...] = ("identity", "marginal", "information")
 SYMMETRY_TOLERANCE = 1e-6  # |P_ij - P_ji| allowed, relative to sqrt(P_ii P_jj); rounding in stored files
 
 
-def _checked(value, name: str, source: str, shape: tuple[int | None, ...], *,
-             dtype=float, positive: bool = False) -> np.ndarray:
-    """A read-only copy of ``value`` as an array of ``shape`` (None = any length), finite, optionally > 0."""
+def _coerced(value, name: str, source: str, shape: tuple[int | None, ...], dtype=float) -> np.ndarray:
+    """A copy of ``value`` as an array of ``dtype`` and ``shape`` (None = any length)."""
     try:
         array = np.array(value, dtype=dtype)
     except (TypeError, ValueError) as error:
@@ -46,27 +52,74 @@ def _checked(value, name: str, source: str, shape: tuple[int | None, ...], *,
     if array.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, array.shape)):
         expected = "x".join("n" if s is None else str(s) for s in shape) or "a scalar"
         raise InputError(f"expected shape {expected}, got {array.shape}", source, name)
-    # two reductions in the common case (NaN fails both); the element at fault is looked for only on failure
-    if dtype is float and array.size and not (array.min() > (0.0 if positive else -math.inf)
-                                              and array.max() < math.inf):
-        bad = ~np.isfinite(array)
-        if bad.any():
-            index = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise InputError(f"expected finite numbers, got {array[index]} at index {index}", source, name)
-        if positive and not (array > 0).all():
-            index = tuple(int(i) for i in np.argwhere(~(array > 0))[0])
-            raise InputError(f"expected positive variances, got {array[index]} at index {index}",
-                             source, name)
+    return array
+
+
+def _outside(array: np.ndarray, positive: bool) -> np.ndarray:
+    """Where ``array`` is not finite, or for variances (``positive``) not > 0; NaN fails both comparisons."""
+    return ~((array > 0.0) & (array < math.inf)) if positive else ~np.isfinite(array)
+
+
+def _value_error(array: np.ndarray, name: str, source: str, positive: bool) -> InputError:
+    """The error for an array :func:`_outside` flags: its first non-finite entry, else its first one <= 0."""
+    bad, expected = ~np.isfinite(array), "finite numbers"
+    if not bad.any():
+        bad, expected = ~(array > 0), "positive variances"
+    index = tuple(int(i) for i in np.argwhere(bad)[0])
+    return InputError(f"expected {expected}, got {array[index]} at index {index}", source, name)
+
+
+def _checked(value, name: str, source: str, shape: tuple[int | None, ...], *,
+             dtype=float, positive: bool = False) -> np.ndarray:
+    """A read-only :func:`_coerced` copy; floats must also be finite and, if ``positive``, > 0."""
+    array = _coerced(value, name, source, shape, dtype)
+    if dtype is float and _outside(array, positive).any():
+        raise _value_error(array, name, source, positive)
     array.flags.writeable = False
     return array
 
 
-def _unique_ids(ids: np.ndarray, name: str, source: str) -> None:
+def _duplicate_id(ids: np.ndarray) -> int | None:
+    """The smallest id that occurs more than once, if any."""
     if len(ids) < 2 or (ids[1:] > ids[:-1]).all():  # sorted ids (the common case) need no sort
-        return
+        return None
     unique, counts = np.unique(ids, return_counts=True)
-    if (counts > 1).any():
-        raise InputError(f"duplicate id {int(unique[counts > 1][0])}", source, name)
+    return int(unique[counts > 1][0]) if (counts > 1).any() else None
+
+
+def _unique_ids(ids: np.ndarray, name: str, source: str) -> None:
+    duplicate = _duplicate_id(ids)
+    if duplicate is not None:
+        raise InputError(f"duplicate id {duplicate}", source, name)
+
+
+def first_duplicate(values: np.ndarray, groups: np.ndarray | None = None) -> int | None:
+    """Index of the first entry that repeats an earlier (group, value) pair, or None."""
+    keys = (values,) if groups is None else (values, groups)
+    order = np.lexsort(keys)  # stable: within equal keys, earlier entries first
+    same = values[order[1:]] == values[order[:-1]]
+    if groups is not None:
+        same &= groups[order[1:]] == groups[order[:-1]]
+    repeats = order[1:][same]
+    return int(repeats.min()) if repeats.size else None
+
+
+def size_groups(sizes: np.ndarray) -> list[np.ndarray]:
+    """Indices of ``sizes`` grouped by value, each group ascending: the maps of one size can be stacked."""
+    if not len(sizes):
+        return []
+    order = np.argsort(sizes, kind="stable")
+    return np.split(order, np.flatnonzero(np.diff(sizes[order])) + 1)
+
+
+def first_flagged(bad: np.ndarray, offsets: np.ndarray) -> int:
+    """The item holding the first flagged row of ``bad``, a mask over the rows of items' arrays concatenated
+    (item i's rows from ``offsets[i]`` to ``offsets[i + 1]``); the number of items if none is flagged."""
+    if bad.ndim > 1:
+        bad = bad.any(axis=tuple(range(1, bad.ndim)))
+    if not bad.any():
+        return len(offsets) - 1
+    return int(np.searchsorted(offsets, bad.argmax(), side="right")) - 1
 
 
 @dataclass(frozen=True)
@@ -89,6 +142,7 @@ class LocalMap:
     covariance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        """Each field as an array of its dtype and shape, then the values checked as a stack of one map."""
         source = self.name
         for key in ("start_id", "end_id"):
             value = getattr(self, key)
@@ -97,53 +151,166 @@ class LocalMap:
             object.__setattr__(self, key, int(value))
         if self.end_id == self.start_id:
             raise InputError(f"end pose id equals start pose id ({self.end_id})", source, "end_id")
-        set_ = lambda key, array: object.__setattr__(self, key, array)  # noqa: E731
-        set_("end_pose", _checked(self.end_pose, "end_pose", source, (3,)))
-        set_("features", _checked(self.features, "features", source, (None, 2)))
-        m = len(self.features)
+        end_pose = _coerced(self.end_pose, "end_pose", source, (3,))
+        features = _coerced(self.features, "features", source, (None, 2))
+        m = len(features)
         ids = np.asarray(self.feature_ids)
         if ids.shape != (m,) or (m and not np.issubdtype(ids.dtype, np.integer)
                                  and not np.array_equal(ids, np.round(ids))):
             raise InputError(f"expected {m} integer ids, got {ids!r:.80}", source, "feature_ids")
-        set_("feature_ids", _checked(ids, "feature_ids", source, (m,), dtype=np.int64))
-        if m and self.feature_ids.min() < 0:
-            raise InputError(f"expected non-negative ids, got {int(self.feature_ids.min())}",
-                             source, "feature_ids")
-        _unique_ids(self.feature_ids, "feature_ids", source)
-        set_("feature_variances",
-             _checked(self.feature_variances, "feature_variances", source, (m,), positive=True))
-        set_("pose_variances", _checked(self.pose_variances, "pose_variances", source, (2,), positive=True))
-        if self.covariance is not None:
-            n = 3 + 2 * m
-            covariance = _checked(self.covariance, "covariance", source, (n, n))
-            if not (covariance == covariance.T).all():  # rounding-level asymmetry is averaged away
-                deviation = np.sqrt(np.abs(np.diagonal(covariance)))
-                excess = np.abs(covariance - covariance.T) - SYMMETRY_TOLERANCE * np.outer(deviation, deviation)
-                if (excess > 0).any():
-                    i, j = (int(v) for v in np.unravel_index(np.argmax(excess), excess.shape))
-                    raise InputError(f"expected a symmetric matrix, but entries ({i}, {j}) and ({j}, {i}) "
-                                     f"differ: {covariance[i, j]!r} vs {covariance[j, i]!r}", source, "covariance")
-                covariance = (covariance + covariance.T) / 2
-                covariance.flags.writeable = False
-            try:
-                np.linalg.cholesky(covariance)
-            except np.linalg.LinAlgError as error:
-                raise InputError("expected a positive definite matrix", source, "covariance") from error
-            set_("covariance", covariance)
+        stack = StackedMaps(
+            [source], end_pose[np.newaxis], _coerced(ids, "feature_ids", source, (m,), np.int64)[np.newaxis],
+            features[np.newaxis], _coerced(self.feature_variances, "feature_variances", source, (m,))[np.newaxis],
+            _coerced(self.pose_variances, "pose_variances", source, (2,))[np.newaxis],
+            None if self.covariance is None else
+            _coerced(self.covariance, "covariance", source, (3 + 2 * m, 3 + 2 * m))[np.newaxis])
+        invalid = stack.first_invalid()
+        if invalid is not None:
+            raise invalid[1]
+        [checked] = stack.local_maps([self.start_id], [self.end_id])
+        vars(self).update(vars(checked))
 
     @classmethod
     def from_covariance(cls, name: str, start_id: int, end_id: int, end_pose, feature_ids,
                         features, covariance) -> "LocalMap":
         """A map whose spherical variances are the ``marginal`` summary of its full covariance."""
         covariance = np.asarray(covariance, dtype=float)
-        feature_variances, pose_variances = _summary(np.diagonal(covariance), 1.0)
+        feature_variances, pose_variances = marginal_variances(covariance[np.newaxis])
         return cls(name, start_id, end_id, end_pose, feature_ids, features,
-                   feature_variances, pose_variances, covariance)
+                   feature_variances[0], pose_variances[0], covariance)
 
     @property
     def size(self) -> int:
         """Number of features."""
         return len(self.feature_ids)
+
+
+def marginal_variances(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``marginal`` spherical variances of a stack of full covariances of one size (k x n x n): the
+    feature variances (k x m) and pose variances (k x 2) that ``LocalMap.from_covariance`` gives each."""
+    return _summary(np.diagonal(covariances, axis1=-2, axis2=-1), 1.0)
+
+
+class StackedMaps(NamedTuple):
+    """Local maps of one size m, stacked: row r of each array belongs to the map named ``name[r]``.
+
+    How readers of many maps hold them before they become :class:`LocalMap` objects:
+    :meth:`first_invalid` checks all rows at once, exactly as the constructor checks one map
+    (which it does as a stack of one), and :meth:`local_maps` makes the maps without checking
+    them again.
+    """
+
+    name: Sequence[str]
+    end_pose: np.ndarray  # k x 3
+    feature_ids: np.ndarray  # k x m, int64
+    features: np.ndarray  # k x m x 2
+    feature_variances: np.ndarray  # k x m
+    pose_variances: np.ndarray  # k x 2
+    covariance: np.ndarray | None  # k x (3+2m) x (3+2m)
+
+    def first_invalid(self) -> tuple[int, InputError] | None:
+        """The first map whose values are invalid and the error ``LocalMap(...)`` raises for it, or None.
+
+        Each check runs on the whole stack (one Cholesky factorisation for all covariances); the
+        first row any check flags is the first invalid map, and the first check (in the order
+        below) that flags it gives its error. Covariances symmetric up to rounding are
+        symmetrised in place, as the constructor does.
+        """
+        count = len(self.name)
+        if not count:
+            return None
+
+        def first(bad: np.ndarray) -> int:
+            flagged = bad.reshape(count, -1).any(axis=1)
+            return int(flagged.argmax()) if flagged.any() else count
+
+        def values(key: str, positive: bool = False) -> tuple[int, Callable[[int], InputError]]:
+            array = getattr(self, key)
+            return first(_outside(array, positive)), lambda r: _value_error(array[r], key, self.name[r], positive)
+
+        ids = self.feature_ids
+        increasing = (ids[:, 1:] > ids[:, :-1]).all(axis=1)  # sorted ids (the common case) need no sort
+        repeats = np.zeros(count, dtype=bool)
+        repeats[~increasing] = (np.diff(np.sort(ids[~increasing], axis=1), axis=1) == 0).any(axis=1)
+        failures = [  # (first map failing a check, its error), in the order LocalMap(...) checks one
+            values("end_pose"),
+            values("features"),
+            (first(ids < 0), lambda r: InputError(f"expected non-negative ids, got {int(ids[r].min())}",
+                                                  self.name[r], "feature_ids")),
+            (first(repeats), lambda r: InputError(f"duplicate id {_duplicate_id(ids[r])}", self.name[r],
+                                                  "feature_ids")),
+            values("feature_variances", positive=True),
+            values("pose_variances", positive=True),
+        ]
+        if self.covariance is not None:
+            failures += self._covariance_failures(first)
+        index, error = min(failures, key=lambda failure: failure[0])  # ties: the earlier check
+        return None if index == count else (index, error(index))
+
+    def _covariance_failures(self, first: Callable[[np.ndarray], int]
+                             ) -> list[tuple[int, Callable[[int], InputError]]]:
+        """The checks of the covariances: finite, symmetric up to rounding (then symmetrised), positive definite."""
+        covariance, name = self.covariance, self.name
+        finite = ~_outside(covariance, False).any(axis=(1, 2))
+        rounded = finite & ~(covariance == covariance.transpose(0, 2, 1)).all(axis=(1, 2))  # the rest fail first
+        asymmetric = np.zeros(len(covariance), dtype=bool)
+        if rounded.any():
+            asymmetric[rounded] = (_asymmetry(covariance[rounded]) > 0).any(axis=(1, 2))
+            inexact = covariance[rounded & ~asymmetric]
+            covariance[rounded & ~asymmetric] = (inexact + inexact.transpose(0, 2, 1)) / 2
+        return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], False)),
+                (first(asymmetric), lambda r: _asymmetry_error(covariance[r], name[r])),
+                (first(_indefinite(covariance)),
+                 lambda r: InputError("expected a positive definite matrix", name[r], "covariance"))]
+
+    def local_maps(self, start_ids: Sequence[int], end_ids: Sequence[int]) -> list[LocalMap]:
+        """The maps of the rows, with read-only views of the arrays and NOT checked: only once
+        :meth:`first_invalid` found none invalid; the ids must be non-negative ints, start != end."""
+        for array in self[1:]:
+            if array is not None:
+                array.flags.writeable = False
+        covariances = itertools.repeat(None) if self.covariance is None else self.covariance
+        maps = []
+        for fields in zip(self.name, start_ids, end_ids, self.end_pose, self.feature_ids, self.features,
+                          self.feature_variances, self.pose_variances, covariances):
+            local_map = object.__new__(LocalMap)  # the dataclass's checks done above, for all rows at once
+            vars(local_map).update(zip(_LOCAL_MAP_FIELDS, fields))
+            maps.append(local_map)
+        return maps
+
+
+_LOCAL_MAP_FIELDS = ("name", "start_id", "end_id", *StackedMaps._fields[1:])
+
+
+def _asymmetry(covariance: np.ndarray) -> np.ndarray:
+    """``|P_ij - P_ji|`` less what rounding allows, ``SYMMETRY_TOLERANCE * sqrt(|P_ii P_jj|)``, for a matrix or
+    each of a stack; positive where it is asymmetric."""
+    deviation = np.sqrt(np.abs(np.diagonal(covariance, axis1=-2, axis2=-1)))
+    return (np.abs(covariance - np.swapaxes(covariance, -2, -1))
+            - SYMMETRY_TOLERANCE * (deviation[..., :, None] * deviation[..., None, :]))
+
+
+def _asymmetry_error(covariance: np.ndarray, source: str) -> InputError:
+    excess = _asymmetry(covariance)
+    i, j = (int(v) for v in np.unravel_index(np.argmax(excess), excess.shape))
+    return InputError(f"expected a symmetric matrix, but entries ({i}, {j}) and ({j}, {i}) differ: "
+                      f"{covariance[i, j]!r} vs {covariance[j, i]!r}", source, "covariance")
+
+
+def _has_cholesky_factor(matrices: np.ndarray) -> bool:
+    try:
+        np.linalg.cholesky(matrices)
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
+def _indefinite(stack: np.ndarray) -> np.ndarray:
+    """Which matrices of a stack are not positive definite: one factorisation of the stack, then one per
+    matrix only if that fails."""
+    if _has_cholesky_factor(stack):
+        return np.zeros(len(stack), dtype=bool)
+    return np.array([not _has_cholesky_factor(matrix) for matrix in stack])
 
 
 def spherical_variances(local_map: LocalMap, mode: CovarianceMode) -> tuple[np.ndarray, np.ndarray]:
@@ -175,28 +342,28 @@ def batch_spherical_variances(maps: Sequence[LocalMap], mode: CovarianceMode) ->
 
     Maps with full covariances of one size are summarised together (one batched inverse
     per size for ``information``), so the cost is not a Python loop of matrix calls.
+    (numpy's batched inverse makes one LAPACK call per matrix; exact alternatives built from
+    batched products or Cholesky factors were measured no faster for these small matrices.)
     """
     if mode not in COVARIANCE_MODES:
         raise ValueError(f"unknown covariance mode {mode!r}; expected one of {', '.join(COVARIANCE_MODES)}")
-    sizes = np.array([m.size for m in maps], dtype=np.intp)
+    sizes = np.fromiter((m.size for m in maps), np.intp, len(maps))
     offsets = np.concatenate([[0], np.cumsum(sizes)])
     if mode == "identity":
         return np.ones(offsets[-1]), np.ones((len(maps), 2))
     features = np.concatenate([m.feature_variances for m in maps]) if maps else np.zeros(0)
     poses = np.array([m.pose_variances for m in maps]).reshape(-1, 2)
-    full = [i for i, m in enumerate(maps) if m.covariance is not None]
-    by_size: dict[int, list[int]] = {}
-    for i in full:
-        by_size.setdefault(int(sizes[i]), []).append(i)
-    for size, group in by_size.items():
-        stacked = np.stack([maps[i].covariance for i in group])
+    full = np.flatnonzero(np.fromiter((m.covariance is not None for m in maps), bool, len(maps)))
+    for group in size_groups(sizes[full]):
+        members = full[group]
+        size = 3 + 2 * int(sizes[members[0]])
+        stacked = np.concatenate([maps[i].covariance for i in members.tolist()]).reshape(-1, size, size)
         if mode == "information":  # sigma^2 = 2 / trace of each block of P^-1 = 1 / its mean
             feature_part, pose_part = _summary(np.diagonal(np.linalg.inv(stacked), axis1=1, axis2=2), -1.0)
         else:
             feature_part, pose_part = _summary(np.diagonal(stacked, axis1=1, axis2=2), 1.0)
-        rows = (offsets[group][:, None] + np.arange(size)).ravel()
-        features[rows] = feature_part.ravel()
-        poses[group] = pose_part
+        features[(offsets[members][:, None] + np.arange(feature_part.shape[1])).ravel()] = feature_part.ravel()
+        poses[members] = pose_part
     return features, poses
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Literal
 
 import numpy as np
@@ -42,6 +43,9 @@ __all__ = [
     "linked_cost",
     "Orientation",
     "MinimaSummary",
+    "Orientations",
+    "batch_orientation",
+    "point_constants",
     "minimise_reduced",
     "summarise_minima",
     "recover",
@@ -108,12 +112,31 @@ def constants(problem: OneStepProblem) -> Constants:
     def points(xy: np.ndarray) -> np.ndarray:
         return xy[..., 0] + 1j * xy[..., 1]
 
-    k = batch_constants(np.zeros(len(problem.z0), dtype=np.intp), 1, points(problem.z0), problem.var0,
-                        points(problem.z1), problem.var1, points(problem.odometry[None, :2]),
-                        problem.odometry_variances[:1])
-    mean0, mean1 = complex(k.mean0[0]), complex(k.mean1[0])
-    return Constants(float(k.c0[0]), float(k.a0[0]), float(k.phi0[0]), np.array([mean0.real, mean0.imag]),
-                     np.array([mean1.real, mean1.imag]), float(k.weight[0]))
+    k = point_constants(points(problem.z0), problem.var0, points(problem.z1), problem.var1,
+                        complex(points(problem.odometry[:2])), float(problem.odometry_variances[0]))
+    return Constants(k.c0, k.a0, k.phi0, np.array([k.mean0.real, k.mean0.imag]),
+                     np.array([k.mean1.real, k.mean1.imag]), k.weight)
+
+
+def point_constants(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarray, odometry: complex,
+                    odometry_variance: float) -> Constants:
+    """Theorem 1's constants of one problem with points as complex numbers ``x + iy``, as Python numbers.
+
+    The same sums as :func:`batch_constants` in a few numpy calls (one join of the sequential
+    strategy): with ``s = w q0``, ``sum w |q0|^2 = vdot(q0, s)`` and ``A + iB = vdot(q1, s)``.
+    """
+    weights = 1.0 / (var0 + var1)
+    odometry_weight = 1.0 / odometry_variance
+    weight = float(np.add.reduce(weights)) + odometry_weight
+    mean0 = (complex(np.dot(weights, z0)) + odometry_weight * odometry) / weight
+    mean1 = complex(np.dot(weights, z1)) / weight
+    q0, q1 = z0 - mean0, z1 - mean1
+    s0 = weights * q0
+    o0 = odometry - mean0  # the odometry pair (O_xy, 0), centred
+    c0 = (complex(np.vdot(q0, s0) + np.vdot(q1, weights * q1)).real
+          + odometry_weight * (o0.real**2 + o0.imag**2 + mean1.real**2 + mean1.imag**2))
+    moment = complex(np.vdot(q1, s0)) - odometry_weight * o0 * mean1.conjugate()
+    return Constants(c0, abs(moment), math.atan2(moment.imag, moment.real), mean0, mean1, weight)
 
 
 def batch_constants(problem_of: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
@@ -236,6 +259,8 @@ class MinimaAnalysis:
 
 def reduced_cost(a: float, c_phi: float, varphi):
     """fbar(varphi) = -a cos(varphi + c_phi) + varphi^2 / 2 (Theorem 2)."""
+    if isinstance(varphi, float):
+        return -a * math.cos(varphi + c_phi) + 0.5 * varphi**2
     varphi = np.asarray(varphi, dtype=float)
     value = -a * np.cos(varphi + c_phi) + 0.5 * varphi**2
     return value if value.ndim else float(value)
@@ -273,22 +298,33 @@ def analyse_minima(a: float, c_phi: float) -> MinimaAnalysis:
     return MinimaAnalysis(a, c_phi, phi1, phi2, h1, h2, brackets)
 
 
-def _inflections(a: float, c_phi: float) -> tuple[float, float, float, float]:
+# the few functions _inflections needs, for one problem (floats) or many at once (arrays); the
+# arrays' atan is math.atan too (one call per problem), as numpy's may differ in the last bit
+# and so would the brackets: batches then give exactly the scalar results
+_FLOATS = SimpleNamespace(sqrt=math.sqrt, atan=math.atan, floor=math.floor, minimum=min,
+                          where=lambda condition, x, y: x if condition else y)
+_ARRAYS = SimpleNamespace(sqrt=np.sqrt, atan=lambda x: np.array([math.atan(v) for v in x.tolist()]),
+                          floor=np.floor, minimum=np.minimum, where=np.where)
+
+
+def _inflections(a, c_phi, ops: SimpleNamespace = _FLOATS) -> tuple:
     """phi1, phi2 (the zeros of g) and h(phi1), h(phi2) for a > 1, free of cancellation near a = 1.
 
     With ``root = sqrt(a^2 - 1)`` and ``delta = atan(root)``, ``arccos(-1/a) = pi - delta`` and
     ``h(phi1) = root + phi1 = (root - delta) + (phi1 + delta)``; ``root - delta`` is taken
-    from its series when small, where both terms nearly cancel.
+    from its series when small, where both terms nearly cancel. ``ops`` is ``_FLOATS`` for
+    floats, ``_ARRAYS`` for arrays of problems.
     """
-    root = math.sqrt((a - 1.0) * (a + 1.0))
-    delta = math.atan(root)
-    excess = (root**3 / 3 - root**5 / 5 + root**7 / 7) if root < 1e-2 else root - delta  # root - atan(root)
+    root = ops.sqrt((a - 1.0) * (a + 1.0))
+    delta = ops.atan(root)
+    small = ops.minimum(root, 1e-2)  # the series is used below 1e-2 only (and must not overflow)
+    excess = ops.where(root < 1e-2, small**3 / 3 - small**5 / 5 + small**7 / 7, root - delta)  # root - atan(root)
     # phi1 = wrap(pi - c_phi - delta) = shift1 - delta with shift1 = pi - c_phi - 2 pi k; the
     # subtraction of 2 pi k is exact when it nearly cancels, which is where precision matters,
     # and pi's rounding error (_PI_LOW) is added back so that c_phi = float(-pi) is exact too
     two_pi = 2 * math.pi
-    k1 = math.floor((two_pi - c_phi - delta) / two_pi)
-    k2 = math.floor((delta - c_phi) / two_pi)
+    k1 = ops.floor((two_pi - c_phi - delta) / two_pi)
+    k2 = ops.floor((delta - c_phi) / two_pi)
     shift1 = (math.pi * (1 - 2 * k1) - c_phi) + _PI_LOW * (1 - 2 * k1)
     shift2 = (-math.pi * (1 + 2 * k2) - c_phi) - _PI_LOW * (1 + 2 * k2)
     return shift1 - delta, shift2 + delta, excess + shift1, -excess + shift2
@@ -410,6 +446,163 @@ def global_orientation(a0: float, phi0: float, z_phi: float, p_phi: float, solve
     minima = minimise_reduced(analysis, solver, tolerance)
     other = wrap(z_phi + minima[1].varphi) if len(minima) > 1 else None
     return Orientation(wrap(z_phi + minima[0].varphi), other, analysis, sum(m.iterations for m in minima))
+
+
+@dataclass(frozen=True)
+class Orientations:
+    """:func:`global_orientation` of many problems (:func:`batch_orientation`), one array entry per problem.
+
+    ``other_phi`` is NaN where f_1 has one minimum; ``a``, ``c_phi`` and ``count`` are Theorem 2's
+    reduction and number of minima, ``iterations`` the search steps summed over the minima.
+    """
+
+    phi: np.ndarray
+    other_phi: np.ndarray
+    a: np.ndarray
+    c_phi: np.ndarray
+    count: np.ndarray
+    iterations: np.ndarray
+
+
+_FEW = 24  # fewer problems than this are solved one by one (measured break-even, 2 cores)
+
+
+def batch_orientation(a0: np.ndarray, phi0: np.ndarray, z_phi: np.ndarray, p_phi: np.ndarray,
+                      solver: Solver = "bisection", tolerance: float = TOLERANCE) -> Orientations:
+    """Algorithm 1 on f_1 for many problems at once: :func:`global_orientation` as array operations.
+
+    Theorem 2's analysis is :func:`analyse_minima` as array expressions, and every bracket is
+    searched in lockstep with the same steps and stopping rule as the scalar search, so the
+    cost is a fixed number of numpy calls per search step, whatever the number of problems.
+    """
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
+    if len(a0) < _FEW:  # the same numbers, from the scalar path: numpy's cost per call outweighs the loop
+        found = [global_orientation(*args, solver, tolerance)
+                 for args in zip(a0.tolist(), phi0.tolist(), z_phi.tolist(), p_phi.tolist())]
+        return Orientations(np.array([f.phi for f in found]),
+                            np.array([math.nan if f.other_phi is None else f.other_phi for f in found]),
+                            np.array([f.minima.a for f in found]), np.array([f.minima.c_phi for f in found]),
+                            np.array([f.minima.count for f in found], dtype=np.intp),
+                            np.array([f.iterations for f in found], dtype=np.intp))
+    a, c_phi = a0 * p_phi, wrap(z_phi - phi0)
+    bad = ~(np.isfinite(a) & np.isfinite(c_phi) & (a >= 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"expected a finite a >= 0 and a finite c_phi, got a={float(a[i])!r}, "
+                         f"c_phi={float(c_phi[i])!r}")
+    low, high, two = _batch_brackets(a, c_phi)
+    # the second brackets (problems with two minima) follow the first ones in one flat search
+    second = np.flatnonzero(two)
+    problem = np.concatenate([np.arange(len(a)), second])
+    search = _batch_bisection if solver == "bisection" else _batch_golden
+    varphi, iterations = search(a[problem], c_phi[problem], np.concatenate([low[0], low[1, second]]),
+                                np.concatenate([high[0], high[1, second]]), tolerance)
+    fbar = reduced_cost(a[problem], c_phi[problem], varphi)
+    best, other = varphi[:len(a)], np.full(len(a), math.nan)
+    other[second] = varphi[len(a):]
+    swap = second[fbar[len(a):] < fbar[second]]  # lowest minimum first; a tie keeps the first bracket
+    best[swap], other[swap] = other[swap], best[swap]
+    steps = iterations[:len(a)].copy()
+    steps[second] += iterations[len(a):]
+    return Orientations(wrap(z_phi + best), wrap(z_phi + other), a, c_phi, 1 + two, steps)
+
+
+def _batch_brackets(a: np.ndarray, c_phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`analyse_minima`'s brackets as arrays: ``low``, ``high`` (2, n) and ``two`` (n,).
+
+    Row 0 holds each problem's first bracket (its only one with one minimum), row 1 the second
+    where ``two`` is True (two minima).
+    """
+    pi = math.pi
+    h_edge = -a * np.sin(c_phi)
+    steep = a > 1
+    phi1, phi2, h1, h2 = _inflections(np.where(steep, a, 2.0), c_phi, _ARRAYS)  # a <= 1: unused values
+    split = steep & (phi1 < phi2)  # h increases on [-pi, phi1] and [phi2, pi]
+    margin1, margin2 = np.minimum(pi - h_edge, h1), np.minimum(-h2, h_edge + pi)
+    first, second = split & (margin1 > 0), split & (margin2 > 0)
+    neither = split & ~first & ~second  # rounding at a boundary: the larger margin, the first on a tie
+    first |= neither & (margin1 >= margin2)
+    second |= neither & (margin1 < margin2)
+    # one bracket: (-pi, pi) when a <= 1, (phi2, phi1) when phi1 >= phi2, else (-pi, phi1) or (phi2, pi)
+    low = np.where(steep & ~first, phi2, -pi)
+    high = np.where(steep & (~split | first), phi1, pi)
+    return np.stack([low, np.where(second, phi2, pi)]), np.stack([high, np.full_like(high, pi)]), first & second
+
+
+def _batch_bisection(a: np.ndarray, c_phi: np.ndarray, low: np.ndarray, high: np.ndarray, tolerance: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_bisection` of every bracket in lockstep: the roots of h and the steps each took.
+
+    The first :func:`_sure_steps` steps are taken without the stopping rule (no bracket can
+    meet it yet), in place; the remaining few test it bracket by bracket.
+    """
+    low, high = low.copy(), high.copy()
+    sure = _sure_steps(low, high, tolerance)
+    middle, h = np.empty_like(low), np.empty_like(low)
+    below = np.empty(len(low), dtype=bool)
+    for _ in range(sure):
+        np.add(low, high, out=middle)
+        middle *= 0.5
+        np.add(middle, c_phi, out=h)
+        np.sin(h, out=h)
+        h *= a
+        h += middle
+        np.less(h, 0.0, out=below)  # h(middle) = a sin(middle + c_phi) + middle < 0: the root is above
+        np.copyto(low, middle, where=below)
+        np.copyto(high, middle, where=~below)
+    iterations = np.full(len(low), sure, dtype=np.intp)
+    while True:
+        middle = 0.5 * (low + high)
+        active = (high - low > tolerance) & (middle != low) & (middle != high)
+        if not np.count_nonzero(active):
+            return middle, iterations
+        below = a * np.sin(middle + c_phi) + middle < 0
+        low = np.where(active & below, middle, low)
+        high = np.where(active & ~below, middle, high)
+        iterations += active
+
+
+def _sure_steps(low: np.ndarray, high: np.ndarray, tolerance: float) -> int:
+    """How many bisection steps every bracket takes for certain: all stay wider than the tolerance and 4 ulp.
+
+    A step halves the width up to the rounding of the midpoint, at most ``ulp/2`` of the endpoints'
+    sum; over any number of steps the width stays above ``w0 / 2^k - ulp``. While ``w0 / 2^k >=
+    4 m`` with ``m = max(tolerance, 4 ulp)`` it is above ``m``: the stopping rule cannot hold.
+    """
+    if not len(low):
+        return 0
+    ulp = float(np.spacing(2 * max(np.abs(low).max(), np.abs(high).max())))
+    margin = 4 * max(tolerance, 4 * ulp)
+    narrowest = float((high - low).min())
+    return max(0, math.floor(math.log2(narrowest / margin)) + 1) if narrowest >= margin else 0
+
+
+def _batch_golden(a: np.ndarray, c_phi: np.ndarray, low: np.ndarray, high: np.ndarray, tolerance: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_golden` of every bracket in lockstep: the minima of fbar and the steps each took."""
+    def f(x: np.ndarray) -> np.ndarray:
+        return -a * np.cos(x + c_phi) + 0.5 * x * x
+
+    x1 = high - _INVERSE_GOLDEN * (high - low)
+    x2 = low + _INVERSE_GOLDEN * (high - low)
+    f1, f2 = f(x1), f(x2)
+    iterations = np.zeros(len(low), dtype=np.intp)
+    while True:
+        active = (high - low > tolerance) & (x1 < x2)
+        if not active.any():
+            break
+        left = active & (f1 <= f2)  # the minimum is in [low, x2]
+        right = active & ~(f1 <= f2)  # ... in [x1, high]
+        high, low = np.where(left, x2, high), np.where(right, x1, low)
+        probe = np.where(left, high - _INVERSE_GOLDEN * (high - low), low + _INVERSE_GOLDEN * (high - low))
+        f_probe = f(probe)
+        x1, x2 = np.where(left, probe, np.where(right, x2, x1)), np.where(left, x1, np.where(right, probe, x2))
+        f1, f2 = np.where(left, f_probe, np.where(right, f2, f1)), np.where(left, f1, np.where(right, f_probe, f2))
+        iterations += active
+    candidates = np.stack([low, x1, x2, high])
+    best = np.argmin(f(candidates), axis=0)  # the first of equal values, as min() takes
+    return candidates[best, np.arange(len(low))], iterations
 
 
 def solve(problem: OneStepProblem, solver: Solver = "bisection", tolerance: float = TOLERANCE

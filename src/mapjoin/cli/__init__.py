@@ -12,7 +12,6 @@ import sys
 
 import click
 
-from .. import __version__
 from ..errors import MapjoinError
 
 EXIT_TWO_MINIMA = 3
@@ -44,8 +43,18 @@ class MapjoinGroup(click.Group):
             raise click.ClickException(f"{name}{error.strerror or error}") from error
 
 
+def _show_version(ctx: click.Context, _parameter: click.Parameter, value: bool) -> None:
+    """``--version``: the version is looked up only when asked for (see mapjoin.__version__)."""
+    if value and not ctx.resilient_parsing:
+        from .. import __version__
+
+        click.echo(f"mapjoin, version {__version__}")
+        ctx.exit()
+
+
 @click.group(cls=MapjoinGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, "--version", prog_name="mapjoin")
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_show_version,
+              help="Show the version and exit.")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr: no warnings, summary or progress.")
 @click.option("-v", "--verbose", count=True, help="More detail on stderr (-v: one line per join).")
 @click.pass_context
