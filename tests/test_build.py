@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 from mapjoin import InputError, formats
 from mapjoin.build import batch, build, cut
 from mapjoin.evaluate import compare
-from mapjoin.raw import RawData, read_raw
+from mapjoin.raw import RawData, _positive_definite, read_raw
 
 VICPARK = "VicPark_200_local_maps/VicPark_clean_data.mat"
 ISAM = "victoria_park_raw/victoria_park_isam.txt"
@@ -372,6 +372,20 @@ def test_isam_and_g2o_readers_agree_and_read_the_numbers(tmp_path):
     a, b = build(isam, [0, 3, 6]), build(g2o, [0, 3, 6])
     np.testing.assert_allclose(a.costs, b.costs, rtol=1e-9)
     assert a.maps[1].name.endswith("run.txt poses 4-9")
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), size=st.integers(1, 4))
+def test_positive_definiteness_by_pivots_equals_the_eigenvalues(seed, size):
+    """The readers' check of covariance and information matrices (pivots of elimination)
+    against the smallest eigenvalue (away from zero, where rounding may decide either way)."""
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(200, size, size))
+    S = X + X.transpose(0, 2, 1) + rng.uniform(-1, 4, (200, 1, 1)) * np.eye(size)
+    smallest = np.linalg.eigvalsh(S)[:, 0]
+    clear = np.abs(smallest) > 1e-9
+    np.testing.assert_array_equal(_positive_definite(S)[clear], (smallest > 0)[clear])
+    assert not _positive_definite(np.full((1, size, size), np.nan)).any()
 
 
 def test_vicpark_rows_are_read_as_documented(data_dir):

@@ -50,7 +50,7 @@ import scipy.linalg
 
 from .errors import InputError
 from .joining import join_sequential
-from .maps import GlobalMap, LocalMap, Provenance
+from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, marginal_variances
 from .raw import RawData
 from .refine import TOLERANCE, Blocks, ExactProblem, Minimum, RefineResult, minimise
 
@@ -391,14 +391,28 @@ class _Solved:
         selected = layout.selected(problem)
         covariances = _covariance_blocks(problem, self.minimum.data, selected)
         x = self.minimum.x
-        maps = []
-        for j, (chosen, covariance) in enumerate(zip(selected, covariances)):
-            pose = x[chosen[:3]].copy()
-            pose[2] = math.remainder(pose[2], 2 * math.pi)
-            features = problem.feature_ids[(chosen[3::2] - 3 * problem.n_maps) // 2] % layout.n_distinct
-            a, b = raw.pose_ids[layout.bounds[j]], raw.pose_ids[layout.bounds[j + 1]]
-            maps.append(LocalMap.from_covariance(f"{label} poses {a}-{b}", first + j, first + j + 1, pose, layout.distinct[features],
-                                                 x[chosen[3:]].reshape(-1, 2), covariance))
+        names = [f"{label} poses {raw.pose_ids[a]}-{raw.pose_ids[b]}" for a, b in itertools.pairwise(layout.bounds)]
+        sizes = np.array([(len(chosen) - 3) // 2 for chosen in selected])
+        maps: list[LocalMap] = [None] * len(selected)      # type: ignore[list-item]
+        invalid = []
+        for m in np.unique(sizes).tolist():                # the maps of each size as one stack, checked at once
+            group = np.flatnonzero(sizes == m)
+            chosen = np.stack([selected[j] for j in group])
+            end_pose = x[chosen[:, :3]]
+            end_pose[:, 2] = [math.remainder(phi, 2 * math.pi) for phi in end_pose[:, 2].tolist()]
+            ids = layout.distinct[problem.feature_ids[(chosen[:, 3::2] - 3 * problem.n_maps) // 2] % layout.n_distinct]
+            covariance = np.stack([covariances[j] for j in group])
+            feature_variances, pose_variances = marginal_variances(covariance)     # as LocalMap.from_covariance
+            stack = StackedMaps([names[j] for j in group], end_pose, ids.astype(np.int64),
+                                x[chosen[:, 3:]].reshape(len(group), m, 2), feature_variances, pose_variances, covariance)
+            found = stack.first_invalid()
+            if found is not None:
+                invalid.append((int(group[found[0]]), found[1]))
+            for j, local_map in zip(group.tolist(), stack.local_maps((first + group).tolist(),
+                                                                     (first + group + 1).tolist())):
+                maps[j] = local_map
+        if invalid:
+            raise min(invalid, key=lambda item: item[0])[1]      # the first map's, as constructing them in turn
         return maps
 
 
@@ -506,22 +520,21 @@ def _covariance_blocks(problem: ExactProblem, data: np.ndarray, selected: list[n
 def _check(costs: np.ndarray, dofs: np.ndarray, name: str) -> None:
     """Warn when chi^2, in all and map by map, is outside the 99.9% interval of a chi-square
     with its degrees of freedom."""
-    # the inverse survival function (scipy.stats is slow to import)
-    from scipy.special import chdtri
+    from scipy.special import chdtr, chdtrc, chdtri  # (scipy.stats costs ~1 s to import)
 
-    tail = (1 - CHI2_LEVEL) / 2
+    level = (1 - CHI2_LEVEL) / 2
     total, dof = float(costs.sum()), int(dofs.sum())
     if dof > 0:
-        low, high = chdtri(dof, 1 - tail), chdtri(dof, tail)
+        low, high = chdtri(dof, 1 - level), chdtri(dof, level)
         if not low <= total <= high:
             look = "pessimistic (too large)" if total < low else "optimistic (too small), or there are outliers"
             log.warning("%s: chi^2 = %.6g is outside the %g%% interval [%.6g, %.6g] of a chi-square with %d degrees "
                         "of freedom (chi^2/dof = %.3f): the noise numbers look %s", name, total, 100 * CHI2_LEVEL,
                         low, high, dof, total / dof, look)
     if len(costs) > 1:
-        dofs = np.maximum(dofs, 0)
-        outside = np.flatnonzero((dofs > 0) & ((costs < chdtri(np.maximum(dofs, 1), 1 - tail))
-                                               | (costs > chdtri(np.maximum(dofs, 1), tail))))
+        counted = np.flatnonzero(dofs > 0)
+        outside = counted[(chdtrc(dofs[counted], costs[counted]) < level)
+                          | (chdtr(dofs[counted], costs[counted]) < level)]
         if outside.size:
             j = int(outside[0])
             log.warning("%s: %d of %d local maps have chi^2 outside the %g%% interval for their degrees of freedom "

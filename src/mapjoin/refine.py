@@ -14,18 +14,24 @@ spherical variances. Each map's residual is whitened once and for all with the i
 the lower Cholesky factor of ``P_k``, so the cost is chi^2, the sum of squared whitened
 residuals.
 
-Solver (:func:`refine`): Gauss-Newton with Levenberg-Marquardt safeguards (Marquardt
-damping ``lambda diag(J^T J)``, steps accepted only if they lower the cost, lambda adapted
-by the gain ratio as in Nielsen's rule), switching to Newton's method (the exact Hessian:
+Solver (:func:`refine`): Gauss-Newton with safeguards: an overshooting step is first
+halved (a line search along it), then Levenberg-Marquardt damping (Marquardt's ``lambda
+diag(J^T J)``, steps accepted only if they lower the cost, lambda adapted by the gain ratio
+as in Nielsen's rule) takes over; it switches to Newton's method (the exact Hessian:
 ``J^T J`` plus the second-order term, which only touches the base angles) once steps are
-good, for quadratic convergence; started from the fast sequential join.
+good, for quadratic convergence; started from the fast sequential join. The damping alone
+would cut the directions ``J^T J`` hardly constrains (long chains of maps) by orders of
+magnitude and creep; the halving keeps Gauss-Newton's direction.
 
-Normal equations (:class:`ExactProblem`): analytic derivatives for all maps of one size
-at once (maps are grouped by size; no Python loop over maps or features). Each map's
-block of ``J^T J`` is its information matrix with the x/y parts rotated by the base
-angle, plus the base pose's rows and columns, which are combinations of the map's own
-(O(d^2) per map, one matrix-vector product); the blocks' lower triangles go into the
-fixed sparse pattern of ``J^T J`` with one ``bincount``. That pattern is kept in a
+Normal equations (:class:`ExactProblem`): analytic derivatives for a group of maps at
+once (no Python loop over maps or features): maps of nearby sizes, padded with features
+of zero weight to the largest (the runs of sizes chosen to balance the fixed cost of a
+group against the padding). Each map's block of ``J^T J`` is its information matrix with
+the x/y parts rotated by the base angle, plus the base pose's rows and columns, which are
+combinations of the map's own (O(d^2) per map, one matrix-vector product); the blocks'
+lower triangles go into the fixed sparse pattern of ``J^T J`` with one ``bincount``. For
+blocks whose points are independent (block-diagonal covariances, as raw odometry with its
+observations has), only each point's own entries are evaluated. That pattern is kept in a
 fill-reducing order computed once: multiple minimum degree (SuperLU's) on the graph of
 poses and features, then re-postordered so that supernodes chain. The normal equations
 are factorised by SuperLU in symmetric mode, without pivoting (the matrix is positive
@@ -47,6 +53,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -67,7 +74,10 @@ _SUPERLU = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}
 #: 1e-12 puts the solution within ~1e-7 m of the optimum on the real datasets from either fast join
 TOLERANCE = 1e-12
 _MAX_DAMPING = 1e16  # Marquardt lambda at which the solver gives up looking for a decrease
+_HALVINGS = 10       # an overshooting Gauss-Newton step is tried at 1/2 ... 1/2^10 of its length before damping
 _SUPERNODE_OVERHEAD = 5e4  # flops worth one supernode's Python overhead in the selected inversion
+_GROUP_OVERHEAD = 2e4      # entries of a map's block worth one group's Python overhead in the evaluation
+_TRTRI = scipy.linalg.lapack.get_lapack_funcs("trtri", (np.zeros(1),))
 
 
 @dataclass(frozen=True)
@@ -79,7 +89,8 @@ class RefineResult:
     blocks of ``(J^T J)^-1`` and its spherical variances their summary (half the trace of
     the x/y block, the orientation variance as is); without, the variances of the
     initial map are kept. ``cost``: chi^2 at the optimum. ``costs``: chi^2 before the
-    first iteration and after each accepted one. ``seconds``: time of the solve (problem
+    first iteration and after each accepted one (decreasing; the last may rise by rounding,
+    see :func:`minimise`). ``seconds``: time of the solve (problem
     set-up and iterations; neither the initial join nor the covariances),
     ``covariance_seconds``: time of the marginal covariances, ``initial_seconds``: time of
     the sequential join that gave the initial value (0 when one was given).
@@ -109,7 +120,9 @@ class RefineResult:
 
 @dataclass
 class _Group:
-    """All maps with ``m`` features (state dimension ``d = 3 + 2m``), evaluated together.
+    """Maps with up to ``m`` features (state dimension ``d = 3 + 2m``), evaluated together:
+    a map with fewer is padded with features of zero weight (zero rows and columns of its
+    whitening matrix, a spare residual row and unknown), which change nothing.
 
     Inside a group a map's state is reordered as ``[x of the points, y of the points, phi]``,
     the points being the end pose position then the features, so that every block of the
@@ -127,6 +140,7 @@ class _Group:
     columns: np.ndarray       # (G, w) unknowns of the Jacobian block's columns
     nodes: np.ndarray         # (G, m + 2) nodes [pose k, features, base pose]
     coupled: np.ndarray       # (G, m + 2, m + 2) node pairs whose block of J_k^T J_k can be non-zero
+    layout: _PieceLayout      # which entries of J_k^T J_k are evaluated (see _piece_layout)
     rotated: tuple = ()       # parts of P_k^-1 = W^T W, see ExactProblem.linearise
     block_offset: int = 0     # where the group's J_k^T J_k blocks start in the flat buffer
     gradient_offset: int = 0  # where its J_k^T r_k start
@@ -223,46 +237,67 @@ class ExactProblem:
         self.row0 = np.concatenate([[0], np.cumsum(3 + 2 * sizes)])
         self.n_residuals = int(self.row0[-1])
         feature0 = np.concatenate([[0], np.cumsum(sizes)])
-        measurement = np.empty(self.n_residuals)
+        measurement = np.zeros(self.n_residuals + 1)     # a spare last row for the padding of groups
         measurement[self.row0[:-1, None] + np.arange(3)] = blocks.end_poses
         owner = np.repeat(np.arange(N), sizes)
         first_row = self.row0[owner] + 3 + 2 * (np.arange(len(owner)) - feature0[owner])
         measurement[first_row[:, None] + np.arange(2)] = blocks.features
 
-        self.groups: list[_Group] = []
-        for m in np.unique(sizes):
-            m = int(m)
+        covariances, independent = {}, np.zeros(N, dtype=bool)
+        for m in np.unique(sizes).tolist():
             ks = np.flatnonzero(sizes == m)
-            local = np.concatenate([[0], 3 + 2 * np.arange(m), [1], 4 + 2 * np.arange(m), [2]])
-            fidx = compact[feature0[ks][:, None] + np.arange(m)]
-            covariance = blocks.covariances(ks)[:, local[:, None], local]
-            try:
-                factor = np.linalg.cholesky(covariance)
-            except np.linalg.LinAlgError:
-                raise JoinError("a local map's covariance is not positive definite") from None
-            # forward substitution vectorised over the maps pays off for many small maps
-            whitening = _triangular_inverse(factor) if len(ks) >= 8 else np.tril(np.linalg.inv(factor))
-            information = np.matmul(whitening.transpose(0, 2, 1), whitening)
+            covariances[m] = ks, np.asarray(blocks.covariances(ks), dtype=float)
+            independent[ks] = _independent(covariances[m][1])
+        self.groups: list[_Group] = []
+        for ks in _classes(sizes, independent):
+            G, real, m = len(ks), sizes[ks], int(sizes[ks].max())
             p = m + 1
-            Lxx, Lyy = information[:, :p, :p], information[:, p:2 * p, p:2 * p]
-            Lxy, Lyx = information[:, :p, p:2 * p], information[:, p:2 * p, :p]
-            lower = np.tril_indices(p)
-            T, D, A = (Lxx + Lyy) / 2, (Lxx - Lyy) / 2, (Lxy + Lyx) / 2
-            rotated = (T[:, lower[0], lower[1]], D[:, lower[0], lower[1]], A[:, lower[0], lower[1]],
-                       D, A, (Lxy - Lyx) / 2,
+            point = np.arange(p) <= real[:, None]                   # real points (the rest is padding)
+            entry = np.concatenate([point, point, np.ones((G, 1), dtype=bool)], axis=1)
+            local = np.concatenate([[0], 3 + 2 * np.arange(m), [1], 4 + 2 * np.arange(m), [2]])
+            stacks = []                                             # (which maps, their covariances) by size
+            for r in np.unique(real).tolist():
+                members, stack = covariances[r]
+                mine = real == r
+                stacks.append((mine, stack[np.searchsorted(members, ks[mine])]))
+            layout = _piece_layout(p, bool(independent[ks[0]]))
+            if independent[ks[0]]:
+                whitening, information = _block_whitening(stacks, point)
+            else:
+                covariance = np.zeros((G, 3 + 2 * m, 3 + 2 * m))
+                for mine, stack in stacks:
+                    covariance[mine, :stack.shape[1], :stack.shape[1]] = stack
+                diagonal = np.arange(3 + 2 * m)
+                covariance[:, diagonal, diagonal] += diagonal >= 3 + 2 * real[:, None]     # padding: unit variances
+                # the padding is uncorrelated, so the real part of W is that of the map alone; zero the rest
+                whitening = _inverse_cholesky(covariance[:, local[:, None], local])
+                whitening *= entry[:, :, None] & entry[:, None, :]
+                information = np.matmul(whitening.transpose(0, 2, 1), whitening)
+            (pi, pj), (ci, cj) = layout.pairs, layout.cross
+            Lxy, Lyx = information[:, ci, p + cj], information[:, p + ci, cj]
+            rotated = ((information[:, pi, pj] + information[:, p + pi, p + pj]) / 2,
+                       (information[:, pi, pj] - information[:, p + pi, p + pj]) / 2,
+                       (information[:, pi, p + pj] + information[:, p + pi, pj]) / 2,
+                       (information[:, ci, cj] - information[:, p + ci, p + cj]) / 2, (Lxy + Lyx) / 2, (Lxy - Lyx) / 2,
                        information[:, :p, 2 * p].copy(), information[:, p:2 * p, 2 * p].copy(),
                        information[:, 2 * p, 2 * p].copy(),
                        information, information[:, :, :p].sum(axis=2), information[:, :, p:2 * p].sum(axis=2))
             has_base = base[ks] >= 0
             b = np.where(has_base, base[ks], ks)
+            feature = point[:, 1:]
+            fidx = np.where(feature, compact[np.where(feature, feature0[ks][:, None] + np.arange(m), 0)], 0)
+            fx = np.where(feature, 3 * N + 2 * fidx, self.n_unknowns)     # padding: a spare unknown
+            fy = np.where(feature, fx + 1, fx)
             pose = 3 * ks[:, None]
-            columns = np.concatenate([pose, 3 * N + 2 * fidx, pose + 1, 3 * N + 2 * fidx + 1, pose + 2,
-                                      3 * b[:, None] + np.arange(3)], axis=1)
+            columns = np.concatenate([pose, fx, pose + 1, fy, pose + 2, 3 * b[:, None] + np.arange(3)], axis=1)
             nodes = np.concatenate([ks[:, None], N + fidx, b[:, None]], axis=1)
-            rows = self.row0[ks][:, None] + local
+            rows = np.where(entry, self.row0[ks][:, None] + local, self.n_residuals)
+            coupled = _coupled(information, point, independent[ks[0]])
+            coupled[~has_base, -1, :] = coupled[~has_base, :, -1] = False    # no base: its columns are zero
             self.groups.append(_Group(ks, b, has_base, fidx, whitening, measurement[rows], rows, columns, nodes,
-                                      _coupled(information), rotated))
+                                      coupled, layout, rotated))
         self._position = None
+        self._evaluated: tuple[np.ndarray, list] | None = None
 
     # ---- packing ----------------------------------------------------------------------
 
@@ -314,24 +349,32 @@ class ExactProblem:
         return np.concatenate([Jx, Jy, -Wphi[:, :, None], Jbx[:, :, None], Jby[:, :, None],
                                Jbphi[:, :, None]], axis=2)
 
+    def _evaluate(self, x: np.ndarray) -> list[tuple[tuple, np.ndarray]]:
+        """Per group, the geometry and the whitened residuals at ``x``; those of the last point
+        are kept, so that :meth:`linearise` at the point :meth:`cost` has just tried (as the
+        solver does on accepting a step) does not compute them again."""
+        x = np.asarray(x, dtype=float)
+        if self._evaluated is not None and np.array_equal(self._evaluated[0], x):
+            return self._evaluated[1]
+        evaluated = []
+        for group in self.groups:
+            geometry = self._geometry(group, x)
+            evaluated.append((geometry, self._residual(group, geometry)))
+        self._evaluated = x.copy(), evaluated
+        return evaluated
+
     def residual(self, x: np.ndarray) -> np.ndarray:
         """Whitened residuals of all maps, ``3 + 2m`` per map in map order: ``W_k (s_k -
         H_k(x))`` with ``W_k`` the inverse lower Cholesky factor of ``P_k`` taken in the order
         [x's, y's, phi] (any square root of ``P_k^-1`` gives the same chi^2)."""
-        x = np.asarray(x, dtype=float)
-        r = np.empty(self.n_residuals)
-        for group in self.groups:
-            r[group.rows] = self._residual(group, self._geometry(group, x))
-        return r
+        r = np.empty(self.n_residuals + 1)
+        for group, (_, residual) in zip(self.groups, self._evaluate(x)):
+            r[group.rows] = residual
+        return r[:-1]
 
     def cost(self, x: np.ndarray) -> float:
         """chi^2: the sum of squared whitened residuals."""
-        x = np.asarray(x, dtype=float)
-        total = 0.0
-        for group in self.groups:
-            r = self._residual(group, self._geometry(group, x))
-            total += float(np.einsum("gi,gi->", r, r))
-        return total
+        return sum(float(np.einsum("gi,gi->", r, r)) for _, r in self._evaluate(x))
 
     def jacobian(self, x: np.ndarray) -> sp.csr_matrix:
         """The sparse Jacobian of :meth:`residual` (CSR, n_residuals x n_unknowns)."""
@@ -342,8 +385,9 @@ class ExactProblem:
             rows.append(np.broadcast_to(group.rows[:, :, None], J.shape).ravel())
             cols.append(np.broadcast_to(group.columns[:, None, :], J.shape).ravel())
             vals.append(J.ravel())
-        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                             shape=(self.n_residuals, self.n_unknowns))
+        J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(self.n_residuals + 1, self.n_unknowns + 1))     # spares: the padding
+        return J[:-1, :-1]
 
     # ---- normal equations ---------------------------------------------------------------
 
@@ -409,23 +453,23 @@ class ExactProblem:
         cum = np.concatenate([[0], np.cumsum(row_size)])
         row_offset = cum[:-1] - cum[nptr[ncol]]           # scalar rows above node entry t in its column
         col_length = cum[nptr[1:]] - cum[nptr[:-1]]       # scalar rows of each node column
-        indptr = np.concatenate([[0], np.cumsum(np.repeat(col_length, size))])
-        indices = np.empty(indptr[-1], dtype=np.int32)
+        # scalar CSC: every scalar column of node column c holds the rows of c's node entries, in order
+        # (a "template" per node column: node entry t and row offset i of each of its scalar rows)
+        column_length = np.repeat(col_length, size)
+        indptr = np.concatenate([[0], np.cumsum(column_length)])
+        nnz = int(indptr[-1])
+        template_entry = np.repeat(np.arange(len(pkeys)), row_size)
+        template_row = start[nrow][template_entry] + np.arange(len(template_entry)) - cum[:-1][template_entry]
         # the lower triangle is accumulated; an entry above the diagonal takes its mirror's value
         transposed_slot = np.searchsorted(pkeys, nrow * n_nodes + ncol)
-        from_lower = np.empty(indptr[-1], dtype=np.int64)
-        for a_size in (2, 3):
-            for b_size in (2, 3):
-                t = np.flatnonzero((row_size == a_size) & (size[ncol] == b_size))
-                i = np.arange(a_size)[None, :, None]
-                j = np.arange(b_size)[None, None, :]
-                at = (indptr[start[ncol[t]][:, None, None] + j] + row_offset[t][:, None, None] + i).ravel()
-                rows = np.broadcast_to(start[nrow[t]][:, None, None] + i, (len(t), a_size, b_size)).ravel()
-                cols = np.broadcast_to(start[ncol[t]][:, None, None] + j, (len(t), a_size, b_size)).ravel()
-                mirror = (indptr[start[nrow[t]][:, None, None] + i] + row_offset[transposed_slot[t]][:, None, None]
-                          + j).ravel()
-                indices[at] = rows
-                from_lower[at] = np.where(rows >= cols, at, mirror)
+        template_mirror = row_offset[transposed_slot][template_entry]
+        scalar_node = np.repeat(np.arange(n_nodes), size)
+        column = np.repeat(np.arange(len(column_length)), column_length)
+        template = np.arange(nnz) - np.repeat(indptr[:-1] - cum[nptr[scalar_node]], column_length)
+        indices = template_row[template]
+        within = np.repeat(np.arange(len(scalar_node)) - start[scalar_node], column_length)   # column offset j
+        from_lower = np.where(indices >= column, np.arange(nnz), indptr[indices] + template_mirror[template] + within)
+        indices = indices.astype(np.int32)
         self._from_lower = from_lower
         self._indptr, self._indices = indptr.astype(np.int32), indices
         self._nnz = int(indptr[-1])
@@ -433,31 +477,27 @@ class ExactProblem:
         slots = np.split(rank[inverse], np.cumsum([k.size for k in keys])[:-1])
         targets, gradient_columns, angle_targets = [], [], []
         block_offset = gradient_offset = 0
+        csc = indptr[start[:-1]], col_length, row_offset, self._nnz    # see _entries
         for group, slot in zip(self.groups, slots):
             G, m2 = group.nodes.shape
             m = m2 - 2
-            local_node = np.concatenate([[0], 1 + np.arange(m), [0], 1 + np.arange(m), [0], [m + 1] * 3])
-            local_offset = np.concatenate([[0], np.zeros(m, int), [1], np.ones(m, int), [2], [0, 1, 2]])
-            # slot[g, a, b]: the entry of column node a, row node b (-1: uncoupled); t[g, i, j]: of row i, column j
+            node_of = np.concatenate([[0], 1 + np.arange(m), [0], 1 + np.arange(m), [0], [m + 1] * 3])
+            offset_of = np.concatenate([[0], np.zeros(m, int), [1], np.ones(m, int), [2], [0, 1, 2]])
+            # node pair (column node a, row node b) -> its entry in the node pattern (-1: uncoupled)
             full = np.full((G, m2, m2), -1, dtype=np.int64)
             full[group.coupled] = slot
-            t = full[:, local_node[None, :], local_node[:, None]]
-            where = position[group.columns]
-            # an uncoupled pair's (zero) entries go to a spare slot past the end, then dropped
-            at = np.where(t >= 0, indptr[where][:, None, :] + row_offset[t] + local_offset[None, :, None], self._nnz)
-            rows, cols = _piece_pairs(m + 1)
-            lower = where[:, rows] >= where[:, cols]      # the entry of the pair on or below the diagonal
-            pieces = np.where(lower, at[:, rows, cols], at[:, cols, rows])
+            placed = order[group.nodes]                   # node positions
+            layout = group.layout
+            pieces = _entries(layout.rows, layout.cols, node_of, offset_of, placed, full, csc)
             group.block_offset, group.gradient_offset = block_offset, gradient_offset
             block_offset += pieces.size
             gradient_offset += group.columns.size
-            bounds = np.cumsum([0] + [math.prod(shape) for shape in _piece_shapes(m + 1)])
+            bounds = np.cumsum([0] + [math.prod(shape) for shape in layout.shapes])
             targets.extend(pieces[:, lo:hi].ravel() for lo, hi in itertools.pairwise(bounds))   # piece by piece
             gradient_columns.append(group.columns.ravel())
-            w = at.shape[1]
-            theta = np.full(w, w - 1)
-            angle_targets.append(np.where(where[:, theta] >= where, at[:, theta, np.arange(w)],
-                                          at[:, np.arange(w), theta]).ravel())
+            w = group.columns.shape[1]
+            angle_targets.append(_entries(np.full(w, w - 1), np.arange(w), node_of, offset_of, placed, full,
+                                          csc).ravel())
         self._targets = np.concatenate(targets)
         self._gradient_columns = np.concatenate(gradient_columns)
         self._angle_targets = np.concatenate(angle_targets)
@@ -495,25 +535,23 @@ class ExactProblem:
         gradient_buffer = self._gradient_buffer
         extra = [] if curvature else None
         cost = 0.0
-        for group in self.groups:
-            c, s, lx, ly, *_ = geometry = self._geometry(group, x)
-            r = self._residual(group, geometry)
+        for group, (geometry, r) in zip(self.groups, self._evaluate(x)):
+            c, s, lx, ly, *_ = geometry
             cost += float(np.einsum("gi,gi->", r, r))
             mu = np.matmul(r[:, None, :], group.whitening)[:, 0, :]      # W^T r = P^-1 e
             G, d = r.shape
             p = (d - 1) // 2
             w = d + 3
             Ttri, Dtri, Atri, D, A, K, Lxphi, Lyphi, Lphiphi, Lam, rsx, rsy = group.rotated
-            xx, yy, xy, xphi, yphi, phiphi, mc, cmc = _pieces(
-                buffer[group.block_offset:group.block_offset + G * _piece_size(p)], p, G)
+            xx, yy, xy, xphi, yphi, phiphi, mc, cmc = _pieces(buffer, group)
             c2 = c * c - s * s
             s2 = 2 * c * s
             Q = c2 * Dtri
             Q -= s2 * Atri
             np.add(Ttri, Q, out=xx)
             np.subtract(Ttri, Q, out=yy)
-            np.multiply(s2[:, :, None], D, out=xy)
-            xy += c2[:, :, None] * A
+            np.multiply(s2, D, out=xy)
+            xy += c2 * A
             xy += K
             np.multiply(c, Lxphi, out=xphi)
             xphi -= s * Lyphi
@@ -562,7 +600,7 @@ class ExactProblem:
                 h *= base
                 extra.append(h.ravel())
         data = np.bincount(self._targets, buffer, minlength=self._nnz + 1)[self._from_lower]
-        gradient = np.bincount(self._gradient_columns, gradient_buffer, minlength=self.n_unknowns)
+        gradient = np.bincount(self._gradient_columns, gradient_buffer, minlength=self.n_unknowns + 1)[:-1]
         if not curvature:
             return data, gradient, cost
         second = np.bincount(self._angle_targets, np.concatenate(extra), minlength=self._nnz + 1)[self._from_lower]
@@ -626,6 +664,30 @@ class ExactProblem:
         return values[:split].reshape(N, 3, 3), values[split:].reshape(n, 2, 2)
 
 
+def _entries(rows: np.ndarray, cols: np.ndarray, node_of: np.ndarray, offset_of: np.ndarray, placed: np.ndarray,
+             full: np.ndarray, csc: tuple) -> np.ndarray:
+    """(G, pairs): CSC index of the entry on or below the diagonal of J^T J of each pair (row,
+    column) of a group's columns (``node_of``, ``offset_of``: each column's node among the map's
+    and scalar within it; ``placed``: the nodes' positions (G, nodes); ``full[g, a, b]``: the
+    node entry of column node a, row node b, -1 if uncoupled, whose pairs go to a spare slot
+    past the end). Found node pair by node pair: with ``csc = (column_start, col_length,
+    row_offset, spare)``, node entry t (column node C, row node below it) holds scalar (i, j) at
+    ``column_start[C] + j * col_length[C] + row_offset[t] + i``."""
+    column_start, col_length, row_offset, spare = csc
+    m2 = full.shape[1]
+    a, b, i, j = node_of[rows], node_of[cols], offset_of[rows], offset_of[cols]
+    i, j = np.where(a == b, np.maximum(i, j), i), np.where(a == b, np.minimum(i, j), j)   # one node: its lower half
+    pairs, pair = np.unique(a * m2 + b, return_inverse=True)
+    a, b = pairs // m2, pairs % m2
+    lower = placed[:, a] >= placed[:, b]                      # (G, node pairs): row node a at or below b
+    t = np.where(lower, full[:, b, a], full[:, a, b])
+    C = np.where(lower, placed[:, b], placed[:, a])
+    first = np.where(t >= 0, column_start[C] + row_offset[t], spare)
+    stride = np.where(t >= 0, col_length[C], 0)
+    lower, first, stride = lower[:, pair], first[:, pair], stride[:, pair]
+    return first + np.where(lower, j * stride + i, i * stride + j) * (stride > 0)
+
+
 def _closed_pattern(keys: np.ndarray, n: int) -> np.ndarray:
     """A superset of a strictly lower pattern (keys ``col * n + row``, row > col) closed
     under elimination, sorted keys: for every column j with parent p = min struct(j),
@@ -651,40 +713,48 @@ def _closed_pattern(keys: np.ndarray, n: int) -> np.ndarray:
         keys = np.unique(np.concatenate([keys, required[~found]]))
 
 
-def _piece_shapes(p: int) -> list[tuple[int, ...]]:
-    """Per map, the shapes of the pieces of :func:`_pieces` for ``p`` points."""
-    return [(p * (p + 1) // 2,)] * 2 + [(p, p), (p,), (p,), (), (3, 2 * p + 1), (6,)]
+class _PieceLayout(NamedTuple):
+    """Which entries of a map's block of J^T J are evaluated, among its columns ``[x of the p
+    points, y ..., phi, base x, y, phi]``: ``pairs`` (i >= j) of points whose x/x and y/y
+    entries, ``cross`` (i, j) whose x_i/y_j entries; the pieces' ``shapes`` per map and the
+    local (row, column) of every entry, in layout order (see :func:`_pieces`)."""
+
+    pairs: tuple[np.ndarray, np.ndarray]
+    cross: tuple[np.ndarray, np.ndarray]
+    shapes: tuple[tuple[int, ...], ...]
+    rows: np.ndarray
+    cols: np.ndarray
 
 
-def _piece_size(p: int) -> int:
-    """Entries per map of the lower-triangle pieces (see :func:`_pieces`) for ``p`` points."""
-    return sum(math.prod(shape) for shape in _piece_shapes(p))
-
-
-@functools.lru_cache(maxsize=256)
-def _piece_pairs(p: int) -> tuple[np.ndarray, np.ndarray]:
-    """Local (row, column) indices, among a map's columns ``[x of the p points, y ..., phi,
-    base x, y, phi]``, of the entries of its pieces (see :func:`_pieces`), in layout order."""
+@functools.lru_cache(maxsize=512)
+def _piece_layout(p: int, independent: bool) -> _PieceLayout:
+    """The layout of maps with ``p`` points: every pair of points, or with ``independent``
+    points (no information between two of them, as raw observations have) each point with itself."""
+    if independent:
+        pairs = cross = (np.arange(p), np.arange(p))
+    else:
+        pairs, cross = np.tril_indices(p), (np.repeat(np.arange(p), p), np.tile(np.arange(p), p))
     d = 2 * p + 1
-    i, j = np.tril_indices(p)
     a, b = np.tril_indices(3)
-    full_i, full_j = np.repeat(np.arange(p), p), np.tile(np.arange(p), p)
     points = np.arange(p)
-    rows = [i, p + i, full_i, points, p + points, [2 * p], np.tile(np.arange(d), 3), d + a]
-    cols = [j, p + j, p + full_j, np.full(p, 2 * p), np.full(p, 2 * p), [2 * p], np.repeat(d + np.arange(3), d),
-            d + b]
-    return np.concatenate(rows).astype(np.intp), np.concatenate(cols).astype(np.intp)
+    rows = [pairs[0], p + pairs[0], cross[0], points, p + points, [2 * p], np.tile(np.arange(d), 3), d + a]
+    cols = [pairs[1], p + pairs[1], p + cross[1], np.full(p, 2 * p), np.full(p, 2 * p), [2 * p],
+            np.repeat(d + np.arange(3), d), d + b]
+    shapes = ((len(pairs[0]),), (len(pairs[0]),), (len(cross[0]),), (p,), (p,), (), (3, d), (6,))
+    return _PieceLayout(pairs, cross, shapes, np.concatenate(rows).astype(np.intp),
+                        np.concatenate(cols).astype(np.intp))
 
 
-def _pieces(block: np.ndarray, p: int, G: int) -> list[np.ndarray]:
-    """Views into a group's flat buffer of ``G`` maps with ``p`` points each, one entry per
-    unordered pair of its columns: x/x and y/y lower triangles (G, p(p+1)/2), x/y (G, p, p),
-    x/phi, y/phi (G, p), phi/phi (G,), own/base (G, 3, d: base column a, own row i) and the
-    base/base lower triangle (G, 6), laid out in this order (see :func:`_piece_pairs`)."""
-    views, offset = [], 0
-    for shape in _piece_shapes(p):
+def _pieces(buffer: np.ndarray, group: _Group) -> list[np.ndarray]:
+    """Views into the flat buffer of a group's ``G`` maps, one entry per evaluated unordered
+    pair of columns: x/x and y/y over the layout's pairs, x/y over its cross pairs, x/phi,
+    y/phi (G, p), phi/phi (G,), own/base (G, 3, d: base column a, own row i) and the
+    base/base lower triangle (G, 6), laid out in this order (see :func:`_piece_layout`)."""
+    G = len(group.maps)
+    views, offset = [], group.block_offset
+    for shape in group.layout.shapes:
         size = G * math.prod(shape)
-        views.append(block[offset:offset + size].reshape((G,) + shape))
+        views.append(buffer[offset:offset + size].reshape((G,) + shape))
         offset += size
     return views
 
@@ -878,27 +948,109 @@ def _selected_inverse(structure: _Supernodes, Lrow: np.ndarray, Lcol: np.ndarray
     return result[st.block_offset[J] + (cols - st.start[J]) * (st.size[J] + st.below[J]) + at]
 
 
-def _coupled(information: np.ndarray) -> np.ndarray:
+def _coupled(information: np.ndarray, point: np.ndarray, independent: bool) -> np.ndarray:
     """(G, m + 2, m + 2): which node pairs [pose k, features, base] of each map's block of
     J^T J can be non-zero, from the map's information matrix (G, d, d) in the order [x of
-    the points, y of the points, phi]: two of its own nodes couple only through a non-zero
-    information entry (independent observations, as raw data has, do not couple); the
-    base pose couples with every node."""
+    the points, y of the points, phi] and its real (not padding) points (G, m + 1): two of
+    its own nodes couple only through a non-zero information entry (``independent``
+    points, as raw observations are, couple with themselves only); the base pose couples
+    with every real node."""
     G, d, _ = information.shape
     p = (d - 1) // 2
-    magnitude = np.abs(information)
-    xy = magnitude[:, :2 * p, :2 * p].reshape(G, 2, p, 2, p).sum(axis=(1, 3))      # point by point
-    xy[:, 0, :] += magnitude[:, 2 * p, :2 * p].reshape(G, 2, p).sum(axis=1)        # phi is pose k's
-    xy[:, :, 0] += magnitude[:, :2 * p, 2 * p].reshape(G, 2, p).sum(axis=1)
     coupled = np.ones((G, p + 1, p + 1), dtype=bool)
-    coupled[:, :p, :p] = xy > 0
+    if independent:
+        coupled[:, :p, :p] = np.eye(p, dtype=bool) & point[:, :, None]
+    else:
+        magnitude = np.abs(information)
+        xy = magnitude[:, :2 * p, :2 * p].reshape(G, 2, p, 2, p).sum(axis=(1, 3))      # point by point
+        xy[:, 0, :] += magnitude[:, 2 * p, :2 * p].reshape(G, 2, p).sum(axis=1)        # phi is pose k's
+        xy[:, :, 0] += magnitude[:, :2 * p, 2 * p].reshape(G, 2, p).sum(axis=1)
+        coupled[:, :p, :p] = xy > 0
+    coupled[:, :p, p] = coupled[:, p, :p] = point
     return coupled
 
 
+def _inverse_cholesky(covariance: np.ndarray) -> np.ndarray:
+    """``W = L^-1`` for the lower Cholesky factors ``L`` of a stack of covariances (W^T W is
+    their inverse, W whitens a residual)."""
+    try:
+        k = covariance.shape[-1]
+        return _triangular_inverse(np.linalg.cholesky(covariance.reshape(-1, k, k))).reshape(covariance.shape)
+    except np.linalg.LinAlgError:
+        raise JoinError("a local map's covariance is not positive definite") from None
+
+
+def _block_whitening(stacks: list[tuple[np.ndarray, np.ndarray]], point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whitening W (G, d, d) and information W^T W of maps whose points are independent
+    (block-diagonal covariances, given by size: ``(which maps, (g, 3 + 2r, 3 + 2r))``), in
+    the order [x of the points, y of the points, phi], padding zero: block by block, the
+    end pose's 3 x 3 and each feature's 2 x 2, as the full factor would come out."""
+    G, p = point.shape
+    m = p - 1
+    pose, feature = np.empty((G, 3, 3)), np.broadcast_to(np.eye(2), (G, m, 2, 2)).copy()
+    for mine, stack in stacks:
+        r = (stack.shape[1] - 3) // 2
+        pose[mine] = stack[:, :3, :3]
+        if r:
+            own = np.arange(r)
+            feature[mine, :r] = stack[:, 3:, 3:].reshape(-1, r, 2, r, 2)[:, own, :, own, :].transpose(1, 0, 2, 3)
+    Wp = _inverse_cholesky(pose)
+    Wf = _inverse_cholesky(feature) * point[:, 1:, None, None]
+    d = 2 * p + 1
+    where_pose = np.array([0, p, 2 * p])
+    where_feature = np.stack([np.arange(1, p), p + np.arange(1, p)], axis=1)         # (m, 2): x, y of feature i
+    whitening, information = np.zeros((G, d, d)), np.zeros((G, d, d))
+    whitening[:, where_pose[:, None], where_pose] = Wp
+    whitening[:, where_feature[:, :, None], where_feature[:, None, :]] = Wf
+    information[:, where_pose[:, None], where_pose] = np.matmul(Wp.transpose(0, 2, 1), Wp)
+    information[:, where_feature[:, :, None], where_feature[:, None, :]] = np.matmul(Wf.transpose(0, 1, 3, 2), Wf)
+    return whitening, information
+
+
+def _independent(covariances: np.ndarray) -> np.ndarray:
+    """(G,): which blocks' covariances (G, 3 + 2m, 3 + 2m), order [x, y, phi, f1x, f1y, ...],
+    correlate no two of their points (the end pose and each feature: block-diagonal)."""
+    d = covariances.shape[1]
+    point = np.concatenate([[0, 0, 0], np.repeat(np.arange(1, (d - 3) // 2 + 1), 2)])
+    across = point[:, None] != point[None, :]
+    return ~np.any(covariances[:, across] != 0, axis=1)
+
+
+def _classes(sizes: np.ndarray, independent: np.ndarray) -> list[np.ndarray]:
+    """The maps of each group (:class:`_Group`): per kind (dense or independent points),
+    runs of consecutive sizes padded to the largest, chosen by dynamic programming to
+    minimise a fixed cost per group plus the padded work (~w^2 per map)."""
+    classes = []
+    for kind in (False, True):
+        ks = np.flatnonzero(independent == kind)
+        if not ks.size:
+            continue
+        distinct, counts = np.unique(sizes[ks], return_counts=True)
+        work = (2.0 * distinct + 6) ** 2
+        count = np.concatenate([[0], np.cumsum(counts)])
+        best, cut = np.zeros(len(distinct) + 1), np.zeros(len(distinct) + 1, dtype=np.int64)
+        for j in range(1, len(distinct) + 1):         # best[j]: the sizes up to distinct[j - 1]
+            options = best[:j] + _GROUP_OVERHEAD + (count[j] - count[:j]) * work[j - 1]
+            cut[j] = np.argmin(options)
+            best[j] = options[cut[j]]
+        j, runs = len(distinct), []
+        while j:
+            runs.append((distinct[cut[j]], distinct[j - 1]))
+            j = cut[j]
+        classes.extend(ks[(sizes[ks] >= low) & (sizes[ks] <= high)] for low, high in reversed(runs))
+    return classes
+
+
 def _triangular_inverse(L: np.ndarray) -> np.ndarray:
-    """Inverses of a stack of lower triangular matrices (G, d, d), row by row (forward
-    substitution vectorised over the stack): a third of the work of a general inverse."""
-    d = L.shape[1]
+    """Inverses of a stack of lower triangular matrices (G, d, d): a third of the work of a
+    general inverse. Few or large matrices one by one (LAPACK's trtri, on the transposes:
+    no copies); many small ones row by row, the forward substitution vectorised over the stack."""
+    G, d = L.shape[0], L.shape[-1]
+    if d >= 24 or G < 4 * d:
+        W = np.empty_like(L)
+        for g in range(G):
+            W[g].T[...] = _TRTRI(L[g].T, lower=0)[0]
+        return W
     W = np.zeros_like(L)
     reciprocal = 1.0 / np.diagonal(L, axis1=1, axis2=2)
     W[:, 0, 0] = reciprocal[:, 0]
@@ -960,21 +1112,26 @@ class Minimum:
 def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100, tolerance: float = TOLERANCE,
              progress: Callable[[int, float], None] | None = None) -> Minimum:
     """Minimise chi^2 of ``problem`` from ``x``: Gauss-Newton (``J^T J``), undamped while steps
-    lower the cost, with Marquardt damping ``lambda diag(J^T J)`` adapted by the gain ratio
+    lower the cost (an overshooting one is first halved up to ten times: a backtracking line
+    search along it), with Marquardt damping ``lambda diag(J^T J)`` adapted by the gain ratio
     (Nielsen) after one that does not; after a good undamped step, Newton's (``J^T J`` plus
     the second-order term, for quadratic convergence on these non-zero-residual problems),
     falling back to Gauss-Newton for good if a Newton step is not a descent or does not
-    lower the cost. Stops when an accepted step lowers chi^2 by at most ``tolerance``
-    relative, or a step is at most ``tolerance * (1 + max |x|)`` in every unknown, or one
-    that does not lower chi^2 was predicted to lower it by at most ``tolerance`` relative
-    (these two not taken), or after ``max_iterations`` accepted steps. ``progress(iteration, cost)`` is
-    called with the initial chi^2 (iteration 0) and after each accepted step.
+    lower the cost. A step predicted to lower chi^2 by at most ``tolerance`` relative is
+    accepted unless chi^2 rises by more than that: comparing the costs is rounding there,
+    and it would make the stopping point random. Stops when an accepted step lowers chi^2
+    by at most ``tolerance`` relative, or a step is at most ``tolerance * (1 + max |x|)`` in
+    every unknown, or one predicted to lower chi^2 by at most ``tolerance`` relative raises
+    it by more (these two not taken), or after ``max_iterations`` accepted steps.
+    ``progress(iteration, cost)`` is called with the initial chi^2 (iteration 0) and after
+    each accepted step.
     """
     if max_iterations < 0:
         raise ValueError(f"max_iterations must be >= 0, got {max_iterations}")
     if not tolerance >= 0:
         raise ValueError(f"tolerance must be >= 0, got {tolerance}")
-    data, gradient, cost, second = problem.linearise(x, curvature=True)
+    data, gradient, cost = problem.linearise(x)           # the first step is Gauss-Newton's
+    second = None
     costs = [cost]
     factor_is_final = False
     if progress:
@@ -1009,15 +1166,39 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
         trial_cost = problem.cost(trial)
         # the model's decrease, -g.step + damping step.D.step (the gain ratio's denominator)
         predicted = -(step @ gradient) + damping * (step * step) @ problem.diagonal(data)
-        if trial_cost >= cost and 0 <= predicted <= tolerance * cost:
-            # at the optimum to within rounding: damped retries would only shrink the step
+        negligible = 0 <= predicted <= tolerance * cost
+        if trial_cost >= cost and not negligible and not newton and damping == 0.0:
+            # Gauss-Newton's step overshoots: shorten it (its direction is one of descent) before damping,
+            # which, scaled by diag(J^T J), would cut the directions J^T J hardly constrains by orders of
+            # magnitude and let the solver creep along them (as on long runs with loop closures)
+            for halving in range(1, _HALVINGS + 1):
+                shorter = x + 0.5 ** halving * step
+                shorter_cost = problem.cost(shorter)
+                if shorter_cost < cost:
+                    rejected += 1
+                    trial, trial_cost = shorter, shorter_cost
+                    predicted *= 0.5 ** halving * (2 - 0.5 ** halving)    # the model's decrease along it
+                    break
+        if negligible and trial_cost > cost * (1.0 + tolerance):
+            # at the optimum to within rounding, and the model no longer holds: damped retries would only
+            # shrink the step
             factor_is_final = damping == 0.0 and not newton
             reason, converged = "predicted decrease below tolerance", True
             break
-        if trial_cost < cost:
+        if trial_cost < cost or negligible:
+            # a step of negligible predicted decrease is taken however chi^2 compares: at that level the
+            # comparison is rounding noise (it would make where the solver stops random), and the model's
+            # minimiser is the better estimate; the relative cost change then stops the solver
             ratio = (cost - trial_cost) / predicted if predicted > 0 else 1.0
             x, previous = trial, cost
-            if newton_allowed:
+            damping *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+            if damping < 1e-12:
+                damping = 0.0
+            growth = 2.0
+            # near the optimum (a good undamped step), Newton's quadratic convergence
+            newton = newton_allowed and damping == 0.0 and ratio > 0.5
+            done = previous - trial_cost <= tolerance * previous
+            if newton and not done:     # the second-order term only where a Newton step follows
                 data, gradient, cost, second = problem.linearise(x, curvature=True)
             else:
                 data, gradient, cost = problem.linearise(x)
@@ -1025,13 +1206,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             costs.append(cost)
             if progress:
                 progress(iterations, cost)
-            damping *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
-            if damping < 1e-12:
-                damping = 0.0
-            growth = 2.0
-            # near the optimum (a good undamped step), Newton's quadratic convergence
-            newton = newton_allowed and damping == 0.0 and ratio > 0.5
-            if previous - cost <= tolerance * previous:
+            if done:
                 reason, converged = "relative cost change below tolerance", True
                 break
         elif newton:
