@@ -144,7 +144,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, TextIO
 import numpy as np
 
 from .errors import InputError
-from .maps import (SYMMETRY_TOLERANCE, GlobalMap, GroundTruth, LocalMap, Provenance, StackedMaps, first_duplicate,
+from .maps import (GlobalMap, GroundTruth, LocalMap, Provenance, StackedMaps, asymmetry, first_duplicate,
                    first_flagged, marginal_variances, size_groups)
 
 if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written; pathlib only names a path type here
@@ -164,6 +164,7 @@ __all__ = [
     "read_global_map",
     "read_map_file",
     "mat_variables",
+    "read_map_paths",
     "read_maps",
     "read_minima_table",
     "read_truth",
@@ -263,7 +264,13 @@ def read_maps(inputs: Sequence[str], *, stdin: TextIO | None = None, format: str
     (an I-SLSJF folder of thousands) are parsed and checked together, with the errors and
     warnings of reading them one by one.
     """
-    paths = resolve_inputs(inputs)
+    return read_map_paths(resolve_inputs(inputs), stdin=stdin, format=format)
+
+
+def read_map_paths(paths: Sequence[str], *, stdin: TextIO | None = None, format: str | None = None
+                   ) -> list[LocalMap]:
+    """:func:`read_maps` of inputs that :func:`resolve_inputs` has already resolved (commands resolve
+    them first to check their outputs against them; resolving again would stat every file twice)."""
     if paths.count(STDIN) > 1:
         raise InputError("stdin (-) is given more than once; it can be read only once", "<stdin>")
     maps: list[LocalMap] = []
@@ -1924,8 +1931,7 @@ def _linearslam_layout(ids: np.ndarray, start_id: int, source: str) -> tuple[np.
 
 def _covariance_of_information(information: np.ndarray, first: int, source: str) -> np.ndarray:
     """The inverse of an information matrix stored from line ``first`` + 1, checked symmetric positive definite."""
-    diagonal = np.abs(np.diagonal(information))
-    excess = np.abs(information - information.T) - SYMMETRY_TOLERANCE * np.sqrt(np.outer(diagonal, diagonal))
+    excess = asymmetry(information)
     if (excess > 0).any():
         i, j = (int(index) for index in np.unravel_index(np.argmax(excess), excess.shape))
         raise InputError(f"expected a symmetric information matrix, but entries ({i + 1}, {j + 1}) and "

@@ -38,6 +38,7 @@ from .errors import JoinError
 from .maps import CovarianceMode, GlobalMap, LocalMap, Provenance, batch_spherical_variances, first_duplicate
 from .onestep import (
     Solver,
+    as_complex,
     batch_constants,
     batch_orientation,
     global_orientation,
@@ -283,11 +284,6 @@ def _fuse(z0: np.ndarray, var0: np.ndarray, placed: np.ndarray, information1: np
     return (w0 * z0 + information1 * placed) / total, 1.0 / total
 
 
-def _complex(xy: np.ndarray) -> np.ndarray:
-    """(n, 2) x/y rows as complex numbers."""
-    return xy[:, 0] + 1j * xy[:, 1]
-
-
 def _prepare(maps: Sequence[LocalMap], covariance: CovarianceMode) -> tuple[np.ndarray, _Pieces]:
     """Check the chain; every map as a piece, with compact feature ids (and the global ids they stand for)."""
     check_chain(maps)
@@ -299,8 +295,8 @@ def _prepare(maps: Sequence[LocalMap], covariance: CovarianceMode) -> tuple[np.n
     order = np.lexsort((compact, piece))  # maps' ids are unique but not necessarily sorted
     index = np.arange(len(maps))
     end_poses = np.array([m.end_pose for m in maps])
-    pieces = _Pieces(piece, compact[order], _complex(np.concatenate([m.features for m in maps]))[order],
-                     feature_variances[order], index, _complex(end_poses), end_poses[:, 2], pose_variances,
+    pieces = _Pieces(piece, compact[order], as_complex(np.concatenate([m.features for m in maps]))[order],
+                     feature_variances[order], index, as_complex(end_poses), end_poses[:, 2], pose_variances,
                      index, index)
     return feature_ids, pieces
 

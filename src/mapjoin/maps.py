@@ -33,6 +33,7 @@ __all__ = [
     "GroundTruth",
     "Provenance",
     "StackedMaps",
+    "asymmetry",
     "batch_spherical_variances",
     "marginal_variances",
     "spherical_variances",
@@ -255,7 +256,7 @@ class StackedMaps(NamedTuple):
         rounded = finite & ~(covariance == covariance.transpose(0, 2, 1)).all(axis=(1, 2))  # the rest fail first
         asymmetric = np.zeros(len(covariance), dtype=bool)
         if rounded.any():
-            asymmetric[rounded] = (_asymmetry(covariance[rounded]) > 0).any(axis=(1, 2))
+            asymmetric[rounded] = (asymmetry(covariance[rounded]) > 0).any(axis=(1, 2))
             inexact = covariance[rounded & ~asymmetric]
             covariance[rounded & ~asymmetric] = (inexact + inexact.transpose(0, 2, 1)) / 2
         return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], False)),
@@ -282,7 +283,7 @@ class StackedMaps(NamedTuple):
 _LOCAL_MAP_FIELDS = ("name", "start_id", "end_id", *StackedMaps._fields[1:])
 
 
-def _asymmetry(covariance: np.ndarray) -> np.ndarray:
+def asymmetry(covariance: np.ndarray) -> np.ndarray:
     """``|P_ij - P_ji|`` less what rounding allows, ``SYMMETRY_TOLERANCE * sqrt(|P_ii P_jj|)``, for a matrix or
     each of a stack; positive where it is asymmetric."""
     deviation = np.sqrt(np.abs(np.diagonal(covariance, axis1=-2, axis2=-1)))
@@ -291,7 +292,7 @@ def _asymmetry(covariance: np.ndarray) -> np.ndarray:
 
 
 def _asymmetry_error(covariance: np.ndarray, source: str) -> InputError:
-    excess = _asymmetry(covariance)
+    excess = asymmetry(covariance)
     i, j = (int(v) for v in np.unravel_index(np.argmax(excess), excess.shape))
     return InputError(f"expected a symmetric matrix, but entries ({i}, {j}) and ({j}, {i}) differ: "
                       f"{covariance[i, j]!r} vs {covariance[j, i]!r}", source, "covariance")

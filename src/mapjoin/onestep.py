@@ -44,6 +44,7 @@ __all__ = [
     "Orientation",
     "MinimaSummary",
     "Orientations",
+    "as_complex",
     "batch_orientation",
     "point_constants",
     "minimise_reduced",
@@ -107,13 +108,15 @@ class Constants:
     weight: float
 
 
+def as_complex(xy: np.ndarray) -> np.ndarray:
+    """x/y pairs (the last axis) as complex numbers ``x + iy``, the form the one-step sums use."""
+    return xy[..., 0] + 1j * xy[..., 1]
+
+
 def constants(problem: OneStepProblem) -> Constants:
     """c0, a0, phi0 of Theorem 1 in O(n) (see the module docstring for the derivation)."""
-    def points(xy: np.ndarray) -> np.ndarray:
-        return xy[..., 0] + 1j * xy[..., 1]
-
-    k = point_constants(points(problem.z0), problem.var0, points(problem.z1), problem.var1,
-                        complex(points(problem.odometry[:2])), float(problem.odometry_variances[0]))
+    k = point_constants(as_complex(problem.z0), problem.var0, as_complex(problem.z1), problem.var1,
+                        complex(as_complex(problem.odometry[:2])), float(problem.odometry_variances[0]))
     return Constants(k.c0, k.a0, k.phi0, np.array([k.mean0.real, k.mean0.imag]),
                      np.array([k.mean1.real, k.mean1.imag]), k.weight)
 

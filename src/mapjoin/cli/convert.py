@@ -40,7 +40,7 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
     is_directory = output.endswith(os.sep) or os.path.isdir(output)
     if to_format is None:
         to_format = "yaml" if is_directory or output == "-" else formats.detect_format(output)
-    maps = formats.read_maps(paths, format=input_format)
+    maps = formats.read_map_paths(paths, format=input_format)
     if is_directory:
         planned = [os.path.join(output, formats.map_file_name(m.end_id, to_format)) for m in maps]
     else:

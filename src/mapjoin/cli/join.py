@@ -56,7 +56,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     if report_path == "-" and output == "-":
         raise click.UsageError("--report - and -o - would both write to stdout; give one of them a file")
     start = time.perf_counter()
-    maps = formats.read_maps(paths, format=input_format)
+    maps = formats.read_map_paths(paths, format=input_format)
     with progress_bar(ctx, len(maps), "joining") as progress:
         result = join_maps(maps, covariance, solver, strategy, jobs, progress)
     global_map = result.global_map

@@ -120,7 +120,7 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
     figures.figure_format(output)
     paths = formats.resolve_inputs(inputs)
     formats.check_not_overwriting(paths, [output])
-    maps = formats.read_maps(paths, format=input_format)
+    maps = formats.read_map_paths(paths, format=input_format)
     if join_number is None:
         if len(maps) != 2:
             raise click.UsageError(f"{len(maps)} maps: choose a join with --join K (1 to {len(maps) - 1}; "

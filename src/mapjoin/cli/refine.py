@@ -70,7 +70,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     paths = formats.resolve_inputs(inputs)
     formats.check_not_overwriting(paths, [output] if output != "-" else [])
     start = time.perf_counter()
-    maps = formats.read_maps(paths, format=input_format)
+    maps = formats.read_map_paths(paths, format=input_format)
 
     joined = time.perf_counter()
     with progress_bar(ctx, len(maps), "fast join") as progress:
