@@ -50,7 +50,7 @@ import scipy.linalg
 
 from .errors import InputError
 from .joining import join_sequential
-from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, marginal_variances
+from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, marginal_variances, size_groups
 from .raw import RawData
 from .refine import TOLERANCE, Blocks, ExactProblem, Minimum, RefineResult, minimise
 
@@ -60,8 +60,6 @@ log = logging.getLogger("mapjoin")
 
 #: longest stretch of odometry solved from dead reckoning; longer maps are joined from pieces
 PIECE_STEPS = 50
-#: two-sided probability of the chi-square interval outside which a chi^2 is flagged
-CHI2_LEVEL = 0.999
 _PROBES = 256  # right-hand sides per solve for the covariances (memory: unknowns x this)
 
 
@@ -395,8 +393,8 @@ class _Solved:
         sizes = np.array([(len(chosen) - 3) // 2 for chosen in selected])
         maps: list[LocalMap] = [None] * len(selected)      # type: ignore[list-item]
         invalid = []
-        for m in np.unique(sizes).tolist():                # the maps of each size as one stack, checked at once
-            group = np.flatnonzero(sizes == m)
+        for group in size_groups(sizes):                   # the maps of each size as one stack, checked at once
+            m = int(sizes[group[0]])
             chosen = np.stack([selected[j] for j in group])
             end_pose = x[chosen[:, :3]]
             end_pose[:, 2] = [math.remainder(phi, 2 * math.pi) for phi in end_pose[:, 2].tolist()]
@@ -520,12 +518,14 @@ def _covariance_blocks(problem: ExactProblem, data: np.ndarray, selected: list[n
 def _check(costs: np.ndarray, dofs: np.ndarray, name: str) -> None:
     """Warn when chi^2, in all and map by map, is outside the 99.9% interval of a chi-square
     with its degrees of freedom."""
-    from scipy.special import chdtr, chdtrc, chdtri  # (scipy.stats costs ~1 s to import)
+    from scipy.special import chdtr, chdtrc  # (scipy.stats costs ~1 s to import)
+
+    from .evaluate import CHI2_LEVEL, chi2_interval
 
     level = (1 - CHI2_LEVEL) / 2
     total, dof = float(costs.sum()), int(dofs.sum())
     if dof > 0:
-        low, high = chdtri(dof, 1 - level), chdtri(dof, level)
+        low, high = chi2_interval(dof, CHI2_LEVEL)
         if not low <= total <= high:
             look = "pessimistic (too large)" if total < low else "optimistic (too small), or there are outliers"
             log.warning("%s: chi^2 = %.6g is outside the %g%% interval [%.6g, %.6g] of a chi-square with %d degrees "

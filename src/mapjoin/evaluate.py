@@ -40,6 +40,7 @@ __all__ = ["ALIGNMENTS", "Alignment", "Difference", "Evaluation", "chi2_interval
 Alignment = Literal["none", "rigid"]
 ALIGNMENTS: tuple[str, ...] = ("none", "rigid")
 CONFIDENCE = 0.95  # two-sided: the bounds are the 2.5% and 97.5% quantiles
+CHI2_LEVEL = 0.999  # the interval a solve's chi^2 is checked against (refine, build): 0.05% in each tail
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .formats import STAB_NOISE, mat_variables
+from .formats import STAB_NOISE, _not_utf8, _read_file, mat_variables
 
 __all__ = ["RAW_FORMATS", "RawData", "read_raw"]
 
@@ -97,11 +97,11 @@ def read_raw(path: str, format: str | None = None) -> RawData:
     if format == "vicpark" or (format is None and extension == ".mat"):
         if path == "-":
             raise InputError("a .mat file cannot be read from stdin; give its path", name)
-        return _read_vicpark(_read_bytes(path), name)
+        return _read_vicpark(_read_file(path, name, True), name)
     try:
-        text = sys.stdin.read() if path == "-" else _read_bytes(path).decode("utf-8-sig")
-    except UnicodeDecodeError as error:
-        raise InputError(f"expected UTF-8 text ({error.reason} at byte {error.start})", name) from None
+        text = sys.stdin.read() if path == "-" else _read_file(path, name, False)
+    except UnicodeDecodeError as error:  # stdin's (a file's is reported by _read_file)
+        raise _not_utf8(error, name) from None
     fields = [line.split() for line in text.splitlines()]
     if format is None:
         format = "g2o" if extension == ".g2o" else _sniff(fields, name)
@@ -350,14 +350,6 @@ def _first_repeat(values: np.ndarray) -> int | None:
 
 # ---------------------------------------------------------------------------------------
 # Text
-
-
-def _read_bytes(path: str) -> bytes:
-    try:
-        with open(path, "rb") as file:
-            return file.read()
-    except OSError as error:
-        raise InputError(f"cannot read ({error.strerror or error})", path) from None
 
 
 def _sniff(fields: list[list[str]], name: str) -> str:

@@ -22,7 +22,6 @@ def _default_tolerance() -> float:
 
 
 #: two-sided probability of the chi-square interval outside which the final chi^2 is flagged
-CHI2_LEVEL = 0.999
 
 
 @main.command()
@@ -102,7 +101,7 @@ def _check_chi2(cost: float, residuals: int, unknowns: int) -> None:
     dof = residuals - unknowns
     if dof <= 0:
         return
-    from ..evaluate import chi2_interval
+    from ..evaluate import CHI2_LEVEL, chi2_interval
 
     low, high = chi2_interval(dof, CHI2_LEVEL)
     if low <= cost <= high:
