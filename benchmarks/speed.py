@@ -7,7 +7,8 @@ sequential join, the tree join with 1 and 2 processes, the exact refinement (sol
 marginal covariances), and each fast join's distance from the exact one (the paper's
 metric: mean absolute x, y, phi). Whole commands (a fresh interpreter per run, as a
 user types them; medians of ``--repeat``): ``mapjoin join`` with each strategy and
-``mapjoin refine``, with the peak resident memory of the process (its VmHWM, Linux).
+``mapjoin refine``, with the peak resident memory of the process (its VmHWM, Linux), beside
+the time a fresh interpreter takes only to import numpy, and numpy with scipy.sparse.linalg.
 Results are printed and written between the ``speed`` markers of benchmarks/README.md.
 """
 
@@ -53,7 +54,7 @@ finally:
 def whole_command(arguments: list[str], repeat: int) -> tuple[float, float]:
     """Median wall time (s) and largest peak RSS (MB) of ``mapjoin ARGUMENTS`` in a fresh interpreter."""
     times, peaks = [], []
-    command = [sys.executable, "-c", _RUN_AND_REPORT_PEAK, "-q", *arguments]
+    command = [sys.executable, "-c", _RUN_AND_REPORT_PEAK, *arguments]
     for _ in range(repeat):
         start = time.perf_counter()
         process = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -62,6 +63,20 @@ def whole_command(arguments: list[str], repeat: int) -> tuple[float, float]:
             raise SystemExit(f"mapjoin {' '.join(arguments)} exited with {process.returncode}: {process.stderr}")
         peaks.append(int(process.stderr.split("VmHWM")[-1].split()[0]) / 1024)
     return statistics.median(times), max(peaks)
+
+
+def import_floor(repeat: int) -> tuple[float, float]:
+    """Median wall time (s) of a fresh interpreter importing numpy, and numpy with scipy.sparse.linalg
+    (what refine needs): the part of every whole command that mapjoin does not control."""
+    floors = []
+    for modules in ("numpy", "numpy, scipy.sparse.linalg"):
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter()
+            subprocess.run([sys.executable, "-c", f"import {modules}"], check=True)
+            times.append(time.perf_counter() - start)
+        floors.append(statistics.median(times))
+    return floors[0], floors[1]
 
 
 def main() -> None:
@@ -96,10 +111,14 @@ def main() -> None:
                 cells.append(f"{seconds:.2f} s, {peak:.0f} MB")
         commands.append(f"| {name} | " + " | ".join(cells) + " |")
         print(inprocess[-1], commands[-1], sep="\n", file=sys.stderr)
+    numpy_floor, scipy_floor = import_floor(args.repeat)
     text = "\n".join([f"In-process, maps loaded, medians of {args.repeat} (2-core shared machine, "
                       f"{os.cpu_count()} CPUs visible):", "", *inprocess, "",
-                      f"Whole commands (`python -m mapjoin -q ... DATASET -o out.csv`, a fresh `{sys.executable}` "
-                      f"per run, {compiled}, reading included), median wall time of {args.repeat} and peak RSS:", "", *commands])
+                      f"Whole commands as typed (`python -m mapjoin ... DATASET -o out.csv`: summary, warnings "
+                      f"and refine's chi^2 check included), a fresh `{sys.executable}` per run, {compiled}, "
+                      f"reading included; median wall time of {args.repeat} and peak RSS. In the same run, a "
+                      f"fresh interpreter that only imports numpy takes {numpy_floor:.2f} s, and numpy with "
+                      f"scipy.sparse.linalg (refine's imports) {scipy_floor:.2f} s:", "", *commands])
     print(text)
     write_section("speed", text)
 

@@ -8,6 +8,8 @@ import dataclasses
 import io
 import itertools
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -537,6 +539,19 @@ def test_cli_warns_when_chi2_is_far_from_its_degrees_of_freedom(data_dir):
     assert "7180 degrees of freedom (8378 residuals - 1198 unknowns" in result.stderr and "pessimistic" in result.stderr
     quiet = run("refine", str(data_dir / "535_data_5_local_maps"))
     assert "warning" not in quiet.stderr   # chi^2 7.83 with 85 - 62 = 23 degrees of freedom: plausible
+
+
+def test_join_refine_warns_as_refine_does_and_quiet_runs_skip_the_chi2_interval(data_dir, tmp_path):
+    folder = str(data_dir / "VicPark_200_local_maps")
+    result = run("join", folder, "--refine", "-o", str(tmp_path / "g.csv"))
+    assert result.exit_code == 0
+    assert "warning: final chi^2 = 3643.43 is outside the 99.9% interval [6792.23, 7580.88]" in result.stderr
+    # -q silences warnings, so the interval (and scipy.special's import) is not computed at all
+    code = ("import sys\nfrom mapjoin.cli import main\n"
+            f"main(['-q', 'refine', {folder!r}, '--no-covariances', '-o', {str(tmp_path / 'q.csv')!r}], "
+            "standalone_mode=False)\nprint('scipy.special' in sys.modules)")
+    quiet = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert quiet.stdout.split() == ["False"] and quiet.stderr == ""
 
 
 def test_cli_reports_non_convergence_refuses_to_overwrite_and_has_examples(simulated_folder, tmp_path):
