@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from mapjoin import COVARIANCE_MODES, JoinError, LocalMap
 from mapjoin.joining import STRATEGIES, certify_pair, join, join_sequential, join_tree
+from mapjoin.maps import locate
 
 
 def _rotation(phi: float) -> np.ndarray:
@@ -328,3 +329,16 @@ def test_information_variances_are_those_of_the_dense_inverse(seed, sizes, log_c
         found = 1 / np.concatenate([features[start:start + local_map.size], poses[k]])
         np.testing.assert_allclose(found / scale, expected / scale, rtol=0, atol=tolerance)
         start += local_map.size
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.integers(-50, 50), unique=True, max_size=30), st.lists(st.integers(-60, 60), max_size=30),
+       st.booleans())
+def test_locate_agrees_with_a_dictionary(keys, wanted, sorted_keys):
+    """maps.locate, the sorted lookup joining, refine, raw and simulate share, against a dict."""
+    ids = np.array(sorted(keys) if sorted_keys else keys, dtype=np.int64)
+    where = {key: i for i, key in enumerate(ids.tolist())}
+    index, found = locate(ids, np.array(wanted, dtype=np.int64), None if sorted_keys else np.argsort(ids))
+    assert found.tolist() == [w in where for w in wanted]
+    assert [i for i, f in zip(index.tolist(), found.tolist()) if f] == [where[w] for w in wanted if w in where]
+    assert all(0 <= i < max(len(ids), 1) for i in index.tolist())

@@ -35,7 +35,8 @@ from typing import Literal
 import numpy as np
 
 from .errors import JoinError
-from .maps import CovarianceMode, GlobalMap, LocalMap, Provenance, batch_spherical_variances, first_duplicate
+from .maps import (CovarianceMode, GlobalMap, LocalMap, Provenance, batch_spherical_variances, first_duplicate,
+                   locate)
 from .onestep import (
     Solver,
     as_complex,
@@ -392,8 +393,7 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
     span = int(pieces.feature_ids.max(initial=0)) + 1
     left_keys = parent[left_rows] * span + pieces.feature_ids[left_rows]  # sorted: pieces in order, ids sorted
     right_keys = parent[right_rows] * span + pieces.feature_ids[right_rows]
-    position = np.minimum(np.searchsorted(left_keys, right_keys), max(len(left_keys) - 1, 0))
-    common = left_keys[position] == right_keys if len(left_keys) else np.zeros(len(right_keys), dtype=bool)
+    position, common = locate(left_keys, right_keys)
     lc, rc = left_rows[position[common]], right_rows[common]
 
     ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1  # each piece's end row

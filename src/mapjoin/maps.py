@@ -105,6 +105,19 @@ def first_duplicate(values: np.ndarray, groups: np.ndarray | None = None) -> int
     return int(repeats.min()) if repeats.size else None
 
 
+def locate(keys: np.ndarray, wanted: np.ndarray, sorter: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Where each of ``wanted`` is in ``keys`` (ascending, or in the order ``sorter`` gives) and
+    whether it is there: ``(index, found)`` with ``keys[index] == wanted`` where ``found``, and
+    ``index`` some valid index of ``keys`` elsewhere (0 when ``keys`` is empty)."""
+    if not len(keys):
+        return np.zeros(len(wanted), dtype=np.intp), np.zeros(len(wanted), dtype=bool)
+    index = np.minimum(np.searchsorted(keys, wanted, sorter=sorter), len(keys) - 1)
+    if sorter is not None:
+        index = sorter[index]
+    return index, keys[index] == wanted
+
+
 def size_groups(sizes: np.ndarray) -> list[np.ndarray]:
     """Indices of ``sizes`` grouped by value, each group ascending: the maps of one size can be stacked."""
     if not len(sizes):

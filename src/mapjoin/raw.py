@@ -38,6 +38,7 @@ import numpy as np
 
 from .errors import InputError
 from .formats import STAB_NOISE, _not_utf8, _read_file, mat_variables
+from .maps import locate
 
 __all__ = ["RAW_FORMATS", "RawData", "read_raw"]
 
@@ -232,10 +233,8 @@ def _assemble(name: str, unit: str, *, odometry_ids: np.ndarray, odometry: np.nd
     if repeated is not None:
         raise where.error(odometry_lines[repeated - 1], f"odometry to pose {pose_ids[repeated]}, which is already "
                                                         "a pose of the chain; each step must reach a new pose")
-    order = np.argsort(pose_ids)
-    at = np.minimum(np.searchsorted(pose_ids, observer_ids, sorter=order), len(pose_ids) - 1)
-    observers = order[at]
-    missing = np.flatnonzero(pose_ids[observers] != observer_ids)
+    observers, found = locate(pose_ids, observer_ids, np.argsort(pose_ids))
+    missing = np.flatnonzero(~found)
     if missing.size:
         i = int(missing[0])
         raise where.error(observation_lines[i], f"observation of feature {feature_ids[i]} from pose "

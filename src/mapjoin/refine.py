@@ -62,7 +62,7 @@ from scipy.sparse.linalg import splu
 
 from .errors import JoinError
 from .joining import join_sequential
-from .maps import GlobalMap, LocalMap, Provenance
+from .maps import GlobalMap, LocalMap, Provenance, locate
 from .onestep import wrap
 
 __all__ = ["TOLERANCE", "Blocks", "ExactProblem", "Minimum", "RefineResult", "exact_cost", "minimise", "refine"]
@@ -214,21 +214,20 @@ class ExactProblem:
         if twice.size:
             raise JoinError(f"pose {ordered[twice[0]]} is the end pose of more than one map")
         starts = np.asarray(blocks.start_ids, dtype=np.int64)
-        at = np.minimum(np.searchsorted(ordered, starts), N - 1)
-        found = ordered[at] == starts
+        base, found = locate(self.pose_ids, starts, order)    # the map ending where each map starts
         at_origin = np.isin(starts, origins)
         clash = np.flatnonzero(at_origin & found)
         if clash.size:
             k = int(clash[0])
             raise JoinError(f"pose {starts[k]}, the start of {blocks.names(k)} and a fixed origin, "
-                            f"is also the end pose of {blocks.names(int(order[at[k]]))}")
+                            f"is also the end pose of {blocks.names(int(base[k]))}")
         loose = np.flatnonzero(~at_origin & ~found)
         if loose.size:
             k = int(loose[0])
             where = f"pose {origins[0]}" if len(origins) == 1 else f"poses {', '.join(map(str, origins[:5]))}"
             raise JoinError(f"{blocks.names(k)} starts at pose {starts[k]}, which is neither the origin "
                             f"({where}) nor the end pose of any map")
-        base = np.where(at_origin, -1, order[at])
+        base = np.where(at_origin, -1, base)
         sizes = np.asarray(blocks.sizes, dtype=np.int64)
         self.feature_ids, compact = np.unique(blocks.feature_ids, return_inverse=True)
         compact = compact.ravel()
@@ -1069,15 +1068,13 @@ def _covariance(local_map: LocalMap) -> np.ndarray:
 
 
 def _lookup(ids: np.ndarray, values: np.ndarray, wanted: np.ndarray, what: str, source: str) -> np.ndarray:
-    order = np.argsort(ids, kind="stable")
-    where = np.searchsorted(ids[order], wanted)
-    where = np.minimum(where, max(len(ids) - 1, 0))
-    found = len(ids) > 0 and True
-    missing = ~(ids[order][where] == wanted) if found else np.ones(len(wanted), bool)
+    """The rows of ``values`` (one per id of the initial map ``source``) for the ids ``wanted``."""
+    index, found = locate(ids, wanted, np.argsort(ids, kind="stable"))
+    missing = ~found
     if missing.any():
         raise JoinError(f"the initial map {source} has no {what} {int(wanted[missing][0])} "
                         f"({int(missing.sum())} {what}s missing)")
-    return np.asarray(values, dtype=float)[order[where]]
+    return np.asarray(values, dtype=float)[index]
 
 
 def exact_cost(maps: Sequence[LocalMap], global_map: GlobalMap) -> float:

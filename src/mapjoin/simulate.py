@@ -64,7 +64,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .maps import GroundTruth, LocalMap
+from .maps import GroundTruth, LocalMap, locate
 
 __all__ = ["Simulation", "simulate"]
 
@@ -333,8 +333,7 @@ def _top_up(rng: np.random.Generator, visible: _Visibility, required: np.ndarray
     width = int(visible.feature.max(initial=0)) + 1
     key = visible.phase * width + visible.feature
     probe = required[owner, 1] * width + feature
-    index = np.minimum(np.searchsorted(key, probe), max(len(key) - 1, 0))
-    both = key[index] == probe if len(key) else np.zeros(0, dtype=bool)
+    both = locate(key, probe)[1]
     shared = np.bincount(owner[both], minlength=len(required))
     deficit = np.maximum(0, min_shared - shared)
     if not deficit.any():
