@@ -50,7 +50,8 @@ import scipy.linalg
 
 from .errors import InputError
 from .joining import join_sequential
-from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, marginal_variances, size_groups
+from .maps import (GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, marginal_variances, size_groups,
+                   unstack)
 from .raw import RawData
 from .refine import TOLERANCE, Blocks, ExactProblem, Minimum, RefineResult, minimise
 
@@ -391,8 +392,7 @@ class _Solved:
         x = self.minimum.x
         names = [f"{label} poses {raw.pose_ids[a]}-{raw.pose_ids[b]}" for a, b in itertools.pairwise(layout.bounds)]
         sizes = np.array([(len(chosen) - 3) // 2 for chosen in selected])
-        maps: list[LocalMap] = [None] * len(selected)      # type: ignore[list-item]
-        invalid = []
+        stacks = []
         for group in size_groups(sizes):                   # the maps of each size as one stack, checked at once
             m = int(sizes[group[0]])
             chosen = np.stack([selected[j] for j in group])
@@ -401,17 +401,14 @@ class _Solved:
             ids = layout.distinct[problem.feature_ids[(chosen[:, 3::2] - 3 * problem.n_maps) // 2] % layout.n_distinct]
             covariance = np.stack([covariances[j] for j in group])
             feature_variances, pose_variances = marginal_variances(covariance)     # as LocalMap.from_covariance
-            stack = StackedMaps([names[j] for j in group], end_pose, ids.astype(np.int64),
-                                x[chosen[:, 3:]].reshape(len(group), m, 2), feature_variances, pose_variances, covariance)
-            found = stack.first_invalid()
-            if found is not None:
-                invalid.append((int(group[found[0]]), found[1]))
-            for j, local_map in zip(group.tolist(), stack.local_maps((first + group).tolist(),
-                                                                     (first + group + 1).tolist())):
-                maps[j] = local_map
+            stacks.append((group, StackedMaps([names[j] for j in group], end_pose, ids.astype(np.int64),
+                                              x[chosen[:, 3:]].reshape(len(group), m, 2), feature_variances,
+                                              pose_variances, covariance)))
+        invalid = first_invalid_map(stacks)
         if invalid:
-            raise min(invalid, key=lambda item: item[0])[1]      # the first map's, as constructing them in turn
-        return maps
+            raise invalid[1]      # the first map's, as constructing them in turn
+        places = first + np.arange(len(selected))
+        return unstack(stacks, places.tolist(), (places + 1).tolist())
 
 
 def _solve(raw: RawData, bounds: np.ndarray, piece_steps: int, max_iterations: int, tolerance: float,

@@ -145,7 +145,7 @@ import numpy as np
 
 from .errors import InputError
 from .maps import (GlobalMap, GroundTruth, LocalMap, Provenance, StackedMaps, asymmetry, first_duplicate,
-                   first_flagged, marginal_variances, size_groups)
+                   first_flagged, first_invalid_map, marginal_variances, size_groups, unstack)
 
 if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written; pathlib only names a path type here
     from pathlib import Path
@@ -1161,24 +1161,37 @@ def _read_local_csv(text: str, source: str) -> list[LocalMap]:
         raise table.error(int(poses[wrong[0]]), "id", f"expected the end_id {ids[poses[wrong[0]], 1]} on the pose "
                           f"row, got {pose_ids[wrong[0]]}")
 
-    pose_of = np.empty(len(first), dtype=np.int64)
-    pose_of[group[poses]] = np.arange(len(poses))
-    by_map = np.argsort(group[features], kind="stable")
-    feature_slices = np.split(by_map, np.cumsum(np.bincount(group[features], minlength=len(first)))[:-1])
-    maps = []
-    for number, map_index in enumerate(np.argsort(first), 1):
-        pose, rows = pose_of[map_index], feature_slices[map_index]
-        row = poses[pose]
-        try:
-            maps.append(LocalMap(_map_name(source, names[row], number if len(first) > 1 else None),
-                                 int(ids[row, 0]), int(ids[row, 1]),
-                                 [*xy[row], orientation[pose]], feature_ids[rows], xy[features[rows]],
-                                 var_xy[features[rows]], [var_xy[row], var_phi[pose]]))
-        except InputError as error:
-            where = f"line {table.lines[first[map_index]]}, map {reprlib.repr(names[row])}"
-            field = f", field {error.where}" if error.where else ""
-            raise InputError(error.detail, source, where + field) from None
-    return maps
+    # the maps in file order, stacked by size and checked at once, as LocalMap(...) checks one
+    in_order = np.argsort(first)                      # place -> the map's group
+    pose = np.empty(len(first), dtype=np.int64)       # group -> its pose row among ``poses``
+    pose[group[poses]] = np.arange(len(poses))
+    pose = pose[in_order]
+    pose_rows = poses[pose]
+    sizes = np.bincount(group[features], minlength=len(first))
+    by_map = np.argsort(group[features], kind="stable")  # the feature rows, map after map (groups' order)
+    offsets = (np.cumsum(sizes) - sizes)[in_order]
+    sizes = sizes[in_order]
+    labels = [_map_name(source, label, number if len(first) > 1 else None)
+              for number, label in enumerate(names[pose_rows].tolist(), 1)]
+    start_ids, end_ids = ids[pose_rows, 0].tolist(), ids[pose_rows, 1].tolist()
+    stacks = []
+    for places in size_groups(sizes):
+        rows = by_map[offsets[places, np.newaxis] + np.arange(sizes[places[0]])]   # maps x features
+        end_pose = np.column_stack([xy[pose_rows[places]], orientation[pose[places]]])
+        pose_variances = np.column_stack([var_xy[pose_rows[places]], var_phi[pose[places]]])
+        stacks.append((places, StackedMaps([labels[i] for i in places], end_pose, feature_ids[rows],
+                                           xy[features[rows]], var_xy[features[rows]], pose_variances, None)))
+    unmoved = np.flatnonzero(ids[pose_rows, 0] == ids[pose_rows, 1])   # LocalMap's first check
+    invalid = first_invalid_map(stacks)
+    if unmoved.size and (invalid is None or unmoved[0] <= invalid[0]):
+        place = int(unmoved[0])
+        invalid = place, InputError(f"end pose id equals start pose id ({end_ids[place]})", labels[place], "end_id")
+    if invalid is not None:
+        place, error = invalid
+        field = f", field {error.where}" if error.where else ""
+        raise InputError(error.detail, source, f"line {table.lines[first[in_order[place]]]}, map "
+                                               f"{reprlib.repr(names[pose_rows[place]])}{field}")
+    return unstack(stacks, start_ids, end_ids)
 
 
 def _dump_local_csv(maps: Sequence[LocalMap]) -> str:
@@ -1266,11 +1279,10 @@ def _mat_local_maps(files: Sequence[bytes], sources: Sequence[str]) -> list[Loca
         covariances[still[:, np.newaxis], np.arange(3), np.arange(3)] += STAB_NOISE
         stabilised += zip(group[still].tolist(), pose_variances[still])
         group_values = values[rows]
-        stacks.append((group.tolist(), StackedMaps(
+        stacks.append((group, StackedMaps(
             [sources[i] for i in group.tolist()], group_values[:, :3], ids[rows[:, 3::2]].astype(np.int64),
             group_values[:, 3:].reshape(len(group), m, 2), *marginal_variances(covariances), covariances)))
-    invalid = min([(group[found[0]], found[1]) for group, stack in stacks if (found := stack.first_invalid())],
-                  key=lambda failure: failure[0], default=None)
+    invalid = first_invalid_map(stacks)
     last = invalid[0] if invalid else failed - 1  # the last map that one-by-one reading gets to
     for i, pose_variances in sorted(stabilised, key=lambda item: item[0]):
         if i <= last:
@@ -1281,11 +1293,7 @@ def _mat_local_maps(files: Sequence[bytes], sources: Sequence[str]) -> list[Loca
         raise invalid[1]
     if error is not None:
         raise error if isinstance(error, InputError) else error(failed)
-    maps: list[LocalMap] = [None] * failed  # type: ignore[list-item]  # every entry set below
-    for group, stack in stacks:
-        for i, local_map in zip(group, stack.local_maps([numbers[i] - 1 for i in group], [numbers[i] for i in group])):
-            maps[i] = local_map
-    return maps
+    return unstack(stacks, [k - 1 for k in numbers], numbers)
 
 
 def _mat_map_number(source: str) -> int:

@@ -294,6 +294,26 @@ class StackedMaps(NamedTuple):
 
 
 _LOCAL_MAP_FIELDS = ("name", "start_id", "end_id", *StackedMaps._fields[1:])
+Stacks = Sequence[tuple[Sequence[int], StackedMaps]]  # (the places of a stack's maps in a list of maps, the stack)
+
+
+def first_invalid_map(stacks: Stacks) -> tuple[int, InputError] | None:
+    """The place of the first invalid map of ``stacks`` and the error ``LocalMap(...)`` raises for it
+    (the error constructing the maps in turn raises first), or None."""
+    return min([(int(places[found[0]]), found[1]) for places, stack in stacks if (found := stack.first_invalid())],
+               key=lambda failure: failure[0], default=None)
+
+
+def unstack(stacks: Stacks, start_ids: Sequence[int], end_ids: Sequence[int]) -> list[LocalMap]:
+    """The maps of ``stacks``, checked (:func:`first_invalid_map` found none), each at its place;
+    the map at place i runs from pose ``start_ids[i]`` to ``end_ids[i]``."""
+    maps: list[LocalMap] = [None] * sum(len(places) for places, _ in stacks)  # type: ignore[list-item]
+    for places, stack in stacks:
+        places = list(map(int, places))
+        for i, local_map in zip(places, stack.local_maps([start_ids[i] for i in places],
+                                                         [end_ids[i] for i in places])):
+            maps[i] = local_map
+    return maps
 
 
 def asymmetry(covariance: np.ndarray) -> np.ndarray:
