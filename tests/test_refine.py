@@ -582,3 +582,17 @@ def test_cli_tolerance_default_is_the_library_default():
     from mapjoin.refine import TOLERANCE
 
     assert f"[default: ({TOLERANCE:g}); x>=0.0]" in " ".join(run("refine", "--help").output.split())
+
+
+def test_tolerance_zero_means_to_rounding_and_converges(simulated_folder, data_dir, tmp_path):
+    """A zero tolerance stops where chi^2's rounding hides any further decrease, reported as
+    converged, at the same optimum as the default tolerance (it used to damp on to the damping
+    limit and warn that the solve had not converged)."""
+    result = run("refine", simulated_folder, "--tolerance", "0", "-o", str(tmp_path / "g.csv"))
+    assert result.exit_code == 0 and "did not converge" not in result.stderr, result.stderr
+    for maps in (formats.read_maps([simulated_folder]), formats.read_maps([str(data_dir / "DLR_200_local_maps")])):
+        default, zero = refine(maps), refine(maps, tolerance=0)
+        assert zero.converged, zero.reason
+        assert zero.cost <= default.cost * (1 + 1e-12)
+        assert np.max(np.abs(zero.global_map.features - default.global_map.features)) < 1e-8
+        assert np.max(np.abs(zero.global_map.poses - default.global_map.poses)) < 1e-8

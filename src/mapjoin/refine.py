@@ -1119,7 +1119,9 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
     and it would make the stopping point random. Stops when an accepted step lowers chi^2
     by at most ``tolerance`` relative, or a step is at most ``tolerance * (1 + max |x|)`` in
     every unknown, or one predicted to lower chi^2 by at most ``tolerance`` relative raises
-    it by more (these two not taken), or after ``max_iterations`` accepted steps.
+    it by more (these two not taken), or after ``max_iterations`` accepted steps. The relative
+    tolerances on chi^2 are at least its rounding, ``sqrt(residuals)`` machine epsilons, so
+    that ``tolerance=0`` means "to rounding" rather than a damped search for what rounding hides.
     ``progress(iteration, cost)`` is called with the initial chi^2 (iteration 0) and after
     each accepted step.
     """
@@ -1127,6 +1129,9 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
         raise ValueError(f"max_iterations must be >= 0, got {max_iterations}")
     if not tolerance >= 0:
         raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+    # chi^2's own rounding (sqrt(residuals) machine epsilons, relative): comparing costs or predicted
+    # decreases below it is noise, so a smaller tolerance (e.g. 0) stops there instead of damping on
+    relative = max(tolerance, math.sqrt(problem.n_residuals) * np.finfo(float).eps)
     data, gradient, cost = problem.linearise(x)           # the first step is Gauss-Newton's
     second = None
     costs = [cost]
@@ -1163,7 +1168,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
         trial_cost = problem.cost(trial)
         # the model's decrease, -g.step + damping step.D.step (the gain ratio's denominator)
         predicted = -(step @ gradient) + damping * (step * step) @ problem.diagonal(data)
-        negligible = 0 <= predicted <= tolerance * cost
+        negligible = 0 <= predicted <= relative * cost
         if trial_cost >= cost and not negligible and not newton and damping == 0.0:
             # Gauss-Newton's step overshoots: shorten it (its direction is one of descent) before damping,
             # which, scaled by diag(J^T J), would cut the directions J^T J hardly constrains by orders of
@@ -1176,7 +1181,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
                     trial, trial_cost = shorter, shorter_cost
                     predicted *= 0.5 ** halving * (2 - 0.5 ** halving)    # the model's decrease along it
                     break
-        if negligible and trial_cost > cost * (1.0 + tolerance):
+        if negligible and trial_cost > cost * (1.0 + relative):
             # at the optimum to within rounding, and the model no longer holds: damped retries would only
             # shrink the step
             factor_is_final = damping == 0.0 and not newton
@@ -1194,7 +1199,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             growth = 2.0
             # near the optimum (a good undamped step), Newton's quadratic convergence
             newton = newton_allowed and damping == 0.0 and ratio > 0.5
-            done = previous - trial_cost <= tolerance * previous
+            done = previous - trial_cost <= relative * previous
             if newton and not done:     # the second-order term only where a Newton step follows
                 data, gradient, cost, second = problem.linearise(x, curvature=True)
             else:

@@ -35,7 +35,7 @@ def _default_tolerance() -> float:
               help="At most this many (accepted) Gauss-Newton/Newton steps.")
 @click.option("--tolerance", type=click.FloatRange(min=0.0), default=lambda: _default_tolerance(), show_default="1e-12",
               help="Stop when a step changes chi^2 by at most this (relative) or moves no unknown by more "
-                   "than this times (1 + largest |unknown|).")
+                   "than this times (1 + largest |unknown|); 0 runs to chi^2's rounding.")
 @click.option("--start", "strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
               help="The fast join to start from. On long runs with loop closures the sequential join drifts "
                    "(hundreds of metres over two laps of 3000 simulated maps) and the solve can end in a worse "
