@@ -15,6 +15,7 @@ import pytest
 from cli_runner import run
 from click.testing import CliRunner
 
+from mapjoin import formats
 from mapjoin.cli import main
 
 
@@ -196,3 +197,21 @@ def test_check_minima_batch_agrees_with_brute_force_on_a_large_random_grid(tmp_p
     np.testing.assert_array_equal(counted, expected)
     assert result.exit_code == 3  # some rows have two minima
     np.testing.assert_array_equal([float(r["a"]) for r in table], a)
+
+
+def test_simulate_writes_one_stream_to_a_map_file_and_a_folder_otherwise(tmp_path):
+    """``-o maps.csv`` (or .yaml) is one stream file in that format, as ``-o -`` is on stdout; any
+    other name is a folder of localmap_<k> files with the truth beside them."""
+    stream = tmp_path / "maps.csv"
+    result = run("simulate", "-o", str(stream), "--maps", "4", "--seed", "1")
+    assert result.exit_code == 0 and stream.is_file()
+    assert stream.read_text().startswith("map,start_id,end_id,kind")
+    piped = run("simulate", "-o", "-", "--maps", "4", "--seed", "1", "--format", "csv")
+    assert stream.read_text() == piped.stdout
+    result = run("-q", "simulate", "-o", str(tmp_path / "maps.yaml"), "--maps", "3", "--truth", str(tmp_path / "t.csv"))
+    assert result.exit_code == 0 and result.stderr == ""
+    assert [m.end_id for m in formats.read_maps([str(tmp_path / "maps.yaml")])] == [1, 2, 3]
+    assert formats.read_truth(str(tmp_path / "t.csv")).pose_ids.tolist() == [0, 1, 2, 3]
+    folder = tmp_path / "run"
+    assert run("-q", "simulate", "-o", str(folder), "--maps", "2").exit_code == 0
+    assert sorted(p.name for p in folder.iterdir()) == ["localmap_1.yaml", "localmap_2.yaml", "truth.yaml"]

@@ -8,20 +8,23 @@ import click
 
 from .. import formats
 from ..simulate import simulate as run_simulation
-from . import main
+from . import common, main
 from .common import say
+
+_STREAM_EXTENSIONS = (".csv", ".yaml", ".yml")
 
 
 @main.command()
-@click.option("-o", "--output", required=True, metavar="DIR|-",
-              help="Directory for localmap_<k> files and truth; - writes one stream of maps to stdout.")
+@click.option("-o", "--output", required=True, metavar="DIR|FILE|-",
+              help="Directory for localmap_<k> files and truth; a .csv/.yaml file, or - for stdout, gets "
+                   "one stream of maps (no truth unless --truth).")
 @click.option("--maps", "count", type=click.IntRange(min=1), default=20, show_default=True,
               help="Number of local maps.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same output).")
 @click.option("--steps-per-map", type=click.IntRange(min=1), default=10, show_default=True,
               help="Robot steps in each local map.")
-@click.option("--format", "output_format", type=click.Choice(["yaml", "csv"]), default="yaml",
-              show_default=True, help="Format of the local maps.")
+@click.option("--format", "output_format", type=click.Choice(["yaml", "csv"]),
+              help="Format of the local maps (default: a stream file's extension, else yaml).")
 @click.option("--truth", "truth_path", metavar="FILE",
               help="Where to write the ground truth (default: truth.<format> in the directory).")
 @click.pass_context
@@ -36,9 +39,13 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
     Examples:
       mapjoin simulate -o sim/ --maps 50 --seed 7
       mapjoin simulate -o - --maps 20 | mapjoin join - > global.csv
+      mapjoin simulate -o maps.csv --maps 1000 --truth truth.csv
     """
+    stream = output == "-" or (os.path.splitext(output)[1].lower() in _STREAM_EXTENSIONS
+                               and not os.path.isdir(output))
+    output_format = output_format or (common.output_format(output, None, "yaml") if stream else "yaml")
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
-    if output == "-":
+    if stream:
         formats.write_maps(simulation.maps, output, output_format)
     else:
         os.makedirs(output, exist_ok=True)
@@ -46,5 +53,5 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     if truth_path:
         formats.write_truth(simulation.truth, truth_path)
-    say(ctx, f"simulated {count} local maps (seed {seed})"
+    say(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
              + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))
