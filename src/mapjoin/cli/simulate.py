@@ -45,12 +45,10 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
                                and not os.path.isdir(output))
     output_format = output_format or (common.output_format(output, None, "yaml") if stream else "yaml")
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
-    if stream:
-        formats.write_maps(simulation.maps, output, output_format)
-    else:
+    if not stream:
         os.makedirs(output, exist_ok=True)
-        formats.write_maps(simulation.maps, output, output_format)
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
+    formats.write_maps(simulation.maps, output, output_format)
     if truth_path:
         formats.write_truth(simulation.truth, truth_path)
     say(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
