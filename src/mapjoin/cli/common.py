@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import sys
 from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
 
 import click
 
@@ -12,6 +14,11 @@ from .. import formats
 from ..maps import COVARIANCE_MODES
 from ..joining import DEFAULT_COVARIANCE
 from ..onestep import SOLVERS
+
+if TYPE_CHECKING:
+    from ..refine import RefineResult
+
+log = logging.getLogger("mapjoin")
 
 inputs_argument = click.argument("inputs", nargs=-1, required=True, metavar="INPUTS...")
 input_format_option = click.option(
@@ -61,3 +68,25 @@ def output_format(path: str, explicit: str | None, default: str) -> str:
     if explicit:
         return explicit
     return default if path == "-" else formats.detect_format(path)
+
+
+def warn_if_doubtful(result: RefineResult) -> None:
+    """Warn when the exact join did not converge, or when its chi^2 is outside the 99.9% interval
+    of its chi-square distribution (skipped under -q, which silences warnings: the interval
+    costs scipy.special's import, ~0.08 s)."""
+    if not result.converged:
+        log.warning("the exact join did not converge (%s after %d iterations): the map written is the "
+                    "last iterate, chi^2 = %.10g", result.reason, result.iterations, result.cost)
+    cost, dof = result.cost, result.residuals - result.unknowns
+    if dof <= 0 or not log.isEnabledFor(logging.WARNING):
+        return
+    from ..evaluate import CHI2_LEVEL, chi2_interval
+
+    low, high = chi2_interval(dof, CHI2_LEVEL)
+    if low <= cost <= high:
+        return
+    which = ("pessimistic (too large)" if cost < low
+             else "optimistic (too small), or the maps disagree (outliers, wrong data association)")
+    log.warning("final chi^2 = %.6g is outside the %g%% interval [%.6g, %.6g] of a chi-square with %d degrees "
+                "of freedom (%d residuals - %d unknowns; chi^2/dof = %.3f): the local maps' covariances look %s",
+                cost, 100 * CHI2_LEVEL, low, high, dof, result.residuals, result.unknowns, cost / dof, which)

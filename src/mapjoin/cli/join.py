@@ -62,11 +62,10 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     global_map = result.global_map
     if exact:
         from ..refine import refine  # scipy.sparse: imported only when refining
-        from .refine import warn_if_doubtful
 
         refined = refine(maps, global_map)
         global_map = refined.global_map
-        warn_if_doubtful(refined)
+        common.warn_if_doubtful(refined)
         say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
                  f"{refined.iterations} iterations ({refined.reason})")
     elapsed = time.perf_counter() - start

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import logging
 import time
-from typing import TYPE_CHECKING
 
 import click
 
@@ -12,11 +10,6 @@ from .. import formats
 from ..joining import STRATEGIES, join
 from . import common, main
 from .common import format_option, input_format_option, inputs_argument, output_option, progress_bar, say
-
-if TYPE_CHECKING:
-    from ..refine import RefineResult
-
-log = logging.getLogger("mapjoin")
 
 
 def _default_tolerance() -> float:
@@ -85,7 +78,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
                          covariances=not no_covariances, progress=report if ctx.obj["verbose"] else None)
     elapsed = time.perf_counter() - start
     formats.write_global_map(result.global_map, output, common.output_format(output, output_format, "csv"))
-    warn_if_doubtful(result)
+    common.warn_if_doubtful(result)
     g = result.global_map
     two = sum(r.minima == 2 for r in initial.report)
     say(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
@@ -94,25 +87,3 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
              f"{joined:.3f} s, solve {result.seconds:.3f} s, covariances {result.covariance_seconds:.3f} s) -> "
              f"{'stdout' if output == '-' else output}")
 
-
-def warn_if_doubtful(result: RefineResult) -> None:
-    """Warn when the exact join did not converge, or when its chi^2 is outside the 99.9% interval
-    of its chi-square distribution (skipped under -q, which silences warnings: the interval
-    costs scipy.special's import, ~0.08 s)."""
-    if not result.converged:
-        log.warning("the exact join did not converge (%s after %d iterations): the map written is the "
-                    "last iterate, chi^2 = %.10g", result.reason, result.iterations, result.cost)
-    cost, residuals, unknowns = result.cost, result.residuals, result.unknowns
-    dof = residuals - unknowns
-    if dof <= 0 or not log.isEnabledFor(logging.WARNING):
-        return
-    from ..evaluate import CHI2_LEVEL, chi2_interval
-
-    low, high = chi2_interval(dof, CHI2_LEVEL)
-    if low <= cost <= high:
-        return
-    which = ("pessimistic (too large)" if cost < low
-             else "optimistic (too small), or the maps disagree (outliers, wrong data association)")
-    log.warning("final chi^2 = %.6g is outside the %g%% interval [%.6g, %.6g] of a chi-square with %d degrees "
-                "of freedom (%d residuals - %d unknowns; chi^2/dof = %.3f): the local maps' covariances look %s",
-                cost, 100 * CHI2_LEVEL, low, high, dof, residuals, unknowns, cost / dof, which)
