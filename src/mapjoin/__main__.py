@@ -1,5 +1,95 @@
-"""``python -m mapjoin`` runs the command line."""
+"""The ``mapjoin`` command and ``python -m mapjoin``: the command line inside the process's outermost guard.
 
-from .cli import main
+Everything a user can do to a running process ends in one line on stderr and a
+documented exit code, never a traceback or an "Exception ignored" at exit:
 
-main()
+- Ctrl-C at any moment, start-up included: ``mapjoin: interrupted``, exit 130 (the
+  writers clean up their temporary files on the way out);
+- stdout closed, full or failing when the data is flushed: one line, exit 1;
+- a reader that stops early (``mapjoin join ... | head``): quiet, exit 0.
+
+This module imports only the standard library before the guard is in place.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import sys
+from typing import NoReturn
+
+EXIT_INTERRUPTED = 130
+
+
+class _ClosedStdout:
+    """Stands in for ``sys.stdout`` when the process was started with file descriptor 1 closed."""
+
+    def write(self, _text: str) -> int:
+        raise OSError(errno.EBADF, "stdout is closed", "<stdout>")
+
+    def flush(self) -> None:
+        pass
+
+
+def _silence_stdout() -> None:
+    """Point file descriptor 1 at /dev/null so that the interpreter's last flush cannot fail again."""
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 1)
+        os.close(null)
+    except OSError:
+        pass
+
+
+def _flush_stdout(code: int) -> int:
+    """Flush the data written to stdout now, while an error can still be reported; the exit code."""
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:  # the reader has gone: as other Unix tools, end quietly
+        _silence_stdout()
+    except OSError as error:
+        _silence_stdout()
+        print(f"mapjoin: error: cannot write to stdout ({error.strerror or error})", file=sys.stderr)
+        return code or 1
+    return code
+
+
+def run(argv: list[str] | None = None) -> NoReturn:
+    """Run the command line with ``argv`` (default: the process's arguments) and exit."""
+    if sys.stdout is None:
+        sys.stdout = _ClosedStdout()  # type: ignore[assignment]
+    try:
+        from .cli import main
+
+        code = main.main(args=argv, prog_name="mapjoin", standalone_mode=False)
+    except KeyboardInterrupt:
+        code = _interrupted()
+    except BaseException as error:  # click's own exits and errors in non-standalone mode
+        code = _exit_code(error)
+    sys.exit(_flush_stdout(code if isinstance(code, int) else 0))
+
+
+def _interrupted() -> int:
+    _silence_stdout()
+    print("mapjoin: interrupted", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
+def _exit_code(error: BaseException) -> int:
+    """Show a click error or abort as click's standalone mode would; the exit code."""
+    import click
+
+    if isinstance(error, click.exceptions.Abort):
+        return _interrupted() if isinstance(error.__cause__, KeyboardInterrupt) else 1
+    if isinstance(error, click.ClickException):
+        error.show()
+        return error.exit_code
+    if isinstance(error, click.exceptions.Exit):
+        return error.exit_code
+    if isinstance(error, SystemExit):
+        return error.code if isinstance(error.code, int) else 1
+    raise error
+
+
+if __name__ == "__main__":
+    run()

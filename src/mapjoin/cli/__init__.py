@@ -1,7 +1,8 @@
 """The ``mapjoin`` command line: a thin layer that parses, calls the library, writes.
 
 Exit codes: 0 success; 1 bad input or a join that cannot be done (one line on stderr,
-naming the file and field); 2 a usage error; 3 ``check-minima`` found two minima.
+naming the file and field); 2 a usage error; 3 ``check-minima`` found two minima;
+130 interrupted (Ctrl-C).
 Data goes to stdout (or ``-o``); messages, warnings and progress go to stderr.
 """
 
@@ -12,6 +13,7 @@ import sys
 
 import click
 
+from ..__main__ import EXIT_INTERRUPTED
 from ..errors import MapjoinError
 
 EXIT_TWO_MINIMA = 3
@@ -35,10 +37,12 @@ class MapjoinGroup(click.Group):
             return super().invoke(ctx)
         except MapjoinError as error:
             raise click.ClickException(str(error)) from error
+        except KeyboardInterrupt:
+            click.echo("mapjoin: interrupted", err=True)
+            raise click.exceptions.Exit(EXIT_INTERRUPTED) from None
         except OSError as error:
-            if isinstance(error, BrokenPipeError):  # e.g. `mapjoin join ... | head`
-                sys.stderr.close()
-                ctx.exit(0)
+            if isinstance(error, BrokenPipeError):  # e.g. `mapjoin join ... | head`: the reader wants no more
+                raise click.exceptions.Exit(0) from None
             name = f"{error.filename}: " if error.filename else ""
             raise click.ClickException(f"{name}{error.strerror or error}") from error
 
