@@ -15,7 +15,7 @@ import pytest
 from cli_runner import run
 from click.testing import CliRunner
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.cli import main
 
 
@@ -46,12 +46,12 @@ def test_join_writes_the_documented_csv_contract(simulated_folder, tmp_path):
 
 
 def test_join_yaml_output_by_extension_equals_csv(simulated_folder, tmp_path):
-    from mapjoin import formats
+    from mapjoin import io as mapio
 
     run("join", simulated_folder, "-o", str(tmp_path / "g.yaml"))
     run("join", simulated_folder, "-o", str(tmp_path / "g.csv"))
-    a = formats.read_global_map(tmp_path / "g.yaml")
-    b = formats.read_global_map(tmp_path / "g.csv")
+    a = mapio.read_global_map(tmp_path / "g.yaml")
+    b = mapio.read_global_map(tmp_path / "g.csv")
     np.testing.assert_array_equal(a.features, b.features)
     np.testing.assert_array_equal(a.poses, b.poses)
     assert a.provenance.covariance == "information"
@@ -210,8 +210,8 @@ def test_simulate_writes_one_stream_to_a_map_file_and_a_folder_otherwise(tmp_pat
     assert stream.read_text() == piped.stdout
     result = run("-q", "simulate", "-o", str(tmp_path / "maps.yaml"), "--maps", "3", "--truth", str(tmp_path / "t.csv"))
     assert result.exit_code == 0 and result.stderr == ""
-    assert [m.end_id for m in formats.read_maps([str(tmp_path / "maps.yaml")])] == [1, 2, 3]
-    assert formats.read_truth(str(tmp_path / "t.csv")).pose_ids.tolist() == [0, 1, 2, 3]
+    assert [m.end_id for m in mapio.read_maps([str(tmp_path / "maps.yaml")])] == [1, 2, 3]
+    assert mapio.read_truth(str(tmp_path / "t.csv")).pose_ids.tolist() == [0, 1, 2, 3]
     folder = tmp_path / "run"
     assert run("-q", "simulate", "-o", str(folder), "--maps", "2").exit_code == 0
     assert sorted(p.name for p in folder.iterdir()) == ["localmap_1.yaml", "localmap_2.yaml", "truth.yaml"]

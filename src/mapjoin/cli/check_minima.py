@@ -8,7 +8,7 @@ import math
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from ..joining import certify_pair
 from ..onestep import analyse_minima, summarise_minima
 from . import EXIT_TWO_MINIMA, common, main
@@ -55,16 +55,16 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     if sum(modes) != 1:
         raise click.UsageError("give exactly one of: --a A --c-phi C; two map files; --batch FILE")
     if batch is not None:
-        table = formats.read_minima_table(batch)
+        table = mapio.read_minima_table(batch)
         rows = [summarise_minima(ra, rc, solver) for ra, rc in zip(table.a.tolist(), table.c_phi.tolist())]
-        formats.write_table(rows, output, common.output_format(output, None, "csv"))
+        mapio.write_table(rows, output, common.output_format(output, None, "csv"))
         ctx.exit(EXIT_TWO_MINIMA if any(r.minima == 2 for r in rows) else 0)
     preamble: list[str] = []
     record = None
     if maps:
         if len(maps) != 2:
             raise click.UsageError(f"expected two map files, got {len(maps)}")
-        first, second = formats.read_maps(list(maps), format=input_format)[:2]
+        first, second = mapio.read_maps(list(maps), format=input_format)[:2]
         record = certify_pair(first, second, covariance, solver)
         a, c_phi = record.a, record.c_phi
         preamble = [f"joining {second.name} onto {first.name} ({covariance} covariances): "

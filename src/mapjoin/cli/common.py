@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from ..maps import COVARIANCE_MODES
 from ..joining import DEFAULT_COVARIANCE
 from ..onestep import SOLVERS
@@ -22,7 +22,7 @@ log = logging.getLogger("mapjoin")
 
 inputs_argument = click.argument("inputs", nargs=-1, required=True, metavar="INPUTS...")
 input_format_option = click.option(
-    "--input-format", type=click.Choice(formats.MAP_FORMATS),
+    "--input-format", type=click.Choice(mapio.MAP_FORMATS),
     help="Format of the inputs when their names do not tell it (e.g. stdin).")
 covariance_option = click.option(
     "--covariance", type=click.Choice(COVARIANCE_MODES), default=DEFAULT_COVARIANCE, show_default=True,
@@ -67,7 +67,7 @@ def output_format(path: str, explicit: str | None, default: str) -> str:
     """The format to write ``path`` in: ``explicit``, else its extension, else ``default`` for stdout."""
     if explicit:
         return explicit
-    return default if path == "-" else formats.detect_format(path)
+    return default if path == "-" else mapio.detect_format(path)
 
 
 def warn_if_doubtful(result: RefineResult) -> None:

@@ -6,7 +6,7 @@ import time
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from ..joining import STRATEGIES, join as join_maps
 from . import common, main
 from .common import (covariance_option, format_option, input_format_option, inputs_argument,
@@ -50,13 +50,13 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     """
     if jobs > 1 and strategy != "tree":
         raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
-    paths = formats.resolve_inputs(inputs)
+    paths = mapio.resolve_inputs(inputs)
     outputs = [p for p in (output, report_path) if p and p != "-"]
-    formats.check_not_overwriting(paths, outputs)
+    mapio.check_not_overwriting(paths, outputs)
     if report_path == "-" and output == "-":
         raise click.UsageError("--report - and -o - would both write to stdout; give one of them a file")
     start = time.perf_counter()
-    maps = formats.read_map_paths(paths, format=input_format)
+    maps = mapio.read_map_paths(paths, format=input_format)
     with progress_bar(ctx, len(maps), "joining") as progress:
         result = join_maps(maps, covariance, solver, strategy, jobs, progress)
     global_map = result.global_map
@@ -69,10 +69,10 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
         say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
                  f"{refined.iterations} iterations ({refined.reason})")
     elapsed = time.perf_counter() - start
-    formats.write_global_map(global_map, output,
+    mapio.write_global_map(global_map, output,
                              common.output_format(output, output_format, "csv"))
     if report_path:
-        formats.write_table(result.report, report_path,
+        mapio.write_table(result.report, report_path,
                             common.output_format(report_path, None, "csv"))
     if ctx.obj["verbose"]:
         for r in result.report:

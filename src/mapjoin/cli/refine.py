@@ -6,7 +6,7 @@ import time
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from ..joining import STRATEGIES, join
 from . import common, main
 from .common import format_option, input_format_option, inputs_argument, output_option, progress_bar, say
@@ -61,10 +61,10 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     """
     from ..refine import refine as refine_maps  # scipy.sparse: imported only when refining
 
-    paths = formats.resolve_inputs(inputs)
-    formats.check_not_overwriting(paths, [output] if output != "-" else [])
+    paths = mapio.resolve_inputs(inputs)
+    mapio.check_not_overwriting(paths, [output] if output != "-" else [])
     start = time.perf_counter()
-    maps = formats.read_map_paths(paths, format=input_format)
+    maps = mapio.read_map_paths(paths, format=input_format)
 
     joined = time.perf_counter()
     with progress_bar(ctx, len(maps), "fast join") as progress:
@@ -77,7 +77,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     result = refine_maps(maps, initial.global_map, max_iterations=max_iterations, tolerance=tolerance,
                          covariances=not no_covariances, progress=report if ctx.obj["verbose"] else None)
     elapsed = time.perf_counter() - start
-    formats.write_global_map(result.global_map, output, common.output_format(output, output_format, "csv"))
+    mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, "csv"))
     common.warn_if_doubtful(result)
     g = result.global_map
     two = sum(r.minima == 2 for r in initial.report)

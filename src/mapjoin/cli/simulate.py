@@ -6,7 +6,7 @@ import os
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from ..simulate import simulate as run_simulation
 from . import common, main
 from .common import say
@@ -48,8 +48,8 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
     if not stream:
         os.makedirs(output, exist_ok=True)
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
-    formats.write_maps(simulation.maps, output, output_format)
+    mapio.write_maps(simulation.maps, output, output_format)
     if truth_path:
-        formats.write_truth(simulation.truth, truth_path)
+        mapio.write_truth(simulation.truth, truth_path)
     say(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
              + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))
