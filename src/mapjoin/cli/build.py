@@ -9,6 +9,7 @@ import click
 
 from .. import io as mapio
 from ..errors import InputError
+from ..io.registry import GLOBAL_MAP, LOCAL_MAPS
 from ..raw import RAW_FORMATS, read_raw
 from . import common, main
 from .common import format_option, say
@@ -27,8 +28,8 @@ DEFAULT_MAPS = 200
                    "step if there are fewer steps]. --maps 1 is the full batch SLAM solution.")
 @click.option("--poses-per-map", type=click.IntRange(min=1),
               help="Instead, a new map every K odometry steps (the last one takes what is left).")
-@format_option(mapio.MAP_FORMATS, "Format of the maps [default: from the -o extension, else yaml, which keeps "
-                                    "the full covariance].")
+@format_option(LOCAL_MAPS, f"Format of the maps [default: from the -o extension, else {LOCAL_MAPS.default}, which "
+                           "keeps the full covariance].")
 @click.option("--raw-format", type=click.Choice(RAW_FORMATS),
               help="Format of RAW when its name does not tell it (.mat: vicpark, .g2o: g2o; text is recognised by "
                    "its first tag).")
@@ -64,7 +65,9 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     if map_count is not None and poses_per_map is not None:
         raise click.UsageError("give --maps or --poses-per-map, not both")
     stream = output == "-" or os.path.splitext(output)[1] != ""
-    fmt = common.output_format(output, output_format, "yaml") if stream else output_format or "yaml"
+    with common.options_for(format="--format"):
+        fmt = (common.output_format(output, output_format, LOCAL_MAPS) if stream
+               else output_format or LOCAL_MAPS.default)
     start = time.perf_counter()
     raw = read_raw(raw_path, raw_format)
     reading = time.perf_counter() - start
@@ -93,7 +96,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
              f"{output if output != '-' else 'stdout'}{files}")
     if global_path:
         solution = result.batch
-        mapio.write_global_map(solution.global_map, global_path, common.output_format(global_path, None, "csv"))
+        mapio.write_global_map(solution.global_map, global_path, common.output_format(global_path, None, GLOBAL_MAP))
         say(ctx, f"batch solution: chi^2 {solution.cost:.6f} (half: {solution.cost / 2:.6f}) for "
                  f"{solution.degrees_of_freedom} degrees of freedom, {solution.iterations} iterations "
                  f"({solution.reason}), {solution.seconds + solution.covariance_seconds:.3f} s -> {global_path}")

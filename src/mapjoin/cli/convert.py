@@ -7,8 +7,9 @@ import os
 import click
 
 from .. import io as mapio
-from . import main
-from .common import input_format_option, inputs_argument, say
+from ..io.registry import LOCAL_MAPS
+from . import common, main
+from .common import format_option, input_format_option, inputs_argument, say
 
 
 @main.command()
@@ -16,8 +17,8 @@ from .common import input_format_option, inputs_argument, say
 @click.option("-o", "--output", required=True, metavar="DIR|FILE",
               help="A directory (one localmap_<k> file per map), a file (one stream; a single map for mat and "
                    "linearslam), or - for stdout.")
-@click.option("--to", "to_format", type=click.Choice(mapio.MAP_FORMATS),
-              help="Output format (default: from the -o name; YAML for a directory or stdout).")
+@format_option(LOCAL_MAPS, f"Output format (default: from the -o name; {common.default_title(LOCAL_MAPS)} for a "
+               "directory or stdout).", "--to", "to_format")
 @input_format_option
 @click.pass_context
 def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format: str | None,
@@ -39,8 +40,10 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
     paths = mapio.resolve_inputs(inputs)
     is_directory = output.endswith(os.sep) or os.path.isdir(output)
     if to_format is None:
-        to_format = "yaml" if is_directory or output == "-" else mapio.detect_format(output)
-    maps = mapio.read_map_paths(paths, format=input_format)
+        with common.options_for(format="--to"):
+            to_format = LOCAL_MAPS.default if is_directory else common.output_format(output, None, LOCAL_MAPS)
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
     if is_directory:
         planned = [os.path.join(output, mapio.map_file_name(m.end_id, to_format)) for m in maps]
     else:

@@ -12,7 +12,7 @@ import click
 
 from .. import io as mapio
 from .. import plot as figures
-from . import main
+from . import common, main
 from .common import covariance_option, input_format_option, inputs_argument, say, solver_option
 
 figure_option = click.option("-o", "--output", required=True, metavar="FILE",
@@ -120,7 +120,8 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
     figures.figure_format(output)
     paths = mapio.resolve_inputs(inputs)
     mapio.check_not_overwriting(paths, [output])
-    maps = mapio.read_map_paths(paths, format=input_format)
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
     if join_number is None:
         if len(maps) != 2:
             raise click.UsageError(f"{len(maps)} maps: choose a join with --join K (1 to {len(maps) - 1}; "

@@ -173,8 +173,6 @@ def kind_rows(kind: str, count: int, columns: Sequence[Sequence[Any] | None]) ->
     return [[kind, *values] for values in zip(*filled)]
 
 
-
-
 def names_kind_column(text: str) -> bool:
     """Whether a stream without a named format is mapjoin CSV: its first line is a header naming ``kind``."""
     header = text.lstrip().partition("\n")[0]

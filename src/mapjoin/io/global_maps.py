@@ -56,6 +56,7 @@ _TRUTH_POSE_FIELDS = {"id": "id", "x": "number", "y": "number", "phi": "number"}
 
 
 def read_global_yaml(text: str, source: str) -> GlobalMap:
+    """A global map from its YAML document."""
     document = yamldoc.document(text, source)
     document.header(_GLOBAL_MAP_FORMAT, ("format", "version", "provenance", "features", "poses"))
     features = document.records(("features",), _GLOBAL_FEATURE_FIELDS, {"cov": (2, 2)})
@@ -77,6 +78,7 @@ def _provenance(document: yamldoc.Document) -> Provenance:
 
 
 def dump_global_yaml(global_map: GlobalMap) -> str:
+    """A global map as one YAML document, with its provenance."""
     provenance = global_map.provenance
     return yamldoc.dump([{
         "format": _GLOBAL_MAP_FORMAT, "version": 1,
@@ -93,6 +95,7 @@ def dump_global_yaml(global_map: GlobalMap) -> str:
 
 
 def read_global_csv(text: str, source: str) -> GlobalMap:
+    """A global map from CSV, with the cov_* columns when its header has them."""
     table = csvtable.Table(text, source, [_GLOBAL_CSV_HEADER, _GLOBAL_COV_CSV_HEADER])
     features, poses = table.kinds()
     table.empty(("phi", "var_phi"), features, "a feature has no orientation")
@@ -107,6 +110,7 @@ def read_global_csv(text: str, source: str) -> GlobalMap:
 
 
 def dump_global_csv(global_map: GlobalMap) -> str:
+    """A global map as CSV: features, then poses; cov_* columns when it carries covariances."""
     feature_columns: list[Sequence[Any] | None] = [
         global_map.feature_ids.tolist(), *global_map.features.T.tolist(), None,
         global_map.feature_variances.tolist(), None]
@@ -128,6 +132,7 @@ def _covariance_columns(blocks: np.ndarray | None, size: int) -> list[Sequence[f
 
 
 def read_truth_yaml(text: str, source: str) -> GroundTruth:
+    """Ground truth from its YAML document."""
     document = yamldoc.document(text, source)
     document.header(_TRUTH_FORMAT, ("format", "version", "features", "poses"))
     features = document.records(("features",), _TRUTH_FEATURE_FIELDS)
@@ -137,6 +142,7 @@ def read_truth_yaml(text: str, source: str) -> GroundTruth:
 
 
 def dump_truth_yaml(truth: GroundTruth) -> str:
+    """Ground truth as one YAML document."""
     return yamldoc.dump([{
         "format": _TRUTH_FORMAT, "version": 1,
         "features": yamldoc.records({"id": truth.feature_ids, "x": truth.features[:, 0], "y": truth.features[:, 1]}),
@@ -146,6 +152,7 @@ def dump_truth_yaml(truth: GroundTruth) -> str:
 
 
 def read_truth_csv(text: str, source: str) -> GroundTruth:
+    """Ground truth from CSV (kind,id,x,y,phi)."""
     table = csvtable.Table(text, source, [_ENTITY_HEADER])
     features, poses = table.kinds()
     table.empty(("phi",), features, "a feature has no orientation")
@@ -154,6 +161,7 @@ def read_truth_csv(text: str, source: str) -> GroundTruth:
 
 
 def dump_truth_csv(truth: GroundTruth) -> str:
+    """Ground truth as CSV: features, then poses."""
     return csvtable.to_text([_ENTITY_HEADER,
                       *csvtable.kind_rows("feature", len(truth.feature_ids),
                                  [truth.feature_ids.tolist(), *truth.features.T.tolist(), None]),

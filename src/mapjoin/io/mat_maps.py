@@ -183,7 +183,6 @@ def _id_error(fault: int, table: matfile.Variables, state_row: np.ndarray, sourc
     return InputError(message, sources[i], f"localmap_st row {row + 1}")
 
 
-
 def dump(maps: Sequence[LocalMap]) -> bytes:
     """One map as an I-SLSJF .mat file (MAT v5, little-endian, uncompressed): ``localmap_st``, ``localmap_P``."""
     [local_map] = maps
