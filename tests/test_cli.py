@@ -17,6 +17,7 @@ from click.testing import CliRunner
 
 from mapjoin import io as mapio
 from mapjoin.cli import main
+from mapjoin.errors import InputError
 
 
 def rows(text: str) -> list[dict[str, str]]:
@@ -135,6 +136,23 @@ def test_errors_are_one_line_without_traceback(args, message):
     assert result.exit_code in (1, 2)
     assert message in result.output
     assert "Traceback" not in result.output
+
+
+@pytest.mark.parametrize("args, option", [
+    (["join", "-", "-o", "-"], "--input-format"),
+    (["join", "{maps}", "-o", "{out}/global.txt"], "--format"),
+    (["convert", "{maps}", "-o", "{out}/maps.txt"], "--to"),
+    (["build", "-", "-o", "{out}/maps/"], "--raw-format"),
+], ids=["join-stdin", "join-output", "convert-output", "build-raw"])
+def test_a_format_the_library_cannot_tell_is_asked_for_by_the_commands_option(simulated_folder, tmp_path, args,
+                                                                                  option):
+    """The library says "give its format" (its argument); each command names its own option instead."""
+    args = [arg.format(maps=simulated_folder, out=tmp_path) for arg in args]
+    result = run(*args, input="hello\n")
+    assert result.exit_code == 1
+    assert result.stderr.rstrip().endswith(f"pass {option}"), result.stderr
+    with pytest.raises(InputError, match="give its format$"):
+        mapio.read_maps(["-"], stdin=io.StringIO("hello\n"))
 
 
 def test_output_that_is_an_input_is_refused_and_nothing_written(simulated_folder):

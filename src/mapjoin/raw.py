@@ -362,7 +362,7 @@ def _sniff(fields: list[list[str]], name: str) -> str:
                 return "g2o"
             break
     raise InputError("cannot tell the raw format (expected iSAM text starting with ODOMETRY or LANDMARK, or g2o "
-                     "starting with VERTEX_SE2, VERTEX_XY, EDGE_SE2 or EDGE_SE2_XY); pass --raw-format", name)
+                     "starting with VERTEX_SE2, VERTEX_XY, EDGE_SE2 or EDGE_SE2_XY); ", name, argument="format")
 
 
 def _records(fields: list[list[str]], name: str, tags: dict[str, int | None],

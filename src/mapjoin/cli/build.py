@@ -69,7 +69,8 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
         fmt = (common.output_format(output, output_format, LOCAL_MAPS) if stream
                else output_format or LOCAL_MAPS.default)
     start = time.perf_counter()
-    raw = read_raw(raw_path, raw_format)
+    with common.options_for(format="--raw-format"):
+        raw = read_raw(raw_path, raw_format)
     reading = time.perf_counter() - start
     if map_count is None and poses_per_map is None:
         map_count = min(DEFAULT_MAPS, raw.steps)

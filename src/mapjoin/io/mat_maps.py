@@ -46,8 +46,6 @@ def read(data: bytes, source: str) -> list[LocalMap]:
 def read_files(paths: Sequence[str]) -> list[LocalMap]:
     """The I-SLSJF local maps of many .mat files, parsed and checked all at once: a bad file raises the
     error (after the warnings) that reading the files one by one with :func:`read` gives."""
-    if not paths:  # read_maps flushes its batch before every other file: nothing to parse then
-        return []
     files: list[bytes] = []
     for path in paths:
         try:
