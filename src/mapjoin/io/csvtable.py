@@ -65,9 +65,11 @@ class Table:
         self.cells = np.array(body, dtype=object).reshape(len(body), len(header))
 
     def error(self, row: int, column: str, message: str) -> InputError:
+        """The error of body row ``row`` (0-based), naming its line and ``column``."""
         return InputError(message, self.source, f"line {self.lines[row]}, column {column}")
 
     def text(self, column: str) -> np.ndarray:
+        """The cells of ``column``, as text."""
         return self.cells[:, self.columns[column]]
 
     def kinds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -142,6 +144,7 @@ _VALID: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 
 
 def _parses(cell: Any, dtype: type) -> bool:
+    """Whether numpy reads ``cell`` as ``dtype`` (to find the bad cell after a column failed)."""
     try:
         np.array([cell], dtype=object).astype(dtype)
     except (ValueError, OverflowError):

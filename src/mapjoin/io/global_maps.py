@@ -67,6 +67,7 @@ def read_global_yaml(text: str, source: str) -> GlobalMap:
 
 
 def _provenance(document: yamldoc.Document) -> Provenance:
+    """The optional ``provenance`` mapping of a global-map document (absent fields empty)."""
     path = ("provenance",)
     if document.get(path, "mapping", optional=True) is None:
         return Provenance()

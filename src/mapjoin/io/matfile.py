@@ -52,6 +52,7 @@ class Array(NamedTuple):
     data: memoryview
 
     def value(self) -> np.ndarray:
+        """The array as floats, in its shape."""
         return np.frombuffer(self.data, self.dtype).astype(float).reshape(self.shape, order="F")
 
 
@@ -74,6 +75,7 @@ class Variables(NamedTuple):
         return {self.name_of(row): self.array(row) for row in np.flatnonzero(self.file == file).tolist()}
 
     def name_of(self, row: int) -> str:
+        """The name of variable ``row``."""
         return str(memoryview(self.buffer)[slice(*self.name[row])], "latin-1")
 
     def array(self, row: int) -> Array | str:

@@ -41,6 +41,7 @@ def read(text: str, source: str) -> list[LocalMap]:
 
 
 def _local_map_from_yaml(document: yamldoc.Document, number: int | None) -> LocalMap:
+    """The local map of one document (``number``: its position in a stream of several, else None)."""
     document.header(_FORMAT, _KEYS)
     name = map_name(document.source, document.get(("name",), "text", optional=True), number)
     start_id, end_id = (document.get((key,), "id") for key in ("start_id", "end_id"))
@@ -75,6 +76,7 @@ def _yaml_float(value: float) -> str:
 
 
 def _local_map_document(local_map: LocalMap) -> dict[str, Any]:
+    """A local map's document without its covariance (:func:`dump` appends that)."""
     document: dict[str, Any] = {
         "format": _FORMAT, "version": 1, "name": local_map.name,
         "start_id": local_map.start_id, "end_id": local_map.end_id,

@@ -93,6 +93,7 @@ class Document:
         self.data, self.node, self.source = data, node, source
 
     def error(self, path: _FieldPath, message: str) -> InputError:
+        """The error of the field at ``path``, naming it and its line."""
         where = f"line {self._line(path)}" + (f", field {_render(path)}" if path else "")
         return InputError(message, self.source, where)
 
@@ -187,6 +188,7 @@ class Document:
         return self.error((error.where,) if error.where else (), error.detail)
 
     def _value(self, path: _FieldPath) -> Any:
+        """The value at ``path``, which exists."""
         value = self.data
         for key in path:
             value = value[key]
