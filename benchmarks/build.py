@@ -33,7 +33,7 @@ import scipy.sparse as sp
 from common import DATA, median_seconds, write_section
 from scipy.sparse.linalg import splu
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.build import batch, build, cut
 from mapjoin.evaluate import compare
 from mapjoin.joining import join_sequential
@@ -84,7 +84,7 @@ def speed_of(path, label: str, repeat: int) -> tuple[list[str], tuple]:
 
 def shipped_rows(built) -> list[str]:
     """Differences of the built maps from the shipped ones, map by map (features by id)."""
-    shipped = formats.read_maps([str(DATA / "VicPark_200_local_maps")])
+    shipped = mapio.read_maps([str(DATA / "VicPark_200_local_maps")])
     pose, phi, feature, covariance, same_features, differing = [], [], [], [], 0, []
     for k, (b, s) in enumerate(zip(built.maps, shipped), start=1):
         order = np.argsort(s.feature_ids)
@@ -123,7 +123,7 @@ def metric_rows(raw: RawData, built, whole) -> list[str]:
     """Fast and exact joins of the built (and the shipped) maps against the batch solution."""
     reference = whole.global_map
     rows = []
-    shipped = formats.read_maps([str(DATA / "VicPark_200_local_maps")])
+    shipped = mapio.read_maps([str(DATA / "VicPark_200_local_maps")])
     for label, maps in (("built", list(built.maps)), ("shipped", shipped)):
         for method, global_map in (("join", join_sequential(maps).global_map),
                                    ("join --refine", refine(maps, covariances=False).global_map)):

@@ -22,7 +22,8 @@ import sys
 import numpy as np
 from common import DATA, median_seconds, write_section
 
-from mapjoin import COVARIANCE_MODES, GlobalMap, LocalMap, formats
+from mapjoin import COVARIANCE_MODES, GlobalMap, LocalMap
+from mapjoin import io as mapio
 from mapjoin.evaluate import compare, evaluate
 from mapjoin.joining import DEFAULT_COVARIANCE, certify_pair, join_sequential
 from mapjoin.onestep import rotation, wrap
@@ -33,7 +34,7 @@ TRIALS = 200
 
 
 def accuracy_rows(name: str) -> list[str]:
-    maps = formats.read_maps([str(DATA / name)])
+    maps = mapio.read_maps([str(DATA / name)])
     refine_time, exact = median_seconds(lambda: refine(maps), REPEATS)
     rows = []
     for mode in COVARIANCE_MODES:
@@ -96,8 +97,8 @@ def two_map_experiment(maps: list[LocalMap]) -> tuple[list[str], list[str]]:
 
 def ground_truth_rows(name: str) -> list[str]:
     folder = DATA / name
-    maps = formats.read_maps([str(folder)])
-    truth = formats.read_truth_folder(str(folder))
+    maps = mapio.read_maps([str(folder)])
+    truth = mapio.read_truth_folder(str(folder))
     rows = []
     for label, global_map in (("fast join", join_sequential(maps).global_map),
                               ("exact (refined)", refine(maps).global_map)):
@@ -109,7 +110,7 @@ def ground_truth_rows(name: str) -> list[str]:
 
 
 def main() -> None:
-    vicpark = formats.read_maps([str(DATA / "VicPark_200_local_maps")])
+    vicpark = mapio.read_maps([str(DATA / "VicPark_200_local_maps")])
     lines = ["### Fast join against the exact join", "",
              "| dataset | maps | method | mean abs x (m) | mean abs y (m) | mean abs phi (rad) | two-minima joins | time (ms) |",
              "|---|---:|---|---:|---:|---:|---:|---:|"]

@@ -23,7 +23,7 @@ import tracemalloc
 
 from common import dataset_arguments, write_section
 
-from mapjoin.formats import read_maps
+from mapjoin.io import read_maps
 from mapjoin.joining import join_sequential
 from mapjoin.refine import refine
 

@@ -61,7 +61,7 @@ from pathlib import Path
 import numpy as np
 from common import ROOT, compile_mapjoin, median_seconds, write_section
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.joining import join
 from mapjoin.maps import LocalMap
 from mapjoin.refine import refine
@@ -197,14 +197,14 @@ def command_parts(stream: str) -> dict[str, float]:
     """Seconds of the command's parts in this (fresh) interpreter: read the CSV stream, join it
     with each strategy, write the global map."""
     start = time.perf_counter()
-    maps = formats.read_maps([stream])
+    maps = mapio.read_maps([stream])
     seconds = {"read": time.perf_counter() - start}
     for case, (strategy, jobs) in CASES.items():
         start = time.perf_counter()
         global_map = join(maps, strategy=strategy, jobs=jobs).global_map
         seconds[case] = time.perf_counter() - start
     start = time.perf_counter()
-    formats.write_global_map(global_map, str(Path(stream).with_suffix(".out.csv")), "csv")
+    mapio.write_global_map(global_map, str(Path(stream).with_suffix(".out.csv")), "csv")
     seconds["write"] = time.perf_counter() - start
     return seconds
 
@@ -416,7 +416,7 @@ def report(results: Results) -> str:
              "package's is); its parts timed beside it in fresh interpreters (one per run, "
              "each reading the file, joining it with every strategy and writing the result once), medians "
              "of the same number of runs: start-up = `mapjoin join --help` (interpreter, imports), read = "
-             "`formats.read_maps`, join = the read maps joined, write = `formats.write_global_map`, rest = "
+             "`mapjoin.io.read_maps`, join = the read maps joined, write = `mapjoin.io.write_global_map`, rest = "
              "what the parts leave (noise included)."),
             "",
             *table("maps | file (MB) | strategy | runs | command (s) | start-up (s) | read (s) | join (s) "

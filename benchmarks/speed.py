@@ -23,7 +23,7 @@ import time
 
 from common import compile_mapjoin, dataset_arguments, median_seconds, write_section
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.evaluate import compare
 from mapjoin.joining import join
 from mapjoin.refine import refine
@@ -88,7 +88,7 @@ def main() -> None:
     compiled = compile_mapjoin()
     for name in args.datasets:
         folder = str(args.data / name)
-        read, maps = median_seconds(lambda: formats.read_maps([folder]), args.repeat)  # noqa: B023
+        read, maps = median_seconds(lambda: mapio.read_maps([folder]), args.repeat)  # noqa: B023
         times, distances = {}, {}
         for label, strategy, jobs in (("sequential", "sequential", 1), ("tree", "tree", 1), ("tree2", "tree", 2)):
             times[label], result = median_seconds(lambda: join(maps, strategy=strategy, jobs=jobs),  # noqa: B023

@@ -22,7 +22,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import least_squares
 
-from mapjoin import InputError, formats
+from mapjoin import InputError
+from mapjoin import io as mapio
 from mapjoin.build import batch, build, cut
 from mapjoin.evaluate import compare
 from mapjoin.raw import RawData, _positive_definite, read_raw
@@ -446,7 +447,7 @@ def test_vicpark_200_maps_are_the_shipped_ones(data_dir):
     raw = read_raw(str(data_dir / VICPARK))
     bounds = cut(raw.steps, maps=200)
     built = build(raw, bounds)
-    shipped = formats.read_maps([str(data_dir / "VicPark_200_local_maps")])
+    shipped = mapio.read_maps([str(data_dir / "VicPark_200_local_maps")])
     differing = []
     for j, (b, s) in enumerate(zip(built.maps, shipped)):
         order = np.argsort(s.feature_ids)                       # shipped: in order of first sighting
@@ -571,12 +572,12 @@ def test_cli_builds_a_folder_that_joins(tmp_path):
     assert "iteration 0: chi^2 = " in result.stderr and "built 4 local maps from" in result.stderr
     assert "batch solution: chi^2 " in result.stderr
     assert sorted(p.name for p in out.iterdir()) == [f"localmap_{k}.yaml" for k in (1, 2, 3, 4)]
-    maps = formats.read_maps([str(out)])
+    maps = mapio.read_maps([str(out)])
     assert all(m.covariance is not None for m in maps)
     joined = run("join", str(out), "--refine", "-o", str(tmp_path / "j.csv"))
     assert joined.exit_code == 0, joined.output
-    difference = compare(formats.read_global_map(str(tmp_path / "b.csv")),
-                         formats.read_global_map(str(tmp_path / "j.csv")))
+    difference = compare(mapio.read_global_map(str(tmp_path / "b.csv")),
+                         mapio.read_global_map(str(tmp_path / "j.csv")))
     assert difference.poses == 4 and difference.mean_abs_x < 0.05
     # a stale map of another cut is refused; the same cut again is fine
     assert run("build", path, "-o", str(out), "--poses-per-map", "10").exit_code == 1
@@ -586,7 +587,7 @@ def test_cli_builds_a_folder_that_joins(tmp_path):
     parallel = run("build", path, "-o", str(tmp_path / "two.csv"), "--maps", "2", "-j", "2")
     assert parallel.exit_code == 0, parallel.output
     assert run("build", path, "-o", str(tmp_path / "one.csv"), "--maps", "2").exit_code == 0
-    for a, b in zip(formats.read_maps([str(tmp_path / "one.csv")]), formats.read_maps([str(tmp_path / "two.csv")])):
+    for a, b in zip(mapio.read_maps([str(tmp_path / "one.csv")]), mapio.read_maps([str(tmp_path / "two.csv")])):
         assert (a.start_id, a.end_id) == (b.start_id, b.end_id)
         np.testing.assert_allclose(b.features, a.features, rtol=0, atol=1e-8)
     assert run("build", path, "-o", "-", "-j", "0").exit_code == 2

@@ -15,8 +15,9 @@ import pytest
 from cli_runner import run
 from click.testing import CliRunner
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.cli import main
+from mapjoin.errors import InputError
 
 
 def rows(text: str) -> list[dict[str, str]]:
@@ -46,12 +47,12 @@ def test_join_writes_the_documented_csv_contract(simulated_folder, tmp_path):
 
 
 def test_join_yaml_output_by_extension_equals_csv(simulated_folder, tmp_path):
-    from mapjoin import formats
+    from mapjoin import io as mapio
 
     run("join", simulated_folder, "-o", str(tmp_path / "g.yaml"))
     run("join", simulated_folder, "-o", str(tmp_path / "g.csv"))
-    a = formats.read_global_map(tmp_path / "g.yaml")
-    b = formats.read_global_map(tmp_path / "g.csv")
+    a = mapio.read_global_map(tmp_path / "g.yaml")
+    b = mapio.read_global_map(tmp_path / "g.csv")
     np.testing.assert_array_equal(a.features, b.features)
     np.testing.assert_array_equal(a.poses, b.poses)
     assert a.provenance.covariance == "information"
@@ -137,6 +138,23 @@ def test_errors_are_one_line_without_traceback(args, message):
     assert "Traceback" not in result.output
 
 
+@pytest.mark.parametrize("args, option", [
+    (["join", "-", "-o", "-"], "--input-format"),
+    (["join", "{maps}", "-o", "{out}/global.txt"], "--format"),
+    (["convert", "{maps}", "-o", "{out}/maps.txt"], "--to"),
+    (["build", "-", "-o", "{out}/maps/"], "--raw-format"),
+], ids=["join-stdin", "join-output", "convert-output", "build-raw"])
+def test_a_format_the_library_cannot_tell_is_asked_for_by_the_commands_option(simulated_folder, tmp_path, args,
+                                                                                  option):
+    """The library says "give its format" (its argument); each command names its own option instead."""
+    args = [arg.format(maps=simulated_folder, out=tmp_path) for arg in args]
+    result = run(*args, input="hello\n")
+    assert result.exit_code == 1
+    assert result.stderr.rstrip().endswith(f"pass {option}"), result.stderr
+    with pytest.raises(InputError, match="give its format$"):
+        mapio.read_maps(["-"], stdin=io.StringIO("hello\n"))
+
+
 def test_output_that_is_an_input_is_refused_and_nothing_written(simulated_folder):
     target = os.path.join(simulated_folder, "localmap_1.yaml")
     before = open(target).read()
@@ -210,8 +228,8 @@ def test_simulate_writes_one_stream_to_a_map_file_and_a_folder_otherwise(tmp_pat
     assert stream.read_text() == piped.stdout
     result = run("-q", "simulate", "-o", str(tmp_path / "maps.yaml"), "--maps", "3", "--truth", str(tmp_path / "t.csv"))
     assert result.exit_code == 0 and result.stderr == ""
-    assert [m.end_id for m in formats.read_maps([str(tmp_path / "maps.yaml")])] == [1, 2, 3]
-    assert formats.read_truth(str(tmp_path / "t.csv")).pose_ids.tolist() == [0, 1, 2, 3]
+    assert [m.end_id for m in mapio.read_maps([str(tmp_path / "maps.yaml")])] == [1, 2, 3]
+    assert mapio.read_truth(str(tmp_path / "t.csv")).pose_ids.tolist() == [0, 1, 2, 3]
     folder = tmp_path / "run"
     assert run("-q", "simulate", "-o", str(folder), "--maps", "2").exit_code == 0
     assert sorted(p.name for p in folder.iterdir()) == ["localmap_1.yaml", "localmap_2.yaml", "truth.yaml"]

@@ -14,11 +14,11 @@ from cli_runner import run
 from click.testing import CliRunner
 from scipy.stats import chi2
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.cli import main
 from mapjoin.errors import InputError
 from mapjoin.evaluate import compare, evaluate, nees_bounds
-from mapjoin.formats import mat_variables
+from mapjoin.io.matfile import variables as mat_variables
 from mapjoin.joining import join_sequential
 from mapjoin.maps import GlobalMap, GroundTruth
 from mapjoin.onestep import wrap
@@ -261,8 +261,8 @@ def _state_nees_per_dof(local_map, start: np.ndarray, end: np.ndarray, beacons: 
 def test_truth_folder_step_rule_matches_the_local_maps(data_dir, name, steps, maps, end_tolerance,
                                                        phi_tolerance):
     folder = data_dir / name
-    truth = formats.read_truth_folder(folder)
-    local_maps = formats.read_maps([str(folder)])
+    truth = mapio.read_truth_folder(folder)
+    local_maps = mapio.read_maps([str(folder)])
     robot = _robot(folder)
     assert robot.shape == (3, steps + 1) and len(local_maps) == maps
     rule = [round(k * steps / maps) for k in range(maps + 1)]   # no .5 ties in these two folders
@@ -289,7 +289,7 @@ def test_truth_folder_step_rule_matches_the_local_maps(data_dir, name, steps, ma
 def test_truth_folder_ids_are_the_beacon_ids(data_dir):
     folder = data_dir / "8240_data_50_local_maps"
     beacons = mat_variables((folder / "store_beaconsTrue.mat").read_bytes(), "b")["store_beaconsTrue"]
-    truth = formats.read_truth_folder(folder)
+    truth = mapio.read_truth_folder(folder)
     np.testing.assert_array_equal(truth.feature_ids, beacons[:, 0])
     np.testing.assert_array_equal(truth.features, beacons[:, 1:])
 
@@ -302,10 +302,10 @@ def test_joining_then_evaluating_the_simulations_gives_plausible_errors(data_dir
     # 0.130 rad; 8240 features 4.08 m, poses 3.53 m / 0.023 rad; the joined variances are far too small
     # (average NEES in the thousands), the errors being mostly drift the sequential join never corrects.
     folder = data_dir / name
-    result = evaluate(join_sequential(formats.read_maps([str(folder)])).global_map,
-                      formats.read_truth_folder(folder))
+    result = evaluate(join_sequential(mapio.read_maps([str(folder)])).global_map,
+                      mapio.read_truth_folder(folder))
     assert result.features == len(np.unique(np.concatenate([m.feature_ids for m in
-                                                             formats.read_maps([str(folder)])])))
+                                                             mapio.read_maps([str(folder)])])))
     assert 0.01 < result.feature_rms < feature_rms and 0.01 < result.pose_rms_xy < feature_rms
     assert result.pose_rms_phi < pose_phi_rms
 
@@ -329,12 +329,12 @@ def test_truth_folder_rounds_halves_up_and_uses_the_frame_of_step_0(tmp_path):
     robot = np.column_stack([local[:, :2] @ np.array([[c, s], [-s, c]]) + start[:2], wrap(local[:, 2] + start[2])]).T
     beacon_local = np.array([[1.0, 2.0], [-3.0, 0.5]])
     beacons = np.column_stack([[4, 9], beacon_local @ np.array([[c, s], [-s, c]]) + start[:2]])
-    truth = formats.read_truth_folder(_synthetic_folder(tmp_path, robot, beacons, 4))
+    truth = mapio.read_truth_folder(_synthetic_folder(tmp_path, robot, beacons, 4))
     # 10 steps, 4 maps: round(2.5 k) with halves up = 0, 3, 5, 8, 10 (MATLAB's round)
     np.testing.assert_allclose(truth.poses, local[[0, 3, 5, 8, 10]], atol=1e-12)
     np.testing.assert_allclose(truth.features, beacon_local, atol=1e-12)
     assert truth.feature_ids.tolist() == [4, 9] and truth.pose_ids.tolist() == [0, 1, 2, 3, 4]
-    assert formats.read_truth_folder(tmp_path / "sim", maps=5).poses.shape == (6, 3)
+    assert mapio.read_truth_folder(tmp_path / "sim", maps=5).poses.shape == (6, 3)
 
 
 def test_truth_folder_errors_name_the_file(tmp_path, data_dir):
@@ -342,27 +342,27 @@ def test_truth_folder_errors_name_the_file(tmp_path, data_dir):
     folder.mkdir()
     shutil.copy(data_dir / "535_data_5_local_maps" / "store_robotTrue.mat", folder)
     with pytest.raises(InputError, match="no localmap_<k> files"):
-        formats.read_truth_folder(folder)
+        mapio.read_truth_folder(folder)
     with pytest.raises(InputError, match=r"store_beaconsTrue\.mat: missing"):
-        formats.read_truth_folder(folder, maps=5)
+        mapio.read_truth_folder(folder, maps=5)
     (folder / "store_beaconsTrue.mat").write_bytes(b"not a mat file")
     with pytest.raises(InputError, match=r"store_beaconsTrue\.mat: expected a MATLAB v5"):
-        formats.read_truth_folder(folder, maps=5)
+        mapio.read_truth_folder(folder, maps=5)
     scipy.io.savemat(folder / "store_beaconsTrue.mat", {"other": np.zeros((2, 3))})
     with pytest.raises(InputError, match="store_beaconsTrue: expected a numeric matrix variable"):
-        formats.read_truth_folder(folder, maps=5)
+        mapio.read_truth_folder(folder, maps=5)
     scipy.io.savemat(folder / "store_beaconsTrue.mat", {"store_beaconsTrue": np.zeros((2, 4))})
     with pytest.raises(InputError, match=r"expected rows \[integer id, x, y\]"):
-        formats.read_truth_folder(folder, maps=5)
+        mapio.read_truth_folder(folder, maps=5)
     scipy.io.savemat(folder / "store_beaconsTrue.mat", {"store_beaconsTrue": np.zeros((2, 3))})
     with pytest.raises(InputError, match="with at least 600 steps for 600 local maps"):
-        formats.read_truth_folder(folder, maps=600)
+        mapio.read_truth_folder(folder, maps=600)
     (folder / "localmap_1.mat").write_bytes(b"")
     (folder / "localmap_3.mat").write_bytes(b"")
     with pytest.raises(InputError, match=r"expected local maps numbered 1\.\.2"):
-        formats.read_truth_folder(folder)
+        mapio.read_truth_folder(folder)
     with pytest.raises(InputError, match="expected a simulation folder"):
-        formats.read_truth_folder(tmp_path / "absent")
+        mapio.read_truth_folder(tmp_path / "absent")
 
 
 # ---------------------------------------------------------------------------------------
@@ -387,7 +387,7 @@ def test_help_has_examples():
 
 def test_compare_command_table_and_json(simulated):
     a, b = str(simulated / "global.csv"), str(simulated / "identity.yaml")
-    expected = compare(formats.read_global_map(a), formats.read_global_map(b))
+    expected = compare(mapio.read_global_map(a), mapio.read_global_map(b))
     table = run("compare", a, b)
     assert table.exit_code == 0
     assert f"shared ids: {expected.features} features, 12 poses" in table.output
@@ -402,7 +402,7 @@ def test_compare_command_table_and_json(simulated):
 
 def test_compare_command_errors_are_one_line(simulated, tmp_path):
     other = tmp_path / "other.csv"
-    formats.write_global_map(global_map([10**6], [[0, 0]], [10**6], [[0, 0, 0]]), other)
+    mapio.write_global_map(global_map([10**6], [[0, 0]], [10**6], [[0, 0, 0]]), other)
     result = CliRunner().invoke(main, ["compare", str(simulated / "global.csv"), str(other)])
     assert result.exit_code == 1
     assert result.output.strip().startswith("Error: ") and "shares no feature or pose id" in result.output
@@ -415,7 +415,7 @@ def test_evaluate_command_with_a_simulate_truth(simulated, truth):
     global_path = str(simulated / "global.csv")
     result = run("evaluate", global_path, "--truth", str(simulated / truth))
     assert result.exit_code == 0
-    expected = evaluate(formats.read_global_map(global_path), formats.read_truth(simulated / "truth.yaml"))
+    expected = evaluate(mapio.read_global_map(global_path), mapio.read_truth(simulated / "truth.yaml"))
     assert "alignment: none: map and truth both in the frame of pose 0" in result.output
     assert f"{expected.feature_rms:.6g}" in result.output and "spherical variances" in result.output
     assert "bounds [" in result.output and "verdict: " in result.output

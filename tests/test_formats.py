@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.errors import InputError
 from mapjoin.maps import GlobalMap, GroundTruth, LocalMap, Provenance
 
@@ -221,7 +221,7 @@ def flipped(data: bytes, offset: int, value: int) -> bytes:
 @settings(deadline=None)
 @given(local_maps(), st.sampled_from(["yaml", "csv"]))
 def test_single_local_map_round_trips_through_a_stream(local_map, fmt):
-    [back] = formats.read_map_file(io.StringIO(written(formats.write_maps, [local_map], fmt)), fmt)
+    [back] = mapio.read_map_file(io.StringIO(written(mapio.write_maps, [local_map], fmt)), fmt)
     assert back.name == "<stream>"
     assert_same(back, local_map if fmt == "yaml" else spherical(local_map), skip=("name",))
 
@@ -230,7 +230,7 @@ def test_single_local_map_round_trips_through_a_stream(local_map, fmt):
 @given(st.lists(local_maps(), min_size=1, max_size=4, unique_by=lambda local_map: local_map.name),
        st.sampled_from(["yaml", "csv"]), st.booleans())
 def test_local_map_streams_round_trip(maps, fmt, sniff):
-    back = formats.read_map_file(io.StringIO(written(formats.write_maps, maps, fmt)), None if sniff else fmt)
+    back = mapio.read_map_file(io.StringIO(written(mapio.write_maps, maps, fmt)), None if sniff else fmt)
     assert [m.name for m in back] == read_names("<stream>", maps)
     for actual, expected in zip(back, maps, strict=True):
         assert_same(actual, expected if fmt == "yaml" else spherical(expected), skip=("name",))
@@ -241,8 +241,8 @@ def test_local_map_streams_round_trip(maps, fmt, sniff):
        st.sampled_from(["yaml", "csv"]))
 def test_local_maps_round_trip_through_files(scratch, maps, fmt):
     path = scratch / f"maps.{fmt}"
-    assert formats.write_maps(maps, path, fmt) == [str(path)]
-    back = formats.read_maps([str(path)])
+    assert mapio.write_maps(maps, path, fmt) == [str(path)]
+    back = mapio.read_maps([str(path)])
     assert [m.name for m in back] == read_names(str(path), maps)
     for actual, expected in zip(back, maps, strict=True):
         assert_same(actual, expected if fmt == "yaml" else spherical(expected), skip=("name",))
@@ -252,9 +252,9 @@ def test_local_maps_round_trip_through_files(scratch, maps, fmt):
 @given(st.lists(local_maps(), min_size=1, max_size=4, unique_by=lambda local_map: local_map.end_id))
 def test_local_maps_round_trip_through_a_folder(scratch, maps):
     folder = scratch / f"folder{len(list(scratch.iterdir()))}"
-    paths = formats.write_maps(maps, f"{folder}/", "yaml")
+    paths = mapio.write_maps(maps, f"{folder}/", "yaml")
     assert paths == [str(folder / f"localmap_{local_map.end_id}.yaml") for local_map in maps]
-    back = formats.read_maps([str(folder)])
+    back = mapio.read_maps([str(folder)])
     assert [m.name for m in back] == sorted(paths, key=lambda path: int(re.findall(r"[0-9]+", path)[-1]))
     for actual, expected in zip(back, sorted(maps, key=lambda local_map: local_map.end_id), strict=True):
         assert_same(actual, expected, skip=("name",))
@@ -263,7 +263,7 @@ def test_local_maps_round_trip_through_a_folder(scratch, maps):
 @settings(deadline=None)
 @given(global_maps(), st.sampled_from(["yaml", "csv"]))
 def test_global_maps_round_trip(global_map, fmt):
-    back = formats.read_global_map(io.StringIO(written(formats.write_global_map, global_map, fmt)), fmt)
+    back = mapio.read_global_map(io.StringIO(written(mapio.write_global_map, global_map, fmt)), fmt)
     assert_same(back, global_map, skip=("name",) if fmt == "yaml" else ("name", "provenance"))
     if fmt == "csv":
         assert back.provenance == Provenance()
@@ -273,8 +273,8 @@ def test_global_maps_round_trip(global_map, fmt):
 @given(global_maps(), st.sampled_from(["yaml", "csv"]))
 def test_global_maps_round_trip_through_files(scratch, global_map, fmt):
     path = scratch / f"global.{fmt}"
-    formats.write_global_map(global_map, path)
-    back = formats.read_global_map(path)
+    mapio.write_global_map(global_map, path)
+    back = mapio.read_global_map(path)
     assert back.name == str(path)
     assert_same(back, global_map, skip=("name",) if fmt == "yaml" else ("name", "provenance"))
 
@@ -284,7 +284,7 @@ def test_global_maps_round_trip_through_files(scratch, global_map, fmt):
 def test_global_map_columns(fmt, with_covariances):
     global_map = EXAMPLE_GLOBAL if with_covariances else dataclasses.replace(
         EXAMPLE_GLOBAL, feature_covariances=None, pose_covariances=None)
-    text = written(formats.write_global_map, global_map, fmt)
+    text = written(mapio.write_global_map, global_map, fmt)
     if fmt == "csv":
         header = text.splitlines()[0].split(",")
         assert header[:7] == ["kind", "id", "x", "y", "phi", "var_xy", "var_phi"]
@@ -295,20 +295,20 @@ def test_global_map_columns(fmt, with_covariances):
         assert document["format"] == "mapjoin/global-map" and document["version"] == 1
         assert document["provenance"]["maps"] == ["a.mat", "b.mat"]
         assert ("cov" in document["poses"][1]) == with_covariances
-    assert_same(formats.read_global_map(io.StringIO(text)), global_map, skip=("name", "provenance"))
+    assert_same(mapio.read_global_map(io.StringIO(text)), global_map, skip=("name", "provenance"))
 
 
 @settings(deadline=None)
 @given(truths(), st.sampled_from(["yaml", "csv"]))
 def test_ground_truth_round_trips(truth, fmt):
-    back = formats.read_truth(io.StringIO(written(formats.write_truth, truth, fmt)), fmt)
+    back = mapio.read_truth(io.StringIO(written(mapio.write_truth, truth, fmt)), fmt)
     assert_same(back, truth, skip=("name",))
 
 
 def test_ground_truth_files(tmp_path):
     for fmt in ("csv", "yaml"):
-        formats.write_truth(EXAMPLE_TRUTH, tmp_path / f"truth.{fmt}")
-        assert_same(formats.read_truth(tmp_path / f"truth.{fmt}"), EXAMPLE_TRUTH, skip=("name",))
+        mapio.write_truth(EXAMPLE_TRUTH, tmp_path / f"truth.{fmt}")
+        assert_same(mapio.read_truth(tmp_path / f"truth.{fmt}"), EXAMPLE_TRUTH, skip=("name",))
     assert (tmp_path / "truth.csv").read_text().splitlines()[:2] == ["kind,id,x,y,phi", "feature,12,3.0,4.0,"]
     assert yaml.safe_load((tmp_path / "truth.yaml").read_text())["format"] == "mapjoin/ground-truth"
 
@@ -334,7 +334,7 @@ def plain(row: Row) -> dict[str, Any]:
 @settings(deadline=None)
 @given(st.lists(ROWS, max_size=4), st.sampled_from(["csv", "yaml", "json"]))
 def test_tables_round_trip(rows, fmt):
-    text = written(formats.write_table, rows, fmt)
+    text = written(mapio.write_table, rows, fmt)
     if fmt == "json":
         assert json.loads(text) == [plain(row) for row in rows]
     elif fmt == "yaml":
@@ -353,14 +353,14 @@ def test_tables_round_trip(rows, fmt):
 
 def test_table_files_and_numpy_values(tmp_path):
     rows = [Row("a", 1, 0.5, None, np.float64(2.5), True), Row("b", 2, 1e-7, 3.0, np.int64(4), False)]
-    for fmt in formats.TABLE_FORMATS:
-        formats.write_table(rows, tmp_path / f"report.{fmt}")
+    for fmt in mapio.TABLE_FORMATS:
+        mapio.write_table(rows, tmp_path / f"report.{fmt}")
     assert (tmp_path / "report.csv").read_text() == (
         "name,joins,cost,gap,residual,certified\na,1,0.5,,2.5,True\nb,2,1e-07,3.0,4,False\n")
     assert json.loads((tmp_path / "report.json").read_text())[0]["gap"] is None
     assert yaml.safe_load((tmp_path / "report.yaml").read_text())[1]["residual"] == 4
     with pytest.raises(TypeError):
-        formats.write_table([rows[0], EXAMPLE_TRUTH], io.StringIO(), "csv")
+        mapio.write_table([rows[0], EXAMPLE_TRUTH], io.StringIO(), "csv")
 
 
 # ---------------------------------------------------------------------------------------
@@ -368,11 +368,11 @@ def test_table_files_and_numpy_values(tmp_path):
 
 
 def test_valid_examples_read():
-    [example] = formats.read_map_file(io.StringIO(VALID_YAML))
+    [example] = mapio.read_map_file(io.StringIO(VALID_YAML))
     assert example.name == "<stream>" and example.feature_ids.tolist() == [12, 14, 15]
     assert example.feature_variances[2] == 0.01  # 1e-2, without a dot, is a number
     assert example.covariance is None
-    first, second = formats.read_map_file(io.StringIO(VALID_CSV))
+    first, second = mapio.read_map_file(io.StringIO(VALID_CSV))
     assert (first.name, first.start_id, first.end_id, first.size) == ("<stream>#a", 0, 1, 2)
     assert (second.name, second.start_id, second.end_id, second.size) == ("<stream>#b", 1, 2, 1)
     assert second.end_pose.tolist() == [1.0, 2.0, 0.1] and second.pose_variances.tolist() == [0.01, 0.001]
@@ -383,7 +383,7 @@ def test_maps_are_named_after_their_file(tmp_path):
     (tmp_path / "one.yaml").write_text(VALID_YAML)
     (tmp_path / "two.yaml").write_text(f"---\n{VALID_YAML}---\n{unnamed.replace('end_id: 1', 'end_id: 2')}")
     (tmp_path / "maps.csv").write_text(VALID_CSV)
-    names = [m.name for m in formats.read_maps([str(tmp_path / name) for name in ("one.yaml", "two.yaml",
+    names = [m.name for m in mapio.read_maps([str(tmp_path / name) for name in ("one.yaml", "two.yaml",
                                                                                   "maps.csv")])]
     assert names == [str(tmp_path / "one.yaml"), f"{tmp_path / 'two.yaml'}#example", f"{tmp_path / 'two.yaml'}#2",
                      f"{tmp_path / 'maps.csv'}#a", f"{tmp_path / 'maps.csv'}#b"]
@@ -391,9 +391,9 @@ def test_maps_are_named_after_their_file(tmp_path):
 
 def test_yaml_writes_floats_exactly_and_quotes_number_like_names():
     local_map = LocalMap("1e-6", 0, 1, [1e-6, 1e16, -0.0], [7], [[5e-324, 0.1 + 0.2]], [1e-300], [1e-6, 3.0])
-    text = written(formats.write_maps, [local_map], "yaml")
+    text = written(mapio.write_maps, [local_map], "yaml")
     assert "'1e-6'" in text and "0.30000000000000004" in text
-    [back] = formats.read_map_file(io.StringIO(text), "yaml")
+    [back] = mapio.read_map_file(io.StringIO(text), "yaml")
     assert_same(back, local_map, skip=("name",))
 
 
@@ -402,46 +402,46 @@ def test_csv_accepts_crlf_a_bom_and_interleaved_maps(tmp_path):
     shuffled = [lines[0], lines[1], lines[4], lines[2], lines[5], lines[3]]
     path = tmp_path / "maps.csv"
     path.write_bytes(("\ufeff" + "\r\n".join(shuffled) + "\r\n").encode())
-    first, second = formats.read_maps([str(path)])
+    first, second = mapio.read_maps([str(path)])
     assert first.feature_ids.tolist() == [12, 14] and second.feature_ids.tolist() == [12]
 
 
 def test_csv_drops_full_covariances_with_one_warning(mapjoin_log):
     maps = [LocalMap.from_covariance(name, 0, 1, [0, 0, 0], [3], [[1, 2]], np.eye(5)) for name in "ab"]
-    text = written(formats.write_maps, maps, "csv")
+    text = written(mapio.write_maps, maps, "csv")
     [warning] = warnings_of(mapjoin_log)
     assert "dropped the full covariances of 2 map(s)" in warning
-    assert all(m.covariance is None for m in formats.read_map_file(io.StringIO(text), "csv"))
-    written(formats.write_maps, maps, "yaml")
+    assert all(m.covariance is None for m in mapio.read_map_file(io.StringIO(text), "csv"))
+    written(mapio.write_maps, maps, "yaml")
     assert len(warnings_of(mapjoin_log)) == 1
 
 
 def test_write_maps_targets(tmp_path, monkeypatch):
-    maps = formats.read_map_file(io.StringIO(VALID_CSV))
-    assert formats.write_maps(maps, io.StringIO(), "yaml") == []
+    maps = mapio.read_map_file(io.StringIO(VALID_CSV))
+    assert mapio.write_maps(maps, io.StringIO(), "yaml") == []
     stdout = io.StringIO()
     monkeypatch.setattr("sys.stdout", stdout)
-    assert formats.write_maps(maps, "-", "csv") == []
+    assert mapio.write_maps(maps, "-", "csv") == []
     assert stdout.getvalue().startswith("map,start_id")
     (tmp_path / "existing").mkdir()
-    assert formats.write_maps(maps, tmp_path / "existing", "csv") == [
+    assert mapio.write_maps(maps, tmp_path / "existing", "csv") == [
         str(tmp_path / "existing" / "localmap_1.csv"), str(tmp_path / "existing" / "localmap_2.csv")]
     with pytest.raises(InputError, match="a mat file holds one local map, got 2"):
-        formats.write_maps(maps, tmp_path / "maps.mat", "mat")
+        mapio.write_maps(maps, tmp_path / "maps.mat", "mat")
     with pytest.raises(InputError, match="both would be localmap_1.yaml"):
-        formats.write_maps([maps[0], maps[0]], f"{tmp_path}/clash/", "yaml")
+        mapio.write_maps([maps[0], maps[0]], f"{tmp_path}/clash/", "yaml")
     assert not (tmp_path / "clash").exists()
 
 
 def test_global_yaml_provenance_is_optional():
     text = ("format: mapjoin/global-map\nversion: 1\nfeatures: []\n"
             "poses:\n- {id: 1, x: 1, y: 2, phi: 0, var_xy: 1, var_phi: 1}\n")
-    global_map = formats.read_global_map(io.StringIO(text))
+    global_map = mapio.read_global_map(io.StringIO(text))
     assert global_map.provenance == Provenance() and global_map.poses.tolist() == [[1.0, 2.0, 0.0]]
     assert global_map.feature_covariances is None and global_map.features.shape == (0, 2)
 
 
-def minima_columns(table: formats.MinimaTable) -> tuple[list, list, list | None]:
+def minima_columns(table: mapio.MinimaTable) -> tuple[list, list, list | None]:
     return table.a.tolist(), table.c_phi.tolist(), None if table.join is None else table.join.tolist()
 
 
@@ -456,14 +456,14 @@ def test_minima_table_without_a_join_column(tmp_path, name, text):
     path = tmp_path / name
     path.write_text(text)
     for source in (path, io.StringIO(text)):
-        assert minima_columns(formats.read_minima_table(source)) == ([5.0, 0.5], [2.5, 1.0], None)
+        assert minima_columns(mapio.read_minima_table(source)) == ([5.0, 0.5], [2.5, 1.0], None)
 
 
 @pytest.mark.parametrize("text", ["c_phi,join,a\n2.5,7,5\n1,9,0.5\n",
                                   "- {join: 7, a: 5, c_phi: 2.5}\n- {join: 9, a: 0.5, c_phi: 1}\n"])
 def test_minima_table_with_a_join_column_from_stdin(text, monkeypatch):
     monkeypatch.setattr("sys.stdin", io.StringIO(text))
-    table = formats.read_minima_table("-")
+    table = mapio.read_minima_table("-")
     assert table.source == "<stdin>" and minima_columns(table) == ([5.0, 0.5], [2.5, 1.0], [7, 9])
 
 
@@ -483,20 +483,20 @@ def test_minima_table_errors_name_the_file_line_and_column(tmp_path, name, text,
     path = tmp_path / name
     path.write_text(text)
     with pytest.raises(InputError, match=re.escape(os.path.join(tmp_path, message))):
-        formats.read_minima_table(path)
+        mapio.read_minima_table(path)
 
 
 def test_truth_of_a_simulate_folder_and_of_a_folder_without_truth(tmp_path, monkeypatch):
     for name, fmt in (("truth.yml", "yaml"), ("truth.csv", "csv")):
         folder = tmp_path / name.replace(".", "_")
         folder.mkdir()
-        formats.write_truth(EXAMPLE_TRUTH, folder / name, fmt)
-        assert_same(formats.read_truth(folder), EXAMPLE_TRUTH, skip=("name",))
-        assert formats.read_truth(str(folder)).name == str(folder / name)
-    monkeypatch.setattr("sys.stdin", io.StringIO(written(formats.write_truth, EXAMPLE_TRUTH, "yaml")))
-    assert_same(formats.read_truth("-"), EXAMPLE_TRUTH, skip=("name",))
+        mapio.write_truth(EXAMPLE_TRUTH, folder / name, fmt)
+        assert_same(mapio.read_truth(folder), EXAMPLE_TRUTH, skip=("name",))
+        assert mapio.read_truth(str(folder)).name == str(folder / name)
+    monkeypatch.setattr("sys.stdin", io.StringIO(written(mapio.write_truth, EXAMPLE_TRUTH, "yaml")))
+    assert_same(mapio.read_truth("-"), EXAMPLE_TRUTH, skip=("name",))
     with pytest.raises(InputError, match=re.escape(f"{tmp_path}: holds no ground truth; expected truth.yaml")):
-        formats.read_truth(tmp_path)
+        mapio.read_truth(tmp_path)
 
 
 # ---------------------------------------------------------------------------------------
@@ -506,8 +506,8 @@ def test_truth_of_a_simulate_folder_and_of_a_folder_without_truth(tmp_path, monk
 @pytest.mark.parametrize("name, expected", [
     ("maps/a.yaml", "yaml"), ("A.YML", "yaml"), ("x.csv", "csv"), ("localmap_3.mat", "mat"), ("r.json", "json")])
 def test_detect_format(name, expected):
-    assert formats.detect_format(name) == expected
-    assert formats.detect_format(name, "csv") == "csv"
+    assert mapio.detect_format(name) == expected
+    assert mapio.detect_format(name, "csv") == "csv"
 
 
 @pytest.mark.parametrize("name, explicit, message", [
@@ -518,7 +518,7 @@ def test_detect_format(name, expected):
 ], ids=["unknown-extension", "no-extension", "stdin", "unknown-explicit"])
 def test_detect_format_errors(name, explicit, message):
     with pytest.raises(InputError, match=re.escape(message)):
-        formats.detect_format(name, explicit)
+        mapio.detect_format(name, explicit)
 
 
 def test_folders_order_maps_by_number_and_ignore_other_files(tmp_path):
@@ -527,15 +527,15 @@ def test_folders_order_maps_by_number_and_ignore_other_files(tmp_path):
     for other in ("notes.txt", "localmap_x.yaml", "VicPark_clean_data.mat"):
         (tmp_path / other).write_text("ignored")
     (tmp_path / "localmap_5.yaml").mkdir()
-    paths = formats.resolve_inputs([str(tmp_path)])
+    paths = mapio.resolve_inputs([str(tmp_path)])
     assert [Path(path).name for path in paths] == [f"localmap_{k}.yaml" for k in (1, 2, 9, 10, 11)]
-    assert [m.end_id for m in formats.read_maps([str(tmp_path)])] == [1, 2, 9, 10, 11]
+    assert [m.end_id for m in mapio.read_maps([str(tmp_path)])] == [1, 2, 9, 10, 11]
 
 
 def test_globs_sort_naturally_and_stdin_is_kept(tmp_path):
     for name in ("m10.csv", "m9.csv", "m1.csv", "other.yaml"):
         (tmp_path / name).write_text(VALID_CSV)
-    paths = formats.resolve_inputs([str(tmp_path / "m*.csv"), "-"])
+    paths = mapio.resolve_inputs([str(tmp_path / "m*.csv"), "-"])
     assert [Path(path).name for path in paths[:-1]] == ["m1.csv", "m9.csv", "m10.csv"] and paths[-1] == "-"
 
 
@@ -543,21 +543,21 @@ def test_a_folder_with_two_files_for_one_map_is_refused(tmp_path):
     (tmp_path / "localmap_1.yaml").write_text(VALID_YAML)
     (tmp_path / "localmap_01.csv").write_text(VALID_CSV)
     with pytest.raises(InputError, match="for map 1; keep one"):
-        formats.resolve_inputs([str(tmp_path)])
+        mapio.resolve_inputs([str(tmp_path)])
 
 
 @pytest.mark.parametrize("text", [VALID_YAML, "# comment\n" + VALID_YAML, "---\n" + VALID_YAML,
                                   "%YAML 1.1\n---\n" + VALID_YAML, VALID_CSV],
                          ids=["format", "comment", "document-start", "directive", "csv"])
 def test_stdin_formats_are_sniffed(text):
-    maps = formats.read_maps(["-"], stdin=io.StringIO(text))
+    maps = mapio.read_maps(["-"], stdin=io.StringIO(text))
     assert maps[0].end_id == 1
 
 
 def test_stdin_with_mixed_inputs_and_a_format_for_what_names_do_not_tell(tmp_path):
     (tmp_path / "first.yaml").write_text(VALID_YAML)
     (tmp_path / "second.txt").write_text(VALID_CSV)
-    maps = formats.read_maps([str(tmp_path / "first.yaml"), "-", str(tmp_path / "second.txt")],
+    maps = mapio.read_maps([str(tmp_path / "first.yaml"), "-", str(tmp_path / "second.txt")],
                              stdin=io.StringIO(VALID_CSV), format="csv")
     second = tmp_path / "second.txt"
     assert [m.name for m in maps] == [str(tmp_path / "first.yaml"), "<stdin>#a", "<stdin>#b", f"{second}#a",
@@ -566,7 +566,7 @@ def test_stdin_with_mixed_inputs_and_a_format_for_what_names_do_not_tell(tmp_pat
 
 def test_stdin_is_read_once():
     with pytest.raises(InputError, match="more than once"):
-        formats.read_maps(["-", "-"], stdin=io.StringIO(VALID_CSV))
+        mapio.read_maps(["-", "-"], stdin=io.StringIO(VALID_CSV))
 
 
 # ---------------------------------------------------------------------------------------
@@ -575,7 +575,7 @@ def test_stdin_is_read_once():
 
 def test_vicpark_200_matches_the_mat_files(data_dir):
     folder = data_dir / "VicPark_200_local_maps"
-    maps = formats.read_maps([str(folder)])
+    maps = mapio.read_maps([str(folder)])
     assert len(maps) == 200
     assert [(m.start_id, m.end_id) for m in maps] == [(k - 1, k) for k in range(1, 201)]
     assert Path(maps[9].name).name == "localmap_10.mat"  # by number, not by name
@@ -597,7 +597,7 @@ def test_maps_where_the_robot_did_not_move_get_i_slsjf_stabilisation(data_dir, m
     path = data_dir / "VicPark_6898_local_maps" / f"localmap_{k}.mat"
     raw = scipy.io.loadmat(path)["localmap_P"].diagonal()
     assert (raw[:3] < 1e-6).any()
-    [local_map] = formats.read_map_file(path)
+    [local_map] = mapio.read_map_file(path)
     np.testing.assert_array_equal(local_map.covariance.diagonal(), np.r_[raw[:3] + 1e-6, raw[3:]])
     [warning] = warnings_of(mapjoin_log)
     assert str(path) in warning and "did not move" in warning and "1e-06" in warning
@@ -605,21 +605,21 @@ def test_maps_where_the_robot_did_not_move_get_i_slsjf_stabilisation(data_dir, m
 
 def test_maps_where_the_robot_moved_are_read_as_they_are(data_dir, mapjoin_log):
     path = data_dir / "VicPark_6898_local_maps" / "localmap_3717.mat"
-    [local_map] = formats.read_map_file(path)
+    [local_map] = mapio.read_map_file(path)
     np.testing.assert_array_equal(local_map.covariance.diagonal(),
                                   scipy.io.loadmat(path)["localmap_P"].diagonal())
     assert warnings_of(mapjoin_log) == []
 
 
 def test_the_whole_vicpark_6898_folder_reads(data_dir, mapjoin_log):
-    maps = formats.read_maps([str(data_dir / "VicPark_6898_local_maps")])
+    maps = mapio.read_maps([str(data_dir / "VicPark_6898_local_maps")])
     assert [m.end_id for m in maps] == list(range(1, 6899))
     warnings = warnings_of(mapjoin_log)
     assert len(warnings) == 2 and "localmap_3718.mat" in warnings[0] and "localmap_6779.mat" in warnings[1]
 
 
 def test_covariances_symmetric_up_to_rounding_are_symmetrised(data_dir):
-    maps = formats.read_maps([str(data_dir / "8240_data_50_local_maps")])
+    maps = mapio.read_maps([str(data_dir / "8240_data_50_local_maps")])
     assert len(maps) == 50
     raw = scipy.io.loadmat(maps[0].name)["localmap_P"]
     assert not np.array_equal(raw, raw.T)
@@ -631,7 +631,7 @@ def test_covariances_symmetric_up_to_rounding_are_symmetrised(data_dir):
 def test_mat_files_in_either_byte_order(tmp_path, endian):
     path = tmp_path / "localmap_2.mat"
     path.write_bytes(handmade_mat(endian, localmap_st=EXAMPLE_STATE, localmap_P=EXAMPLE_P))
-    [local_map] = formats.read_map_file(path)
+    [local_map] = mapio.read_map_file(path)
     assert (local_map.start_id, local_map.end_id) == (1, 2)
     assert same_array(local_map.features, EXAMPLE_STATE[3:, 1].reshape(-1, 2))
     assert same_array(local_map.covariance, EXAMPLE_P)
@@ -647,8 +647,8 @@ def test_mat_corruption_that_crashed_scipy_hits_a_type_code():
                                           ("DLR_200_local_maps", 1), ("8240_data_50_local_maps", 1),
                                           ("535_data_5_local_maps", 1)])
 def test_real_mat_files_read_as_scipy_reads_them(data_dir, folder, step):
-    for path in formats.resolve_inputs([str(data_dir / folder)])[::step]:
-        [local_map] = formats.read_map_file(path)
+    for path in mapio.resolve_inputs([str(data_dir / folder)])[::step]:
+        [local_map] = mapio.read_map_file(path)
         raw = scipy.io.loadmat(path)
         state, covariance = raw["localmap_st"], raw["localmap_P"]
         assert local_map.feature_ids.tolist() == state[3::2, 0].astype(int).tolist()
@@ -662,7 +662,7 @@ def test_mat_files_saved_by_scipy(tmp_path):
     for compress in (True, False):
         path = tmp_path / f"localmap_{4 + compress}.mat"
         path.write_bytes(example_mat(compress))
-        [local_map] = formats.read_map_file(path)
+        [local_map] = mapio.read_map_file(path)
         assert (local_map.start_id, local_map.end_id) == (3 + compress, 4 + compress)
         assert local_map.feature_ids.tolist() == [12, 14] and local_map.features.tolist() == [[3, 4], [5, 6]]
         np.testing.assert_allclose(local_map.feature_variances, [0.0045, 0.0065], rtol=1e-15)
@@ -675,15 +675,15 @@ FOLDER = object()  # content marker: make an (empty) folder
 
 
 def read_one(path: str) -> Any:
-    return formats.read_map_file(path)
+    return mapio.read_map_file(path)
 
 
 def read_all(path: str) -> Any:
-    return formats.read_maps([path])
+    return mapio.read_maps([path])
 
 
 def writes_over_input(path: str) -> None:
-    formats.check_not_overwriting([path], [os.path.join(os.path.dirname(path), ".", os.path.basename(path))])
+    mapio.check_not_overwriting([path], [os.path.join(os.path.dirname(path), ".", os.path.basename(path))])
 
 
 def covariance_yaml(matrix: str) -> str:
@@ -788,7 +788,7 @@ BAD_INPUTS = [
     pytest.param("missing*.yaml", None, read_all, ["no file matches"], id="glob-without-matches"),
     pytest.param("maps.txt", VALID_CSV, read_one, ["cannot tell the format from the extension '.txt'"],
                  id="unknown-extension"),
-    pytest.param("maps.yaml", VALID_YAML, lambda path: formats.read_global_map(path),
+    pytest.param("maps.yaml", VALID_YAML, lambda path: mapio.read_global_map(path),
                  ["line 1, field format: expected mapjoin/global-map"], id="local-map-as-global-map"),
     pytest.param("localmap_1.yaml", VALID_YAML, writes_over_input, ["is the input file", "choose another output"],
                  id="output-is-input"),
@@ -814,13 +814,13 @@ def test_bad_input_raises_a_clear_input_error(tmp_path, name, content, action, f
 
 def test_unknown_stdin_format_asks_for_format():
     with pytest.raises(InputError, match=re.escape("<stdin>: cannot tell the format")) as raised:
-        formats.read_maps(["-"], stdin=io.StringIO("hello\n"))
-    assert "pass --format" in str(raised.value)
+        mapio.read_maps(["-"], stdin=io.StringIO("hello\n"))
+    assert "give its format" in str(raised.value)
 
 
 def test_mat_cannot_come_from_a_text_stream():
     with pytest.raises(InputError, match="cannot be read from a text stream"):
-        formats.read_map_file(io.StringIO("x"), "mat")
+        mapio.read_map_file(io.StringIO("x"), "mat")
 
 
 def test_outputs_that_are_links_to_inputs_are_refused(tmp_path):
@@ -830,8 +830,8 @@ def test_outputs_that_are_links_to_inputs_are_refused(tmp_path):
     os.link(source, tmp_path / "hard.yaml")
     for output in ("soft.yaml", "hard.yaml"):
         with pytest.raises(InputError, match="is the input file"):
-            formats.check_not_overwriting([str(source)], [str(tmp_path / output)])
-    formats.check_not_overwriting([str(source), "-"], [str(tmp_path / "new.csv"), "-"])
+            mapio.check_not_overwriting([str(source)], [str(tmp_path / output)])
+    mapio.check_not_overwriting([str(source), "-"], [str(tmp_path / "new.csv"), "-"])
 
 
 def test_outputs_reached_through_a_linked_folder_are_refused_whether_or_not_they_exist(tmp_path):
@@ -841,25 +841,25 @@ def test_outputs_reached_through_a_linked_folder_are_refused_whether_or_not_they
     (tmp_path / "alias").symlink_to(folder)
     for name in ("localmap_1.yaml", "not_yet.csv"):  # the same file, or the same path once links are resolved
         with pytest.raises(InputError, match=f"alias/{name}: is the input file .*maps/{name}"):
-            formats.check_not_overwriting([str(folder / "missing.yaml"), str(folder / name)],
+            mapio.check_not_overwriting([str(folder / "missing.yaml"), str(folder / name)],
                                           [str(tmp_path / "alias" / name)])
-    formats.check_not_overwriting([str(folder / "localmap_1.yaml")], [str(tmp_path / "alias" / "not_yet.csv")])
+    mapio.check_not_overwriting([str(folder / "localmap_1.yaml")], [str(tmp_path / "alias" / "not_yet.csv")])
 
 
 # ---------------------------------------------------------------------------------------
 # Garbage: reading raises InputError or succeeds, never anything else
 
 TEXT_READERS = [
-    *(lambda text, fmt=fmt: formats.read_map_file(io.StringIO(text), fmt) for fmt in ("yaml", "csv", None)),
-    *(lambda text, fmt=fmt: formats.read_global_map(io.StringIO(text), fmt) for fmt in ("yaml", "csv")),
-    *(lambda text, fmt=fmt: formats.read_truth(io.StringIO(text), fmt) for fmt in ("yaml", "csv")),
-    lambda text: formats.read_minima_table(io.StringIO(text)),
+    *(lambda text, fmt=fmt: mapio.read_map_file(io.StringIO(text), fmt) for fmt in ("yaml", "csv", None)),
+    *(lambda text, fmt=fmt: mapio.read_global_map(io.StringIO(text), fmt) for fmt in ("yaml", "csv")),
+    *(lambda text, fmt=fmt: mapio.read_truth(io.StringIO(text), fmt) for fmt in ("yaml", "csv")),
+    lambda text: mapio.read_minima_table(io.StringIO(text)),
 ]
 VALID_TEXTS = [
     VALID_YAML, VALID_CSV, covariance_yaml("[[1, 0, 0], [0, 1, 0], [0, 0, 1]]"),
-    written(formats.write_global_map, EXAMPLE_GLOBAL, "yaml"),
-    written(formats.write_global_map, EXAMPLE_GLOBAL, "csv"),
-    written(formats.write_truth, EXAMPLE_TRUTH, "yaml"), written(formats.write_truth, EXAMPLE_TRUTH, "csv"),
+    written(mapio.write_global_map, EXAMPLE_GLOBAL, "yaml"),
+    written(mapio.write_global_map, EXAMPLE_GLOBAL, "csv"),
+    written(mapio.write_truth, EXAMPLE_TRUTH, "yaml"), written(mapio.write_truth, EXAMPLE_TRUTH, "csv"),
     "a,c_phi\n5,2.5\n",
 ]
 NASTY_TOKENS = ["", "nan", ".inf", "-1", "0", "1e999", "99999999999999999999999", "true", "null", "~", "[", "]",
@@ -920,7 +920,7 @@ def test_garbage_mat_files_only_raise_input_error(scratch, data):
     path = scratch / "localmap_1.mat"
     path.write_bytes(data)
     try:
-        formats.read_map_file(path)
+        mapio.read_map_file(path)
     except InputError as error:
         assert str(path) in str(error)
 
@@ -930,7 +930,7 @@ def test_garbage_mat_files_only_raise_input_error(scratch, data):
 
 
 def test_atomic_write_writes_exactly_and_leaves_no_temporary_file(tmp_path):
-    formats.atomic_write(tmp_path / "out.csv", "a,b\r\n1,2\n")
+    mapio.atomic_write(tmp_path / "out.csv", "a,b\r\n1,2\n")
     assert (tmp_path / "out.csv").read_bytes() == b"a,b\r\n1,2\n"
     assert os.listdir(tmp_path) == ["out.csv"]
 
@@ -939,17 +939,17 @@ def test_a_failed_atomic_write_keeps_the_old_file(tmp_path, monkeypatch):
     path = tmp_path / "out.yaml"
     path.write_text("old")
     with pytest.raises(UnicodeEncodeError):
-        formats.atomic_write(path, "new \ud800")
+        mapio.atomic_write(path, "new \ud800")
     def refuse(*args):
         raise PermissionError(13, "Permission denied")
 
     monkeypatch.setattr(os, "replace", refuse)
     with pytest.raises(InputError, match=re.escape(f"{path}: cannot write (Permission denied)")):
-        formats.atomic_write(path, "new")
+        mapio.atomic_write(path, "new")
     assert path.read_text() == "old"
     assert os.listdir(tmp_path) == ["out.yaml"]
 
 
 def test_atomic_write_into_a_missing_folder_names_the_file(tmp_path):
     with pytest.raises(InputError, match=re.escape(str(tmp_path / "no" / "out.csv"))):
-        formats.write_global_map(EXAMPLE_GLOBAL, tmp_path / "no" / "out.csv")
+        mapio.write_global_map(EXAMPLE_GLOBAL, tmp_path / "no" / "out.csv")

@@ -154,7 +154,7 @@ def test_first_vicpark_join_with_identity_covariances_matches_the_dense_formulas
     from scipy.io import loadmat
     from theorem_oracles import Dense
 
-    from mapjoin import formats
+    from mapjoin import io as mapio
     from mapjoin.onestep import OneStepProblem
 
     folder = data_dir / "VicPark_200_local_maps"
@@ -170,7 +170,7 @@ def test_first_vicpark_join_with_identity_covariances_matches_the_dense_formulas
     _, a0, phi0 = dense.constants()
     expected_c = (first[2, 1] - phi0 + np.pi) % (2 * np.pi) - np.pi
 
-    maps = formats.read_maps([str(folder / "localmap_1.mat"), str(folder / "localmap_2.mat")])
+    maps = mapio.read_maps([str(folder / "localmap_1.mat"), str(folder / "localmap_2.mat")])
     record = join_sequential(maps, "identity").report[0]
     assert record.common == len(common)
     assert record.a == pytest.approx(a0 * 1.0, rel=1e-12)
@@ -182,13 +182,13 @@ def test_default_join_is_close_to_the_exact_join_on_vicpark(data_dir):
     0.5281 m in y and 0.0080 rad in phi (README, 'Covariance modes'); x measured at 0.50 m."""
     from oracles import exact_join
 
-    from mapjoin import formats
+    from mapjoin import io as mapio
     from mapjoin.evaluate import compare
 
     folder = data_dir / "VicPark_200_local_maps"
     exact = exact_join(str(folder))
     assert exact.cost == pytest.approx(3643.435, abs=5e-4)
-    fast = join_sequential(formats.read_maps([str(folder)])).global_map
+    fast = join_sequential(mapio.read_maps([str(folder)])).global_map
     reference = type(fast)(exact.feature_ids, exact.features, np.ones(len(exact.feature_ids)),
                            exact.pose_ids, exact.poses, np.ones((len(exact.pose_ids), 2)))
     difference = compare(reference, fast)
@@ -197,7 +197,7 @@ def test_default_join_is_close_to_the_exact_join_on_vicpark(data_dir):
     assert difference.mean_abs_y < 0.5281
     assert difference.mean_abs_phi < 0.0080
     # the tree leaves more uncorrected (README, "Strategies"): measured 0.819 m, 0.476 m, 0.0083 rad
-    tree = compare(reference, join_tree(formats.read_maps([str(folder)])).global_map)
+    tree = compare(reference, join_tree(mapio.read_maps([str(folder)])).global_map)
     assert tree.mean_abs_x < 0.85 and tree.mean_abs_y < 0.5 and tree.mean_abs_phi < 0.0085
 
 

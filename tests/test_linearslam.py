@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.errors import InputError
 from mapjoin.maps import GlobalMap, LocalMap
 
@@ -50,8 +50,8 @@ def relative_error(actual: np.ndarray, expected: np.ndarray) -> float:
 
 
 def test_linearslam_folder_reads_to_the_mat_folder_up_to_the_inversion(data_dir):
-    txt = formats.read_maps([str(data_dir / TXT_8240)])
-    mat = formats.read_maps([str(data_dir / MAT_8240)])
+    txt = mapio.read_maps([str(data_dir / TXT_8240)])
+    mat = mapio.read_maps([str(data_dir / MAT_8240)])
     assert [m.end_id for m in txt] == [m.end_id for m in mat] == list(range(1, 51))
     for a, b in zip(txt, mat):
         assert (a.start_id, a.end_id) == (b.start_id, b.end_id)
@@ -73,7 +73,7 @@ def test_joining_the_linearslam_folder_equals_joining_the_mat_folder(data_dir, t
         result = run("join", str(data_dir / folder), "-o", str(tmp_path / f"{name}.csv"))
         assert result.exit_code == 0, result.output
         assert "joined 50 maps: 612 features, 50 poses" in result.stderr
-    a, b = (formats.read_global_map(tmp_path / f"{name}.csv") for name in ("txt", "mat"))
+    a, b = (mapio.read_global_map(tmp_path / f"{name}.csv") for name in ("txt", "mat"))
     assert np.array_equal(a.feature_ids, b.feature_ids) and np.array_equal(a.pose_ids, b.pose_ids)
     assert np.abs(a.features - b.features).max() < 1e-9 and np.abs(a.poses - b.poses).max() < 1e-9
 
@@ -110,7 +110,7 @@ def test_linearslam_to_mat_gives_the_i_slsjf_files(data_dir, tmp_path):
 
 FINITE = st.floats(-1e12, 1e12, allow_nan=False)
 VARIANCES = st.floats(1e-8, 1e8)
-POSE_VARIANCES = st.floats(formats.STAB_NOISE, 1e8)  # below, reading a .mat adds STAB_NOISE (I-SLSJF's rule)
+POSE_VARIANCES = st.floats(mapio.STAB_NOISE, 1e8)  # below, reading a .mat adds STAB_NOISE (I-SLSJF's rule)
 
 
 @st.composite
@@ -127,7 +127,7 @@ def chain_maps(draw) -> LocalMap:
         rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
         root = rng.normal(size=(size, size)) * draw(st.sampled_from([1e-2, 1.0, 1e3]))
         covariance = root @ root.T + np.diag(rng.uniform(1e-4, 1.0, size)) * np.trace(root @ root.T) / size
-        covariance[:3, :3] += np.eye(3) * formats.STAB_NOISE
+        covariance[:3, :3] += np.eye(3) * mapio.STAB_NOISE
         return LocalMap.from_covariance("m", end - 1, end, pose, ids, features, (covariance + covariance.T) / 2)
     return LocalMap("m", end - 1, end, pose, ids, features, draw(hnp.arrays(np.float64, (m,), elements=VARIANCES)),
                     draw(hnp.arrays(np.float64, (2,), elements=POSE_VARIANCES)))
@@ -135,8 +135,8 @@ def chain_maps(draw) -> LocalMap:
 
 def through(local_map: LocalMap, fmt: str, folder: Path) -> LocalMap:
     """``local_map`` written as ``fmt`` into ``folder`` and read back."""
-    [path] = formats.write_maps([local_map], f"{folder}/{fmt}/", fmt)
-    [back] = formats.read_maps([path])
+    [path] = mapio.write_maps([local_map], f"{folder}/{fmt}/", fmt)
+    [back] = mapio.read_maps([path])
     return back
 
 
@@ -148,7 +148,7 @@ def test_every_pair_of_formats_round_trips(local_map):
     expected = full_covariance(local_map)
     tolerance = 50 * np.linalg.cond(expected) * EPS
     with tempfile.TemporaryDirectory() as scratch:
-        for first, second in itertools.product(formats.MAP_FORMATS, repeat=2):
+        for first, second in itertools.product(mapio.MAP_FORMATS, repeat=2):
             pair = Path(scratch) / f"{first}-{second}"
             back = through(through(local_map, first, pair), second, pair)
             assert (back.start_id, back.end_id) == (local_map.start_id, local_map.end_id), (first, second)
@@ -168,7 +168,7 @@ def test_every_pair_of_formats_round_trips(local_map):
 @given(chain_maps())
 def test_mat_files_written_are_what_scipy_reads(local_map):
     with tempfile.TemporaryDirectory() as scratch:
-        [path] = formats.write_maps([local_map], f"{scratch}/", "mat")
+        [path] = mapio.write_maps([local_map], f"{scratch}/", "mat")
         assert Path(path).name == f"localmap_{local_map.end_id}.mat"
         variables = scipy.io.loadmat(path)
     expected_state = np.column_stack([np.concatenate([[0, 0, 0], np.repeat(local_map.feature_ids, 2)]),
@@ -181,7 +181,7 @@ def test_mat_files_written_are_what_scipy_reads(local_map):
 @given(chain_maps())
 def test_linearslam_text_written_is_what_an_independent_reader_sees(local_map):
     stream = io.StringIO()
-    formats.write_maps([local_map], stream, "linearslam")
+    mapio.write_maps([local_map], stream, "linearslam")
     with tempfile.TemporaryDirectory() as scratch:
         path = Path(scratch) / "localmap_1.txt"
         path.write_text(stream.getvalue())
@@ -200,8 +200,8 @@ def test_rows_in_another_order_read_to_the_same_map():
     lines = ordered.splitlines()
     shuffled = "\n".join(lines[:2] + [lines[2 + i] for i in order]
                          + [matrix_text(EXAMPLE_INFORMATION[np.ix_(order, order)]).rstrip("\n")]) + "\n"
-    [a] = formats.read_map_file(io.StringIO(ordered), "linearslam")
-    [b] = formats.read_map_file(io.StringIO(shuffled), "linearslam")
+    [a] = mapio.read_map_file(io.StringIO(ordered), "linearslam")
+    [b] = mapio.read_map_file(io.StringIO(shuffled), "linearslam")
     assert np.array_equal(a.end_pose, b.end_pose) and np.array_equal(a.features, b.features)
     assert np.allclose(a.covariance, b.covariance, rtol=1e-14, atol=0)
     assert np.allclose(a.covariance @ EXAMPLE_INFORMATION, np.eye(5), atol=1e-14)
@@ -209,7 +209,7 @@ def test_rows_in_another_order_read_to_the_same_map():
 
 def test_a_map_without_features_reads():
     text = "0\n3\n-1 0.00088\n-1 -0.15647\n-1 0.01153\n" + matrix_text(EXAMPLE_INFORMATION[:3, :3])
-    [local_map] = formats.read_map_file(io.StringIO(text), "linearslam")
+    [local_map] = mapio.read_map_file(io.StringIO(text), "linearslam")
     assert local_map.size == 0 and local_map.end_id == 1
     assert np.allclose(local_map.covariance, np.linalg.inv(EXAMPLE_INFORMATION[:3, :3]), rtol=1e-14)
 
@@ -219,17 +219,17 @@ def test_a_map_without_features_reads():
 
 
 def test_localmap_txt_files_are_linearslam_and_other_txt_files_are_not():
-    assert formats.detect_format("maps/localmap_12.txt") == "linearslam"
-    assert formats.detect_format("global.g2o") == "g2o"
+    assert mapio.detect_format("maps/localmap_12.txt") == "linearslam"
+    assert mapio.detect_format("global.g2o") == "g2o"
     with pytest.raises(InputError, match=re.escape("notes.txt: cannot tell the format from the extension '.txt'")):
-        formats.detect_format("notes.txt")
+        mapio.detect_format("notes.txt")
 
 
 def test_folders_of_linearslam_files_are_read_in_map_order(tmp_path):
     for k in (10, 2, 1):
         (tmp_path / f"localmap_{k}.txt").write_text(example_text(start=k - 1, end=k))
     (tmp_path / "notes.txt").write_text("not a map")
-    assert [m.end_id for m in formats.read_maps([str(tmp_path)])] == [1, 2, 10]
+    assert [m.end_id for m in mapio.read_maps([str(tmp_path)])] == [1, 2, 10]
 
 
 def test_linearslam_text_on_stdin_is_recognised():
@@ -304,7 +304,7 @@ def test_bad_linearslam_input_names_the_file_and_line(tmp_path, text, message):
     path = tmp_path / "localmap_3.txt"
     path.write_text(text)
     with pytest.raises(InputError) as raised:
-        formats.read_maps([str(path)])
+        mapio.read_maps([str(path)])
     assert str(raised.value).startswith(f"{path}, {message}")
 
 
@@ -340,7 +340,7 @@ MAP = LocalMap("m", 4, 5, [1.0, 2.0, 0.1], [3], [[4.0, 5.0]], [0.2], [0.1, 0.01]
 def test_maps_a_format_cannot_hold_are_refused(tmp_path, monkeypatch, maps, target, fmt, message):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(InputError) as raised:
-        formats.write_maps(maps, target, fmt)
+        mapio.write_maps(maps, target, fmt)
     assert str(raised.value).startswith(message)
     assert list(tmp_path.iterdir()) == []
 
@@ -348,7 +348,7 @@ def test_maps_a_format_cannot_hold_are_refused(tmp_path, monkeypatch, maps, targ
 def test_writing_feature_id_0_as_linearslam_warns(caplog):
     local_map = LocalMap("m", 0, 1, [0.0] * 3, [0], [[1.0, 2.0]], [1.0], [1.0, 1.0])
     with caplog.at_level(logging.WARNING, logger="mapjoin"):
-        [back] = formats.read_map_file(io.StringIO(formats_text(local_map)), "linearslam")
+        [back] = mapio.read_map_file(io.StringIO(formats_text(local_map)), "linearslam")
     assert "feature id 0 written as Linear SLAM text" in caplog.text
     assert back.feature_ids.tolist() == [0]
 
@@ -356,15 +356,15 @@ def test_writing_feature_id_0_as_linearslam_warns(caplog):
 def test_writing_a_mat_file_a_reader_will_stabilise_warns(tmp_path, caplog):
     still = LocalMap("m", 0, 1, [0.0] * 3, [], np.zeros((0, 2)), [], [1e-8, 1e-8])
     with caplog.at_level(logging.WARNING, logger="mapjoin"):
-        [path] = formats.write_maps([still], f"{tmp_path}/", "mat")
-        [back] = formats.read_maps([path])
+        [path] = mapio.write_maps([still], f"{tmp_path}/", "mat")
+        [back] = mapio.read_maps([path])
     assert "reading the .mat file back adds 1e-06 to the pose diagonal" in caplog.text
     assert np.array_equal(np.diagonal(back.covariance), [1e-8 + 1e-6] * 2 + [1e-8 + 1e-6])
 
 
 def formats_text(local_map: LocalMap) -> str:
     stream = io.StringIO()
-    formats.write_maps([local_map], stream, "linearslam")
+    mapio.write_maps([local_map], stream, "linearslam")
     return stream.getvalue()
 
 
@@ -372,7 +372,7 @@ def test_convert_writes_a_single_map_file_named_for_mat(tmp_path):
     (tmp_path / "localmap_3.txt").write_text(example_text())
     result = run("convert", str(tmp_path / "localmap_3.txt"), "-o", str(tmp_path / "localmap_3.mat"))
     assert result.exit_code == 0, result.output
-    [back] = formats.read_maps([str(tmp_path / "localmap_3.mat")])
+    [back] = mapio.read_maps([str(tmp_path / "localmap_3.mat")])
     assert (back.start_id, back.end_id) == (2, 3)
     result = run("convert", str(tmp_path / "localmap_3.txt"), "-o", str(tmp_path / "map.mat"))
     assert result.exit_code == 1 and "name this one localmap_3.mat" in result.stderr
@@ -416,7 +416,7 @@ def global_maps(draw) -> GlobalMap:
 @given(global_maps())
 def test_g2o_export_is_a_valid_vertex_file_with_the_stated_ids(global_map):
     stream = io.StringIO()
-    formats.write_global_map(global_map, stream, "g2o")
+    mapio.write_global_map(global_map, stream, "g2o")
     poses, points, comments = parse_g2o(stream.getvalue())
     offset = int(re.search(r"VERTEX_XY <feature id \+ ([0-9]+)>", comments[0])[1])
     assert offset > max(global_map.pose_ids.tolist(), default=0) and str(offset).strip("0") == "1"
@@ -436,9 +436,9 @@ def test_g2o_ids_beyond_32_bits_are_refused():
     global_map = GlobalMap(np.array([2**31]), np.zeros((1, 2)), np.ones(1), np.array([1]), np.zeros((1, 3)),
                            np.ones((1, 2)))
     with pytest.raises(InputError, match="vertex id 2147483658 does not fit g2o's 32-bit ids"):
-        formats.write_global_map(global_map, io.StringIO(), "g2o")
+        mapio.write_global_map(global_map, io.StringIO(), "g2o")
 
 
 def test_g2o_is_write_only():
     with pytest.raises(InputError, match="cannot read a global map as g2o; expected one of csv, yaml"):
-        formats.read_global_map(io.StringIO("VERTEX_SE2 1 0 0 0\n"), "g2o")
+        mapio.read_global_map(io.StringIO("VERTEX_SE2 1 0 0 0\n"), "g2o")

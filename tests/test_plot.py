@@ -28,7 +28,7 @@ from hypothesis import strategies as st
 from matplotlib.path import Path as Polygon
 from theorem_oracles import Dense, brute_count
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin import plot as figures
 from mapjoin.cli import main
 from mapjoin.joining import join_sequential
@@ -90,8 +90,8 @@ def test_every_command_writes_a_valid_figure_of_each_format(extension, joined, s
 
 
 def test_map_figure_draws_every_map_truth_and_the_covariances_it_has(joined, simulated_folder):
-    fast, exact = (formats.read_global_map(joined[k]) for k in ("fast", "exact"))
-    truth = formats.read_truth(os.path.join(simulated_folder, "truth.yaml"))
+    fast, exact = (mapio.read_global_map(joined[k]) for k in ("fast", "exact"))
+    truth = mapio.read_truth(os.path.join(simulated_folder, "truth.yaml"))
     figure = figures.map_figure([fast, exact], ["fast", "exact"], truth, ellipses=True)
     drawn = artists(figure, "features")
     assert [len(d.get_offsets()) for d in drawn] == [len(fast.feature_ids), len(exact.feature_ids)]
@@ -142,7 +142,7 @@ def test_shell_pipelines_into_the_plot_commands(tmp_path):
 @functools.cache
 def drawn_region() -> list[Polygon]:
     """The two-minima polygons as drawn by plot-minima's figure (a up to 1e3)."""
-    points = formats.MinimaTable("test", np.array([0.5, 400.0]), np.array([0.0, 3.0]))
+    points = mapio.MinimaTable("test", np.array([0.5, 400.0]), np.array([0.0, 3.0]))
     figure = figures.minima_figure(points)
     polygons = artists(figure, "two-minima")
     assert len(polygons) == 2 and figure.axes[0].get_ylim()[1] == 1000
@@ -199,7 +199,7 @@ def test_report_points_are_every_join_and_two_minima_are_highlighted(tmp_path):
     joins = tmp_path / "joins.yaml"
     joins.write_text("- {join: 7, a: 5.0, c_phi: 2.5}\n- {join: 9, a: 203570, c_phi: -0.0028}\n"
                      "- {join: 12, a: 0.0, c_phi: 1.0}\n")
-    points = formats.read_minima_table(str(joins))
+    points = mapio.read_minima_table(str(joins))
     figure = figures.minima_figure(points)
     two, one = artists(figure, "minima-2")[0].get_offsets(), artists(figure, "minima-1")[0].get_offsets()
     np.testing.assert_array_equal(two, [[2.5, 5.0]])                 # 5 sin 2.5 = 2.99 < pi: two minima
@@ -209,19 +209,19 @@ def test_report_points_are_every_join_and_two_minima_are_highlighted(tmp_path):
 
 
 def test_a_batch_without_join_column_has_its_problems_numbered_by_row():
-    figure = figures.minima_figure(formats.MinimaTable("batch.csv", np.array([0.5, 5.0]), np.array([1.0, 2.5])))
+    figure = figures.minima_figure(mapio.MinimaTable("batch.csv", np.array([0.5, 5.0]), np.array([1.0, 2.5])))
     assert [t.get_text() for t in figure.axes[0].texts if t.get_text().isdigit()] == ["2"]   # row 2: two minima
     assert figure.axes[0].get_title() == "batch.csv: 2 problems, 1 with two minima"
 
 
 def test_a_report_reads_the_same_in_every_format_and_from_stdin(simulated_folder, tmp_path, monkeypatch):
-    report = join_sequential(formats.read_maps([simulated_folder])).report
+    report = join_sequential(mapio.read_maps([simulated_folder])).report
     for extension in ("csv", "yaml", "json"):
         target = tmp_path / f"joins.{extension}"
-        formats.write_table(report, target)
+        mapio.write_table(report, target)
         for source in (str(target), "-"):
             monkeypatch.setattr(sys, "stdin", io.StringIO(target.read_text()))
-            points = formats.read_minima_table(source)
+            points = mapio.read_minima_table(source)
             assert points.source == ("<stdin>" if source == "-" else str(target))
             np.testing.assert_array_equal(points.join, [r.join for r in report])
             np.testing.assert_array_equal(points.a, [r.a for r in report])
@@ -241,11 +241,11 @@ def curve_minima(figure) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("case", ["two-minima", "vicpark-42", "sim535-3"])
 def test_marked_minima_are_the_minima_of_the_plotted_curve(case, data_dir):
     if case == "two-minima":
-        maps, join = formats.read_maps(TWO_MINIMA), 1
+        maps, join = mapio.read_maps(TWO_MINIMA), 1
     elif case == "vicpark-42":
-        maps, join = formats.read_maps([str(data_dir / "VicPark_200_local_maps")])[:44], 42
+        maps, join = mapio.read_maps([str(data_dir / "VicPark_200_local_maps")])[:44], 42
     else:
-        maps, join = formats.read_maps([str(data_dir / "535_data_5_local_maps")]), 3
+        maps, join = mapio.read_maps([str(data_dir / "535_data_5_local_maps")]), 3
     problem = figures.join_problem(maps, join, "information")
     curve = figures.join_curve(problem)
     figure = figures.join_figure(curve, case)
@@ -268,7 +268,7 @@ def test_marked_minima_are_the_minima_of_the_plotted_curve(case, data_dir):
 
 
 def test_join_problem_is_the_problem_join_sequential_solved(simulated_folder):
-    maps = formats.read_maps([simulated_folder])
+    maps = mapio.read_maps([simulated_folder])
     report = join_sequential(maps).report
     for record in report:
         curve = figures.join_curve(figures.join_problem(maps, record.join, "information"))

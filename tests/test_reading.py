@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_formats import assert_same, mapjoin_log, mat_bytes, scratch, warnings_of  # noqa: F401  (fixtures)
 
-from mapjoin import formats
+from mapjoin import io as mapio
 from mapjoin.errors import InputError
 from mapjoin.maps import LocalMap, StackedMaps
 
@@ -28,15 +28,15 @@ from mapjoin.maps import LocalMap, StackedMaps
 def test_a_folder_reads_as_its_files_one_by_one(data_dir, mapjoin_log, folder, step):
     """Every map of VicPark 200; of VicPark 6898 every ninth and the two that I-SLSJF stabilises (a
     file read alone costs some 50 times more than one of a folder; the next test compares all)."""
-    paths = formats.resolve_inputs([str(data_dir / folder)])
-    together = formats.read_maps([str(data_dir / folder)])
+    paths = mapio.resolve_inputs([str(data_dir / folder)])
+    together = mapio.read_maps([str(data_dir / folder)])
     assert [local_map.name for local_map in together] == paths
     warned_together = warnings_of(mapjoin_log)
     mapjoin_log.clear()
     chosen = sorted({*range(0, len(paths), step), *(i for i, path in enumerate(paths)
                                                        if any(path in warning for warning in warned_together))})
     for i in chosen:
-        [alone] = formats.read_map_file(paths[i])
+        [alone] = mapio.read_map_file(paths[i])
         assert_same(together[i], alone)
     assert warnings_of(mapjoin_log) == warned_together
 
@@ -45,8 +45,8 @@ def test_a_folder_reads_as_its_files_one_by_one(data_dir, mapjoin_log, folder, s
 def test_a_folder_reads_as_scipy_and_the_checking_constructor_make_its_maps(data_dir, folder):
     """An independent oracle: scipy's parser, I-SLSJF's stabilisation as documented, and
     ``LocalMap.from_covariance``, which checks each map on its own; equal bit for bit."""
-    for local_map, path in zip(formats.read_maps([str(data_dir / folder)]),
-                               formats.resolve_inputs([str(data_dir / folder)]), strict=True):
+    for local_map, path in zip(mapio.read_maps([str(data_dir / folder)]),
+                               mapio.resolve_inputs([str(data_dir / folder)]), strict=True):
         raw = scipy.io.loadmat(path)
         state, covariance = raw["localmap_st"], raw["localmap_P"]
         if covariance.diagonal()[:3].min() < 1e-6:
@@ -143,9 +143,9 @@ def test_the_first_bad_file_of_a_folder_raises_what_reading_it_alone_raises(scra
         (folder / f"localmap_{k + 1}.mat").write_bytes(content)
     path = str(folder / f"localmap_{bad + 1}.mat")
     with pytest.raises(InputError) as alone:
-        formats.read_map_file(path)
+        mapio.read_map_file(path)
     with pytest.raises(InputError) as together:
-        formats.read_maps([str(folder)])
+        mapio.read_maps([str(folder)])
     assert str(together.value) == str(alone.value)
     assert str(alone.value).startswith(path) and DEFECTS[defect] in str(alone.value)
 
@@ -161,7 +161,7 @@ def test_warnings_come_for_the_maps_read_before_the_error(tmp_path, mapjoin_log)
             (folder / f"localmap_{k}.mat").write_bytes(content)
         mapjoin_log.clear()
         with pytest.raises(InputError, match="expected finite numbers"):
-            formats.read_maps([str(folder)])
+            mapio.read_maps([str(folder)])
         assert len(warnings_of(mapjoin_log)) == warned
 
 
@@ -169,19 +169,19 @@ def test_an_unreadable_file_comes_after_the_errors_of_the_files_before_it(tmp_pa
     good = mat_bytes(True, localmap_st=np.array([[0, 1.0], [0, 2.0], [0, 0.1]]), localmap_P=np.eye(3))
     for k in (1, 2):
         (tmp_path / f"localmap_{k}.mat").write_bytes(good)
-    read_bytes = formats._read_bytes
+    read_bytes = mapio.paths._read_bytes
 
     def refuse_the_second(path: str) -> bytes:
         if path.endswith("localmap_2.mat"):
             raise PermissionError(13, "Permission denied")
         return read_bytes(path)
 
-    monkeypatch.setattr(formats, "_read_bytes", refuse_the_second)
+    monkeypatch.setattr(mapio.paths, "_read_bytes", refuse_the_second)
     with pytest.raises(InputError, match="localmap_2.mat: cannot read \\(Permission denied\\)"):
-        formats.read_maps([str(tmp_path)])
+        mapio.read_maps([str(tmp_path)])
     (tmp_path / "localmap_1.mat").write_bytes(good[:-9])
     with pytest.raises(InputError, match="localmap_1.mat: truncated"):
-        formats.read_maps([str(tmp_path)])
+        mapio.read_maps([str(tmp_path)])
 
 
 # ---------------------------------------------------------------------------------------

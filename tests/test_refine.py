@@ -23,7 +23,8 @@ from hypothesis import strategies as st
 from scipy.optimize import least_squares
 from scipy.sparse.linalg import splu, spsolve
 
-from mapjoin import GlobalMap, JoinError, LocalMap, formats
+from mapjoin import GlobalMap, JoinError, LocalMap
+from mapjoin import io as mapio
 from mapjoin.cli import main
 from mapjoin.joining import join_sequential
 from mapjoin.refine import (
@@ -55,7 +56,7 @@ def real(data_dir):
 
     def load(name: str) -> list[LocalMap]:
         if name not in cache:
-            cache[name] = formats.read_maps([str(data_dir / name)])
+            cache[name] = mapio.read_maps([str(data_dir / name)])
         return cache[name]
 
     return load
@@ -516,8 +517,8 @@ def test_cli_writes_the_exact_map_with_covariances(simulated_folder, tmp_path):
     assert all(r["cov_xx"] for r in table) and all(r["cov_phiphi"] for r in table if r["kind"] == "pose")
     assert "iteration 0: chi^2 = " in result.stderr and "iteration 1: chi^2 = " in result.stderr
     assert "refined 12 maps:" in result.stderr and " iterations, chi^2 " in result.stderr
-    written = formats.read_global_map(tmp_path / "g.csv")
-    expected = refine(formats.read_maps([simulated_folder]))
+    written = mapio.read_global_map(tmp_path / "g.csv")
+    expected = refine(mapio.read_maps([simulated_folder]))
     np.testing.assert_array_equal(written.features, expected.global_map.features)
     np.testing.assert_array_equal(written.pose_covariances, expected.global_map.pose_covariances)
 
@@ -573,7 +574,7 @@ def test_cli_start_from_the_tree_reaches_the_same_optimum(data_dir, tmp_path):
         result = run("refine", folder, "--start", start, "--no-covariances", "-o", str(out))
         assert result.exit_code == 0, result.output
         assert "chi^2" in result.stderr and "-> 11163.643" in result.stderr
-        outputs[start] = formats.read_global_map(out)
+        outputs[start] = mapio.read_global_map(out)
     np.testing.assert_allclose(outputs["tree"].features, outputs["sequential"].features, atol=1e-6)
     np.testing.assert_allclose(outputs["tree"].poses, outputs["sequential"].poses, atol=1e-6)
 
@@ -590,7 +591,7 @@ def test_tolerance_zero_means_to_rounding_and_converges(simulated_folder, data_d
     limit and warn that the solve had not converged)."""
     result = run("refine", simulated_folder, "--tolerance", "0", "-o", str(tmp_path / "g.csv"))
     assert result.exit_code == 0 and "did not converge" not in result.stderr, result.stderr
-    for maps in (formats.read_maps([simulated_folder]), formats.read_maps([str(data_dir / "DLR_200_local_maps")])):
+    for maps in (mapio.read_maps([simulated_folder]), mapio.read_maps([str(data_dir / "DLR_200_local_maps")])):
         default, zero = refine(maps), refine(maps, tolerance=0)
         assert zero.converged, zero.reason
         assert zero.cost <= default.cost * (1 + 1e-12)

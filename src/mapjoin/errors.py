@@ -15,14 +15,25 @@ class InputError(MapjoinError):
     The message names the source (file or ``<stdin>``), the line or field when known,
     and what was expected, e.g. ``maps/a.yaml, field features[3].var: expected a
     positive number, got -1``.
+
+    ``argument`` names the argument of the call that would settle the error (e.g. ``format``):
+    ``message`` then stops where the remedy goes, and the error ends ``give its <argument>``.
+    A command line names its own option instead (:meth:`naming`).
     """
 
-    def __init__(self, message: str, source: str | None = None, where: str | None = None):
+    def __init__(self, message: str, source: str | None = None, where: str | None = None, *,
+                 argument: str | None = None):
         self.source = source
         self.where = where
-        self.detail = message
+        self.argument = argument
+        self._before_remedy = message
+        self.detail = f"{message}give its {argument}" if argument else message
         prefix = ", ".join(part for part in (source, where) if part)
-        super().__init__(f"{prefix}: {message}" if prefix else message)
+        super().__init__(f"{prefix}: {self.detail}" if prefix else self.detail)
+
+    def naming(self, option: str) -> InputError:
+        """This error with the remedy ``pass <option>`` (a command's option for :attr:`argument`)."""
+        return InputError(f"{self._before_remedy}pass {option}", self.source, self.where)
 
 
 class JoinError(MapjoinError):

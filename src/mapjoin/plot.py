@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import formats
+from . import io as mapio
 from .errors import InputError, JoinError, MapjoinError
 from .joining import check_chain, join_sequential
 from .maps import CovarianceMode, GlobalMap, GroundTruth, LocalMap, spherical_variances
@@ -93,7 +93,7 @@ def save(figure: Figure, path: str) -> None:
     """Render ``figure`` into ``path`` (format from the extension), atomically like every mapjoin output."""
     buffer = io.BytesIO()
     figure.savefig(buffer, format=figure_format(path), dpi=DPI)
-    formats.atomic_write(path, buffer.getvalue())
+    mapio.atomic_write(path, buffer.getvalue())
 
 
 # ---------------------------------------------------------------------------------------
@@ -200,7 +200,7 @@ def two_minima_region(a_max: float, samples: int = 400) -> tuple[np.ndarray, np.
     return positive, positive * (-1.0, 1.0)
 
 
-def minima_figure(points: formats.MinimaTable) -> Figure:
+def minima_figure(points: mapio.MinimaTable) -> Figure:
     """Every join of a report in the (C_phi, a) plane over Theorem 2's two-minima region (the paper's Fig. 3).
 
     A table without a join column (a ``check-minima --batch``) has problems numbered by row.

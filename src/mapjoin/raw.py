@@ -37,7 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .formats import STAB_NOISE, _not_utf8, _read_file, mat_variables
+from .io import STAB_NOISE, matfile
+from .io.paths import not_utf8, read_file
 from .maps import locate
 
 __all__ = ["RAW_FORMATS", "RawData", "read_raw"]
@@ -98,11 +99,11 @@ def read_raw(path: str, format: str | None = None) -> RawData:
     if format == "vicpark" or (format is None and extension == ".mat"):
         if path == "-":
             raise InputError("a .mat file cannot be read from stdin; give its path", name)
-        return _read_vicpark(_read_file(path, name, True), name)
+        return _read_vicpark(read_file(path, name, True), name)
     try:
-        text = sys.stdin.read() if path == "-" else _read_file(path, name, False)
+        text = sys.stdin.read() if path == "-" else read_file(path, name, False)
     except UnicodeDecodeError as error:  # stdin's (a file's is reported by _read_file)
-        raise _not_utf8(error, name) from None
+        raise not_utf8(error, name) from None
     fields = [line.split() for line in text.splitlines()]
     if format is None:
         format = "g2o" if extension == ".g2o" else _sniff(fields, name)
@@ -115,7 +116,7 @@ def read_raw(path: str, format: str | None = None) -> RawData:
 
 def _read_vicpark(data: bytes, name: str) -> RawData:
     """I-SLSJF's preprocessed Victoria Park rows (see the module docstring)."""
-    variables = mat_variables(data, name)
+    variables = matfile.variables(data, name)
     table = variables.get(_VICPARK_VARIABLE)
     if table is None:
         raise InputError(f"missing; expected the variable {_VICPARK_VARIABLE} (found: "
@@ -361,7 +362,7 @@ def _sniff(fields: list[list[str]], name: str) -> str:
                 return "g2o"
             break
     raise InputError("cannot tell the raw format (expected iSAM text starting with ODOMETRY or LANDMARK, or g2o "
-                     "starting with VERTEX_SE2, VERTEX_XY, EDGE_SE2 or EDGE_SE2_XY); pass --raw-format", name)
+                     "starting with VERTEX_SE2, VERTEX_XY, EDGE_SE2 or EDGE_SE2_XY); ", name, argument="format")
 
 
 def _records(fields: list[list[str]], name: str, tags: dict[str, int | None],

@@ -7,8 +7,9 @@ import time
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from ..errors import InputError
+from ..io.registry import GLOBAL_MAP, LOCAL_MAPS
 from ..raw import RAW_FORMATS, read_raw
 from . import common, main
 from .common import format_option, say
@@ -27,8 +28,8 @@ DEFAULT_MAPS = 200
                    "step if there are fewer steps]. --maps 1 is the full batch SLAM solution.")
 @click.option("--poses-per-map", type=click.IntRange(min=1),
               help="Instead, a new map every K odometry steps (the last one takes what is left).")
-@format_option(formats.MAP_FORMATS, "Format of the maps [default: from the -o extension, else yaml, which keeps "
-                                    "the full covariance].")
+@format_option(LOCAL_MAPS, f"Format of the maps [default: from the -o extension, else {LOCAL_MAPS.default}, which "
+                           "keeps the full covariance].")
 @click.option("--raw-format", type=click.Choice(RAW_FORMATS),
               help="Format of RAW when its name does not tell it (.mat: vicpark, .g2o: g2o; text is recognised by "
                    "its first tag).")
@@ -64,15 +65,18 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     if map_count is not None and poses_per_map is not None:
         raise click.UsageError("give --maps or --poses-per-map, not both")
     stream = output == "-" or os.path.splitext(output)[1] != ""
-    fmt = common.output_format(output, output_format, "yaml") if stream else output_format or "yaml"
+    with common.options_for(format="--format"):
+        fmt = (common.output_format(output, output_format, LOCAL_MAPS) if stream
+               else output_format or LOCAL_MAPS.default)
     start = time.perf_counter()
-    raw = read_raw(raw_path, raw_format)
+    with common.options_for(format="--raw-format"):
+        raw = read_raw(raw_path, raw_format)
     reading = time.perf_counter() - start
     if map_count is None and poses_per_map is None:
         map_count = min(DEFAULT_MAPS, raw.steps)
     bounds = builder.cut(raw.steps, map_count, poses_per_map)
     planned = ([output] if output != "-" else []) if stream else _planned_folder(output, fmt, len(bounds) - 1)
-    formats.check_not_overwriting([raw_path], planned + ([global_path] if global_path else []))
+    mapio.check_not_overwriting([raw_path], planned + ([global_path] if global_path else []))
 
     def report(iteration: int, cost: float) -> None:
         say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
@@ -80,7 +84,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     result = builder.build(raw, bounds, jobs=jobs, progress=report if ctx.obj["verbose"] else None,
                            with_batch=global_path is not None)
     writing = time.perf_counter()
-    written = formats.write_maps(result.maps, output if stream else os.path.join(output, ""), fmt)
+    written = mapio.write_maps(result.maps, output if stream else os.path.join(output, ""), fmt)
     writing = time.perf_counter() - writing
     dof = result.degrees_of_freedom
     pieces = f", from {result.pieces} pieces joined" if result.pieces else ""
@@ -93,7 +97,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
              f"{output if output != '-' else 'stdout'}{files}")
     if global_path:
         solution = result.batch
-        formats.write_global_map(solution.global_map, global_path, common.output_format(global_path, None, "csv"))
+        mapio.write_global_map(solution.global_map, global_path, common.output_format(global_path, None, GLOBAL_MAP))
         say(ctx, f"batch solution: chi^2 {solution.cost:.6f} (half: {solution.cost / 2:.6f}) for "
                  f"{solution.degrees_of_freedom} degrees of freedom, {solution.iterations} iterations "
                  f"({solution.reason}), {solution.seconds + solution.covariance_seconds:.3f} s -> {global_path}")
@@ -102,10 +106,10 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
 def _planned_folder(folder: str, fmt: str, count: int) -> list[str]:
     """The files the maps go to; local maps already in the folder that they would not replace are an
     error (they would be joined with the new ones)."""
-    planned = [os.path.join(folder, formats.map_file_name(k, fmt)) for k in range(1, count + 1)]
+    planned = [os.path.join(folder, mapio.map_file_name(k, fmt)) for k in range(1, count + 1)]
     if os.path.isdir(folder):
         try:
-            present = formats.resolve_inputs([folder])
+            present = mapio.resolve_inputs([folder])
         except InputError:                           # no local maps in it
             present = []
         stale = sorted(set(map(os.path.normpath, present)) - set(map(os.path.normpath, planned)))

@@ -8,11 +8,12 @@ import math
 
 import click
 
-from .. import formats
+from .. import io as mapio
+from ..io.registry import TABLE
 from ..joining import certify_pair
 from ..onestep import analyse_minima, summarise_minima
 from . import EXIT_TWO_MINIMA, common, main
-from .common import covariance_option, input_format_option, output_option, solver_option
+from .common import TABLE_EXTENSIONS, covariance_option, input_format_option, output_option, solver_option
 
 
 @main.command("check-minima")
@@ -21,9 +22,9 @@ from .common import covariance_option, input_format_option, output_option, solve
               help="a = a0 * p_phi of Theorem 2 (>= 0).")
 @click.option("--c-phi", "c_phi", type=float, callback=lambda c, p, v: _finite_option(p, v),
               help="C_phi = wrap(z_phi - phi0), radians.")
-@click.option("--batch", metavar="FILE", help="A table (.csv, .yaml or .json) with columns a and c_phi, e.g. "
+@click.option("--batch", metavar="FILE", help=f"A table ({TABLE_EXTENSIONS}) with columns a and c_phi, e.g. "
                                              "a report of `mapjoin join --report`; - for stdin.")
-@output_option("Batch result (.csv, .yaml or .json); - for stdout.")
+@output_option(f"Batch result ({TABLE_EXTENSIONS}); - for stdout.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable JSON instead of the human report.")
 @covariance_option
 @solver_option
@@ -55,16 +56,17 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     if sum(modes) != 1:
         raise click.UsageError("give exactly one of: --a A --c-phi C; two map files; --batch FILE")
     if batch is not None:
-        table = formats.read_minima_table(batch)
+        table = mapio.read_minima_table(batch)
         rows = [summarise_minima(ra, rc, solver) for ra, rc in zip(table.a.tolist(), table.c_phi.tolist())]
-        formats.write_table(rows, output, common.output_format(output, None, "csv"))
+        mapio.write_table(rows, output, common.output_format(output, None, TABLE))
         ctx.exit(EXIT_TWO_MINIMA if any(r.minima == 2 for r in rows) else 0)
     preamble: list[str] = []
     record = None
     if maps:
         if len(maps) != 2:
             raise click.UsageError(f"expected two map files, got {len(maps)}")
-        first, second = formats.read_maps(list(maps), format=input_format)[:2]
+        with common.options_for(format="--input-format"):
+            first, second = mapio.read_maps(list(maps), format=input_format)[:2]
         record = certify_pair(first, second, covariance, solver)
         a, c_phi = record.a, record.c_phi
         preamble = [f"joining {second.name} onto {first.name} ({covariance} covariances): "

@@ -10,7 +10,9 @@ from typing import TYPE_CHECKING
 
 import click
 
-from .. import formats
+from .. import io as mapio
+from ..errors import InputError
+from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, Kind, by_name, extensions_text, names
 from ..maps import COVARIANCE_MODES
 from ..joining import DEFAULT_COVARIANCE
 from ..onestep import SOLVERS
@@ -22,7 +24,7 @@ log = logging.getLogger("mapjoin")
 
 inputs_argument = click.argument("inputs", nargs=-1, required=True, metavar="INPUTS...")
 input_format_option = click.option(
-    "--input-format", type=click.Choice(formats.MAP_FORMATS),
+    "--input-format", type=click.Choice(names(LOCAL_MAPS)),
     help="Format of the inputs when their names do not tell it (e.g. stdin).")
 covariance_option = click.option(
     "--covariance", type=click.Choice(COVARIANCE_MODES), default=DEFAULT_COVARIANCE, show_default=True,
@@ -36,8 +38,26 @@ def output_option(help_text: str) -> Callable:
     return click.option("-o", "--output", default="-", show_default=True, metavar="FILE", help=help_text)
 
 
-def format_option(choices: tuple[str, ...], help_text: str) -> Callable:
-    return click.option("--format", "output_format", type=click.Choice(choices), help=help_text)
+def format_option(kind: Kind, help_text: str, *names_: str) -> Callable:
+    """An option choosing among the formats that write ``kind`` (default ``--format``, as ``output_format``)."""
+    return click.option(*(names_ or ("--format", "output_format")), type=click.Choice(names(kind, writing=True)),
+                        help=help_text)
+
+
+def default_title(kind: Kind) -> str:
+    """How help texts name the format ``kind`` is written in when nothing names one, e.g. ``CSV``."""
+    return by_name[kind.default].title
+
+
+#: -o and --format of a command writing a global map (join, refine)
+global_map_output_option = output_option(
+    f"Global map ({extensions_text(GLOBAL_MAP)}); - for stdout ({default_title(GLOBAL_MAP)} unless --format).")
+global_map_format_option = format_option(
+    GLOBAL_MAP, f"Format of the global map (default: from the -o extension, else {default_title(GLOBAL_MAP)})"
+    + "".join(f"; {name}: {by_name[name].note}" for name in names(GLOBAL_MAP, writing=True) if by_name[name].note)
+    + ".")
+#: what a table the commands write (a report, a batch result) can be
+TABLE_EXTENSIONS = extensions_text(TABLE)
 
 
 def say(ctx: click.Context, message: str) -> None:
@@ -63,11 +83,23 @@ def progress_bar(ctx: click.Context, length: int, label: str) -> Iterator[Callab
         yield update
 
 
-def output_format(path: str, explicit: str | None, default: str) -> str:
-    """The format to write ``path`` in: ``explicit``, else its extension, else ``default`` for stdout."""
+def output_format(path: str, explicit: str | None, kind: Kind) -> str:
+    """The format to write ``path`` in: ``explicit``, else its extension, else ``kind``'s default for stdout."""
     if explicit:
         return explicit
-    return default if path == "-" else formats.detect_format(path)
+    return kind.default if path == "-" else mapio.detect_format(path)
+
+
+@contextlib.contextmanager
+def options_for(**options: str) -> Iterator[None]:
+    """Library errors that an argument of the calls inside would settle (:attr:`InputError.argument`, e.g.
+    ``format``) name the command's option for it instead (``options``: argument -> option)."""
+    try:
+        yield
+    except InputError as error:
+        if error.argument not in options:
+            raise
+        raise error.naming(options[error.argument]) from None
 
 
 def warn_if_doubtful(result: RefineResult) -> None:

@@ -8,7 +8,7 @@ import math
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from ..evaluate import compare as compare_maps
 from . import main
 
@@ -33,8 +33,8 @@ def compare(map_a: str, map_b: str, as_json: bool) -> None:
     """
     if map_a == "-" and map_b == "-":
         raise click.UsageError("A and B cannot both be - (stdin can be read only once)")
-    a = formats.read_global_map(map_a)
-    b = formats.read_global_map(map_b)
+    a = mapio.read_global_map(map_a)
+    b = mapio.read_global_map(map_b)
     difference = compare_maps(a, b)
     if as_json:
         document = {"a": a.name, "b": b.name, **dataclasses.asdict(difference)}

@@ -6,9 +6,10 @@ import os
 
 import click
 
-from .. import formats
-from . import main
-from .common import input_format_option, inputs_argument, say
+from .. import io as mapio
+from ..io.registry import LOCAL_MAPS
+from . import common, main
+from .common import format_option, input_format_option, inputs_argument, say
 
 
 @main.command()
@@ -16,8 +17,8 @@ from .common import input_format_option, inputs_argument, say
 @click.option("-o", "--output", required=True, metavar="DIR|FILE",
               help="A directory (one localmap_<k> file per map), a file (one stream; a single map for mat and "
                    "linearslam), or - for stdout.")
-@click.option("--to", "to_format", type=click.Choice(formats.MAP_FORMATS),
-              help="Output format (default: from the -o name; YAML for a directory or stdout).")
+@format_option(LOCAL_MAPS, f"Output format (default: from the -o name; {common.default_title(LOCAL_MAPS)} for a "
+               "directory or stdout).", "--to", "to_format")
 @input_format_option
 @click.pass_context
 def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format: str | None,
@@ -36,16 +37,18 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
       mapjoin convert ../shared/data/8240_data_50_local_maps -o sim-txt/ --to linearslam
       mapjoin convert 'maps/*.yaml' -o maps.csv
     """
-    paths = formats.resolve_inputs(inputs)
+    paths = mapio.resolve_inputs(inputs)
     is_directory = output.endswith(os.sep) or os.path.isdir(output)
     if to_format is None:
-        to_format = "yaml" if is_directory or output == "-" else formats.detect_format(output)
-    maps = formats.read_map_paths(paths, format=input_format)
+        with common.options_for(format="--to"):
+            to_format = LOCAL_MAPS.default if is_directory else common.output_format(output, None, LOCAL_MAPS)
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
     if is_directory:
-        planned = [os.path.join(output, formats.map_file_name(m.end_id, to_format)) for m in maps]
+        planned = [os.path.join(output, mapio.map_file_name(m.end_id, to_format)) for m in maps]
     else:
         planned = [output] if output != "-" else []
-    formats.check_not_overwriting(paths, planned)
-    written = formats.write_maps(maps, output, to_format)
+    mapio.check_not_overwriting(paths, planned)
+    written = mapio.write_maps(maps, output, to_format)
     say(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
              if output != "-" else f"converted {len(maps)} maps to {to_format}")

@@ -8,7 +8,7 @@ import math
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from ..evaluate import ALIGNMENTS, Evaluation
 from ..evaluate import evaluate as evaluate_map
 from ..maps import GlobalMap, GroundTruth
@@ -41,8 +41,8 @@ def evaluate(map_path: str, truth_path: str, align: str, as_json: bool) -> None:
     """
     if map_path == "-" and truth_path == "-":
         raise click.UsageError("MAP and --truth cannot both be - (stdin can be read only once)")
-    global_map = formats.read_global_map(map_path)
-    truth = formats.read_truth(truth_path)
+    global_map = mapio.read_global_map(map_path)
+    truth = mapio.read_truth(truth_path)
     result = evaluate_map(global_map, truth, align)
     covariances = _covariance_source(global_map)
     if as_json:

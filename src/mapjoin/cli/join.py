@@ -6,20 +6,20 @@ import time
 
 import click
 
-from .. import formats
+from .. import io as mapio
+from ..io.registry import GLOBAL_MAP, TABLE
 from ..joining import STRATEGIES, join as join_maps
 from . import common, main
-from .common import (covariance_option, format_option, input_format_option, inputs_argument,
-                     output_option, progress_bar, say, solver_option)
+from .common import (TABLE_EXTENSIONS, covariance_option, global_map_format_option, global_map_output_option,
+                     input_format_option, inputs_argument, progress_bar, say, solver_option)
 
 
 @main.command()
 @inputs_argument
-@output_option("Global map (.csv, .yaml or .g2o); - for stdout (CSV unless --format).")
-@format_option(("csv", "yaml", "g2o"), "Format of the global map (default: from the -o extension, else CSV); "
-               "g2o: VERTEX_SE2 poses and VERTEX_XY features, for g2o's viewer or GTSAM.")
+@global_map_output_option
+@global_map_format_option
 @click.option("--report", "report_path", metavar="FILE",
-              help="Per-join report (.csv, .yaml or .json): common/new features, a, C_phi, minima, phi*.")
+              help=f"Per-join report ({TABLE_EXTENSIONS}): common/new features, a, C_phi, minima, phi*.")
 @covariance_option
 @solver_option
 @click.option("--strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
@@ -50,13 +50,14 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     """
     if jobs > 1 and strategy != "tree":
         raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
-    paths = formats.resolve_inputs(inputs)
+    paths = mapio.resolve_inputs(inputs)
     outputs = [p for p in (output, report_path) if p and p != "-"]
-    formats.check_not_overwriting(paths, outputs)
+    mapio.check_not_overwriting(paths, outputs)
     if report_path == "-" and output == "-":
         raise click.UsageError("--report - and -o - would both write to stdout; give one of them a file")
     start = time.perf_counter()
-    maps = formats.read_map_paths(paths, format=input_format)
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
     with progress_bar(ctx, len(maps), "joining") as progress:
         result = join_maps(maps, covariance, solver, strategy, jobs, progress)
     global_map = result.global_map
@@ -69,11 +70,10 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
         say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
                  f"{refined.iterations} iterations ({refined.reason})")
     elapsed = time.perf_counter() - start
-    formats.write_global_map(global_map, output,
-                             common.output_format(output, output_format, "csv"))
+    with common.options_for(format="--format"):
+        mapio.write_global_map(global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
     if report_path:
-        formats.write_table(result.report, report_path,
-                            common.output_format(report_path, None, "csv"))
+        mapio.write_table(result.report, report_path, common.output_format(report_path, None, TABLE))
     if ctx.obj["verbose"]:
         for r in result.report:
             second = f", other minimum at {r.phi2:+.4f} rad" if r.minima == 2 else ""

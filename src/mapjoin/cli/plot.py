@@ -10,9 +10,9 @@ import os
 
 import click
 
-from .. import formats
+from .. import io as mapio
 from .. import plot as figures
-from . import main
+from . import common, main
 from .common import covariance_option, input_format_option, inputs_argument, say, solver_option
 
 figure_option = click.option("-o", "--output", required=True, metavar="FILE",
@@ -53,9 +53,9 @@ def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str
         raise click.UsageError(f"give one --label per map: {len(maps)} maps, {len(labels)} labels")
     if list(maps).count("-") + (truth_path == "-") > 1:
         raise click.UsageError("stdin (-) can be read only once")
-    formats.check_not_overwriting([*maps, *([truth_path] if truth_path else [])], [output])
-    global_maps = [formats.read_global_map(path) for path in maps]
-    truth = formats.read_truth(truth_path) if truth_path else None
+    mapio.check_not_overwriting([*maps, *([truth_path] if truth_path else [])], [output])
+    global_maps = [mapio.read_global_map(path) for path in maps]
+    truth = mapio.read_truth(truth_path) if truth_path else None
     names = labels or [global_map.name for global_map in global_maps]
     figures.save(figures.map_figure(global_maps, names, truth, ellipses), output)
     say(ctx, f"plotted {len(global_maps)} map{'s' if len(global_maps) > 1 else ''}"
@@ -82,8 +82,8 @@ def plot_minima(ctx: click.Context, report: str, output: str) -> None:
       mapjoin join examples/sim20 --report - -o global.csv | mapjoin plot-minima - -o minima.svg
     """
     figures.figure_format(output)
-    formats.check_not_overwriting([report], [output])
-    table = formats.read_minima_table(report)
+    mapio.check_not_overwriting([report], [output])
+    table = mapio.read_minima_table(report)
     figures.save(figures.minima_figure(table), output)
     what = "join" if table.join is not None else "problem"
     say(ctx, f"plotted {len(table.a)} {what}{'s' if len(table.a) != 1 else ''} -> {output}")
@@ -118,9 +118,10 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
       mapjoin plot-join examples/sim20 --join 3 --covariance identity -o join3.svg
     """
     figures.figure_format(output)
-    paths = formats.resolve_inputs(inputs)
-    formats.check_not_overwriting(paths, [output])
-    maps = formats.read_map_paths(paths, format=input_format)
+    paths = mapio.resolve_inputs(inputs)
+    mapio.check_not_overwriting(paths, [output])
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
     if join_number is None:
         if len(maps) != 2:
             raise click.UsageError(f"{len(maps)} maps: choose a join with --join K (1 to {len(maps) - 1}; "

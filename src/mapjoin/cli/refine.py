@@ -6,10 +6,12 @@ import time
 
 import click
 
-from .. import formats
+from .. import io as mapio
+from ..io.registry import GLOBAL_MAP
 from ..joining import STRATEGIES, join
 from . import common, main
-from .common import format_option, input_format_option, inputs_argument, output_option, progress_bar, say
+from .common import (global_map_format_option, global_map_output_option, input_format_option, inputs_argument,
+                     progress_bar, say)
 
 
 def _default_tolerance() -> float:
@@ -21,9 +23,8 @@ def _default_tolerance() -> float:
 
 @main.command()
 @inputs_argument
-@output_option("Global map (.csv, .yaml or .g2o); - for stdout (CSV unless --format).")
-@format_option(("csv", "yaml", "g2o"), "Format of the global map (default: from the -o extension, else CSV); "
-               "g2o: VERTEX_SE2 poses and VERTEX_XY features, for g2o's viewer or GTSAM.")
+@global_map_output_option
+@global_map_format_option
 @click.option("--max-iterations", type=click.IntRange(min=0), default=100, show_default=True,
               help="At most this many (accepted) Gauss-Newton/Newton steps.")
 @click.option("--tolerance", type=click.FloatRange(min=0.0), default=lambda: _default_tolerance(), show_default="1e-12",
@@ -61,10 +62,11 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     """
     from ..refine import refine as refine_maps  # scipy.sparse: imported only when refining
 
-    paths = formats.resolve_inputs(inputs)
-    formats.check_not_overwriting(paths, [output] if output != "-" else [])
+    paths = mapio.resolve_inputs(inputs)
+    mapio.check_not_overwriting(paths, [output] if output != "-" else [])
     start = time.perf_counter()
-    maps = formats.read_map_paths(paths, format=input_format)
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
 
     joined = time.perf_counter()
     with progress_bar(ctx, len(maps), "fast join") as progress:
@@ -77,7 +79,8 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     result = refine_maps(maps, initial.global_map, max_iterations=max_iterations, tolerance=tolerance,
                          covariances=not no_covariances, progress=report if ctx.obj["verbose"] else None)
     elapsed = time.perf_counter() - start
-    formats.write_global_map(result.global_map, output, common.output_format(output, output_format, "csv"))
+    with common.options_for(format="--format"):
+        mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
     common.warn_if_doubtful(result)
     g = result.global_map
     two = sum(r.minima == 2 for r in initial.report)

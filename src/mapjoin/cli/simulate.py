@@ -6,12 +6,15 @@ import os
 
 import click
 
-from .. import formats
+from .. import io as mapio
+from ..io.registry import LOCAL_MAPS, TRUTH, by_name, names
 from ..simulate import simulate as run_simulation
 from . import common, main
 from .common import say
 
-_STREAM_EXTENSIONS = (".csv", ".yaml", ".yml")
+#: formats that write both the maps and the truth beside them
+_FORMATS = tuple(name for name in names(LOCAL_MAPS, writing=True) if name in names(TRUTH, writing=True))
+_STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_name[name].extensions)
 
 
 @main.command()
@@ -23,8 +26,8 @@ _STREAM_EXTENSIONS = (".csv", ".yaml", ".yml")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same output).")
 @click.option("--steps-per-map", type=click.IntRange(min=1), default=10, show_default=True,
               help="Robot steps in each local map.")
-@click.option("--format", "output_format", type=click.Choice(["yaml", "csv"]),
-              help="Format of the local maps (default: a stream file's extension, else yaml).")
+@click.option("--format", "output_format", type=click.Choice(_FORMATS),
+              help=f"Format of the local maps (default: a stream file's extension, else {LOCAL_MAPS.default}).")
 @click.option("--truth", "truth_path", metavar="FILE",
               help="Where to write the ground truth (default: truth.<format> in the directory).")
 @click.pass_context
@@ -43,13 +46,14 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
     """
     stream = output == "-" or (os.path.splitext(output)[1].lower() in _STREAM_EXTENSIONS
                                and not os.path.isdir(output))
-    output_format = output_format or (common.output_format(output, None, "yaml") if stream else "yaml")
+    output_format = output_format or (common.output_format(output, None, LOCAL_MAPS) if stream
+                                      else LOCAL_MAPS.default)
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
     if not stream:
         os.makedirs(output, exist_ok=True)
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
-    formats.write_maps(simulation.maps, output, output_format)
+    mapio.write_maps(simulation.maps, output, output_format)
     if truth_path:
-        formats.write_truth(simulation.truth, truth_path)
+        mapio.write_truth(simulation.truth, truth_path)
     say(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
              + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))

@@ -1,0 +1,268 @@
+"""Every file mapjoin reads or writes: local maps, global maps, ground truth, tables.
+
+Sources are paths, open text streams (e.g. ``io.StringIO``) or ``"-"`` for stdin; targets
+are paths, text streams or ``"-"`` for stdout. Files are written atomically and inputs are
+never modified. Bad input raises :class:`~mapjoin.errors.InputError` naming the file (or
+``<stdin>``), the line or field, and what was expected. Floats are written with ``repr``
+precision, so every text format round-trips exactly. CSV is standard CSV (quoted where
+needed, LF line ends); CRLF line ends and a UTF-8 byte-order mark are accepted on reading.
+
+The format comes from the ``format`` argument or the extension (:mod:`.registry` lists
+them); a stream without a format is recognised by its start (YAML, CSV with a ``kind``
+column, Linear SLAM text). The formats, one module each: :mod:`.yaml_maps`,
+:mod:`.csv_maps`, :mod:`.mat_maps` (I-SLSJF), :mod:`.linearslam` (local maps);
+:mod:`.global_maps` (global maps and ground truth, YAML and CSV), :mod:`.g2o` (global map
+export); :mod:`.tables` (reports, minima tables). Beside them: :mod:`.paths` (files,
+streams, the overwrite guard), :mod:`.inputs` (input arguments to files), :mod:`.yamldoc`
+and :mod:`.csvtable` (the YAML and CSV layers), :mod:`.matfile` (MAT v5), :mod:`.truth`
+(I-SLSJF simulation folders).
+
+A format module provides, for each kind of data it holds, ``read(text, source)`` (bytes for
+a binary format; ``source`` names the file in errors) and/or ``dump(data) -> str | bytes``,
+optionally a ``read_files(paths)`` reading many files at once, and ``looks_like_...(text)``
+when a stream can be recognised; :data:`.registry.FORMATS` gets one line naming them.
+
+Map names: a local map read from a file is named after the file, so that messages and
+provenance point to it: the path when the file holds one map, else ``path#name`` with the
+map's own name (``name``, ``map``), or ``path#n`` (its position) when it has none; maps
+from stdin are named ``<stdin>`` likewise. Writers store each map's name.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from typing import Any, TextIO
+
+import numpy as np
+
+from ..errors import InputError
+from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate
+from . import registry
+from .g2o import g2o_feature_offset
+from .inputs import resolve_inputs
+from .mat_maps import STAB_NOISE
+from .paths import (STDIN, Source, atomic_write, check_not_overwriting, is_path, read_file, read_text, source_name,
+                    write_output)
+from .registry import MAP_FORMATS, TABLE_FORMATS, Codec, Format, Kind, detect_format, map_file_name
+from .tables import MinimaTable, read_minima_csv, read_minima_records
+from .truth import read_truth_folder
+
+__all__ = [
+    "MAP_FORMATS",
+    "STAB_NOISE",
+    "TABLE_FORMATS",
+    "MinimaTable",
+    "atomic_write",
+    "check_not_overwriting",
+    "detect_format",
+    "g2o_feature_offset",
+    "map_file_name",
+    "read_global_map",
+    "read_map_file",
+    "read_map_paths",
+    "read_maps",
+    "read_minima_table",
+    "read_truth",
+    "read_truth_folder",
+    "resolve_inputs",
+    "write_global_map",
+    "write_maps",
+    "write_table",
+    "write_truth",
+]
+
+log = logging.getLogger("mapjoin")
+
+_TRUTH_FILES = ("truth.yaml", "truth.yml", "truth.csv")  # what `mapjoin simulate` writes into its folder
+
+
+def read_maps(inputs: Sequence[str], *, stdin: TextIO | None = None, format: str | None = None) -> list[LocalMap]:
+    """All local maps of all inputs (see :func:`resolve_inputs`), in order; ``-`` reads ``stdin`` once.
+
+    ``format`` is for the inputs whose names do not tell it (stdin, unknown extensions), so
+    e.g. a folder of .mat files and CSV on stdin can be read together. Consecutive files of a
+    format that reads many files at once (an I-SLSJF folder of thousands of .mat files) are
+    parsed and checked together, with the errors and warnings of reading them one by one.
+    """
+    return read_map_paths(resolve_inputs(inputs), stdin=stdin, format=format)
+
+
+def read_map_paths(paths: Sequence[str], *, stdin: TextIO | None = None, format: str | None = None
+                   ) -> list[LocalMap]:
+    """:func:`read_maps` of inputs that :func:`resolve_inputs` has already resolved (commands resolve
+    them first to check their outputs against them; resolving again would stat every file twice)."""
+    if paths.count(STDIN) > 1:
+        raise InputError("stdin (-) is given more than once; it can be read only once", "<stdin>")
+    runs: list[tuple[Codec | None, list[str]]] = []  # (codec, consecutive files it reads at once) or (None, [file])
+    for path in paths:
+        codec = _batch_codec(path, format)
+        if codec is not None and runs and runs[-1][0] is codec:
+            runs[-1][1].append(path)
+        else:
+            runs.append((codec, [path]))
+    maps: list[LocalMap] = []
+    for codec, run in runs:
+        if codec is not None:
+            maps.extend(codec.read_files(run))
+        elif run[0] == STDIN:
+            maps.extend(read_map_file(stdin or sys.stdin, format, name="<stdin>"))
+        else:
+            maps.extend(read_map_file(run[0], None if registry.extension_format(run[0]) else format))
+    return maps
+
+
+def _batch_codec(path: str, format: str | None) -> Codec | None:
+    """The local-map codec of ``path``'s format (its extension's, else ``format``) if it reads many files at once."""
+    fmt = registry.extension_format(path) or format
+    if path == STDIN or fmt not in registry.by_name:
+        return None
+    codec = registry.by_name[fmt].local_maps
+    return codec if codec is not None and codec.read_files is not None else None
+
+
+def read_map_file(source: Source, format: str | None = None, name: str | None = None) -> list[LocalMap]:
+    """The local maps of one file or stream (a YAML or CSV file may hold several)."""
+    name = name or source_name(source)
+    maps = _read(source, format, name, registry.LOCAL_MAPS)
+    if not maps:
+        raise InputError("expected at least one local map, found none", name)
+    return maps
+
+
+def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[str]:
+    """Write ``maps`` as ``format`` and return the paths written (none for a stream).
+
+    A folder target (an existing folder, or a path ending in ``/``, created if needed) gets
+    one file per map, :func:`map_file_name`; a file path or stream gets one stream, which
+    for a format of one map per file (``mat``, ``linearslam``) must hold one map (a .mat
+    file's name must end in its end id).
+    """
+    name = source_name(target, "<stdout>")
+    fmt, codec = registry.codec(detect_format(name, format), registry.LOCAL_MAPS, name, writing=True)
+    if fmt.spherical_only:
+        dropped = [local_map.name for local_map in maps if local_map.covariance is not None]
+        if dropped:
+            log.warning("%s holds spherical variances only: dropped the full covariances of %d map(s) "
+                        "(first: %s)", format, len(dropped), dropped[0])
+    if isinstance(target, (str, os.PathLike)) and (
+            os.path.isdir(target) or os.fspath(target).endswith(("/", os.sep))):
+        return _write_map_folder(maps, os.fspath(target), fmt, codec)
+    if fmt.one_map_per_file:
+        _check_single_map_file(maps, target, fmt)
+    return _write(fmt, codec.dump(maps), target)
+
+
+def write_global_map(global_map: GlobalMap, target: Source, format: str | None = None) -> None:
+    """Write a global map as CSV, YAML or g2o (format from ``format`` or the extension)."""
+    _write_data(global_map, target, format, registry.GLOBAL_MAP)
+
+
+def read_global_map(source: Source, format: str | None = None) -> GlobalMap:
+    """Read a global map written by :func:`write_global_map`."""
+    return _read(source, format, source_name(source), registry.GLOBAL_MAP)
+
+
+def write_truth(truth: GroundTruth, target: Source, format: str | None = None) -> None:
+    """Write ground truth as CSV or YAML (format from ``format`` or the extension)."""
+    _write_data(truth, target, format, registry.TRUTH)
+
+
+def read_truth(source: Source, format: str | None = None) -> GroundTruth:
+    """Ground truth: a file written by :func:`write_truth` (or ``-``, a stream), the folder ``mapjoin simulate``
+    wrote it into (``truth.yaml``, ``.yml`` or ``.csv`` inside), or an I-SLSJF simulation folder
+    (``store_robotTrue.mat``: :func:`read_truth_folder`)."""
+    if is_path(source) and os.path.isdir(source):
+        folder = os.fspath(source)
+        if os.path.exists(os.path.join(folder, "store_robotTrue.mat")):
+            return read_truth_folder(folder)
+        files = [os.path.join(folder, name) for name in _TRUTH_FILES]
+        source = next((path for path in files if os.path.isfile(path)), None)
+        if source is None:
+            raise InputError(f"holds no ground truth; expected {', '.join(_TRUTH_FILES)} (from `mapjoin "
+                             "simulate`) or store_robotTrue.mat and store_beaconsTrue.mat (I-SLSJF)", folder)
+    return _read(source, format, source_name(source), registry.TRUTH)
+
+
+def write_table(rows: Sequence[Any], target: Source, format: str | None = None) -> None:
+    """Write dataclass instances (all of one type) as a CSV, YAML or JSON table."""
+    _write_data(rows, target, format, registry.TABLE)
+
+
+def read_minima_table(source: Source) -> MinimaTable:
+    """The columns ``a`` and ``c_phi`` (and ``join``) of any table holding them: a ``join --report`` output,
+    a ``check-minima --batch`` input or output.
+
+    CSV, YAML or JSON by the extension; otherwise (``-``: stdin, ``.txt``, ...) YAML/JSON when
+    the text starts with ``[``, ``{``, ``-``, ``#`` or ``%``, else CSV.
+    """
+    name = source_name(source)
+    fmt = registry.extension_format(name)
+    if fmt is not None and fmt not in TABLE_FORMATS:
+        raise InputError(f"expected a table with the columns a and c_phi ({registry.extensions_text(registry.TABLE)}), "
+                         f"not {fmt}", name)
+    text = read_text(source, name)
+    if fmt is None:
+        fmt = "yaml" if text.lstrip()[:1] in ("[", "{", "-", "#", "%") else "csv"
+    table = read_minima_csv(text, name) if fmt == "csv" else read_minima_records(text, name)
+    if not len(table.a):
+        raise InputError("expected at least one row with a and c_phi, found none", name)
+    return table
+
+
+def _read(source: Source, format: str | None, name: str, kind: Kind) -> Any:
+    """Read ``source`` with the codec its format (explicit, extension or sniffed) has for ``kind``."""
+    if is_path(source):
+        fmt, codec = registry.codec(detect_format(os.fspath(source), format), kind, name)
+        return codec.read(read_file(os.fspath(source), name, fmt.binary), name)
+    text = read_text(source, name)
+    fmt, codec = registry.codec(detect_format(name, format) if format else registry.sniff(text, name), kind, name)
+    if fmt.binary:
+        raise InputError(f"a {fmt.extensions[0]} file cannot be read from a text stream; give its path", name)
+    return codec.read(text, name)
+
+
+def _write_data(data: Any, target: Source, format: str | None, kind: Kind) -> None:
+    """Write ``data`` of ``kind`` as ``format`` (else the format the target's extension names)."""
+    name = source_name(target, "<stdout>")
+    fmt, codec = registry.codec(detect_format(name, format), kind, name, writing=True)
+    _write(fmt, codec.dump(data), target)
+
+
+def _write(fmt: Format, content: str | bytes, target: Source) -> list[str]:
+    """Write ``content`` in ``fmt`` to ``target``; a binary format to a file path only."""
+    if fmt.binary and not is_path(target):
+        raise InputError(f"a {fmt.extensions[0]} file cannot be written to stdout or a text stream; give a file path",
+                         source_name(target, "<stdout>"))
+    return write_output(content, target)
+
+
+def _write_map_folder(maps: Sequence[LocalMap], folder: str, fmt: Format, codec: Codec) -> list[str]:
+    """One file per map; every map is encoded first, so a map the format cannot hold writes nothing."""
+    paths = [os.path.join(folder, map_file_name(local_map.end_id, fmt.name)) for local_map in maps]
+    duplicate = first_duplicate(np.array([local_map.end_id for local_map in maps], dtype=np.int64))
+    if duplicate is not None:
+        raise InputError(f"two maps end at pose {maps[duplicate].end_id}, so both would be "
+                         f"{os.path.basename(paths[duplicate])}; write them to one file instead", folder)
+    contents = [codec.dump([local_map]) for local_map in maps]
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as error:
+        raise InputError(f"cannot create the folder ({error.strerror or error})", folder) from error
+    for content, path in zip(contents, paths):
+        atomic_write(path, content)
+    return paths
+
+
+def _check_single_map_file(maps: Sequence[LocalMap], target: Source, fmt: Format) -> None:
+    """A file of a one-map-per-file format holds one map, and when the format takes the map's end id from the
+    file name (a .mat file: map k), the name gives it."""
+    name = source_name(target, "<stdout>")
+    if len(maps) != 1:
+        raise InputError(f"a {fmt.name} file holds one local map, got {len(maps)}; write them to a folder "
+                         "(a path ending in /), one file per map", name)
+    if fmt.map_number is not None and is_path(target) and fmt.map_number(name) != maps[0].end_id:
+        raise InputError(f"an {fmt.title} local map takes its number k (its end pose) from the file name; "
+                         f"name this one {map_file_name(maps[0].end_id, fmt.name)}", name)

@@ -1,0 +1,199 @@
+"""Linear SLAM local maps (``localmap_<k>.txt``), text as distributed with Linear SLAM.
+
+Line 1 the reference (start) pose id, line 2 the state dimension d = 3 + 2m, then d lines
+``id value`` (the end pose's x, y, phi with id -k, k its pose id; then per feature an x and
+a y line with its id), then d lines of d numbers: the information matrix, the inverse of the
+covariance, row by row. It must be symmetric (up to ``maps.SYMMETRY_TOLERANCE``, then
+symmetrised) and positive definite; the covariance is its inverse by Cholesky
+factorisation, and writing inverts the covariance the same way, so a round trip is exact up
+to rounding (about the condition number times 1e-16, relative). Rows may come in any order
+as long as the pose's three are together and each feature's y follows its x. One map per
+file; the end pose id must not be 0 (it would be -0). Feature id 0 is read and written, with
+a warning on writing, as Linear SLAM's own code expects positive feature ids.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import reprlib
+from collections.abc import Sequence
+from itertools import chain
+
+import numpy as np
+
+from ..errors import InputError
+from ..maps import LocalMap, asymmetry, first_duplicate
+
+__all__ = ["dump", "looks_like_linearslam", "read", "spherical_diagonal"]
+
+log = logging.getLogger("mapjoin")
+
+
+def looks_like_linearslam(text: str) -> bool:
+    """Whether a stream without a named format is Linear SLAM text: its first two lines are each one integer."""
+    return re.match(r"[0-9]+[ \t]*\r?\n[ \t]*[0-9]+[ \t]*(?:\r?\n|$)", text.lstrip()) is not None
+
+
+def read(text: str, source: str) -> list[LocalMap]:
+    """One Linear SLAM local map (see the module docstring); its covariance is the inverse of the stored information."""
+    lines = text.splitlines()
+    start_id = _text_integer(lines, 0, "the reference pose index (a non-negative integer)", source)
+    size = _text_integer(lines, 1, "the state dimension d = 3 + 2m (m features)", source)
+    if size < 3 or (size - 3) % 2:
+        raise InputError(f"expected the state dimension d = 3 + 2m (m features), got {size}", source, "line 2")
+    state_rows = _text_rows(lines, 2, size, 2, f"`id value`, one of d = {size} state rows", source)
+    ids = _text_ids(state_rows[:, 0], 2, source)
+    state = _text_numbers(state_rows[:, 1:], 2, source, first_field=2)[:, 0]
+    information = _text_numbers(
+        _text_rows(lines, 2 + size, size, size, f"a row of the {size}x{size} information matrix", source),
+        2 + size, source)
+    trailing = next((i for i in range(2 + 2 * size, len(lines)) if lines[i].strip()), None)
+    if trailing is not None:
+        raise InputError(f"expected nothing after the {size} rows of the information matrix, got "
+                         f"{reprlib.repr(lines[trailing].strip())}", source, f"line {trailing + 1}")
+    pose, features, end_id = _linearslam_layout(ids, start_id, source)
+    order = np.concatenate([pose, features])
+    covariance = _covariance_of_information(information, 2 + size, source)[np.ix_(order, order)]
+    return [LocalMap.from_covariance(source, start_id, end_id, state[pose], ids[features[0::2]],
+                                     state[features].reshape(-1, 2), covariance)]
+
+
+def _text_integer(lines: Sequence[str], index: int, expected: str, source: str) -> int:
+    """Line ``index`` (0-based) as one non-negative integer."""
+    text = lines[index].strip() if index < len(lines) else ""
+    if not text.isdigit() or not text.isascii():
+        raise InputError(f"expected {expected}, got {reprlib.repr(text) if text else 'nothing'}", source,
+                         f"line {index + 1}")
+    return int(text)
+
+
+def _text_rows(lines: Sequence[str], first: int, count: int, width: int, expected: str, source: str) -> np.ndarray:
+    """Lines ``first .. first+count-1`` (0-based) as a (count x width) array of their whitespace-separated fields."""
+    cells = [line.split() for line in lines[first:first + count]]
+    bad = next((i for i, row in enumerate(cells) if len(row) != width), None)
+    if bad is None and len(cells) < count:
+        bad = len(cells)
+    if bad is not None:
+        got = (f"{len(cells[bad])} fields: {reprlib.repr(lines[first + bad].strip())}" if bad < len(cells)
+               else "the end of the file")
+        raise InputError(f"expected {expected} ({width} fields), got {got}", source, f"line {first + bad + 1}")
+    return np.array(list(chain.from_iterable(cells)), dtype=str).reshape(count, width)
+
+
+def _text_numbers(cells: np.ndarray, first: int, source: str, first_field: int = 1) -> np.ndarray:
+    """Text fields (rows from line ``first`` + 1, columns from field ``first_field``) as finite floats."""
+    try:
+        values = cells.astype(float)
+    except ValueError:
+        values = None
+    if values is None or not np.isfinite(values).all():
+        bad = np.array([not _is_finite_text(cell) for cell in cells.ravel()]).reshape(cells.shape)
+        i, j = (int(index) for index in np.argwhere(bad)[0])
+        raise InputError(f"expected a finite number in field {j + first_field}, got {reprlib.repr(str(cells[i, j]))}",
+                         source, f"line {first + i + 1}")
+    return values
+
+
+def _is_finite_text(text: str) -> bool:
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False
+
+
+def _text_ids(cells: np.ndarray, first: int, source: str) -> np.ndarray:
+    """Text fields (one per row, from line ``first`` + 1) as 64-bit integers."""
+    try:
+        return cells.astype(np.int64)
+    except (ValueError, OverflowError):
+        bad = next(i for i, cell in enumerate(cells.tolist())
+                   if not re.fullmatch(r"[-+]?[0-9]+", cell) or abs(int(cell)) >= 2**63)
+        raise InputError(f"expected an integer id in field 1, got {reprlib.repr(str(cells[bad]))}", source,
+                         f"line {first + bad + 1}") from None
+
+
+def _linearslam_layout(ids: np.ndarray, start_id: int, source: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """Rows of the end pose (three, consecutive, one id -k), rows of the features (x then y per id), and k."""
+    pose = np.flatnonzero(ids < 0)
+    if pose.size != 3 or pose[2] != pose[0] + 2 or (ids[pose] != ids[pose[0]]).any():
+        got = ", ".join(f"{ids[row]} on line {row + 3}" for row in pose[:4]) or "none"
+        raise InputError("expected one end pose: three consecutive rows with the same negative id -k; got "
+                         f"negative ids {got}", source, f"line {(pose[0] if pose.size else 0) + 3}")
+    end_id = -int(ids[pose[0]])
+    if end_id == start_id:
+        raise InputError(f"the end pose id {end_id} (rows with id {-end_id}) equals the reference pose index "
+                         "on line 1", source, f"line {pose[0] + 3}")
+    features = np.delete(np.arange(len(ids)), pose)
+    x, y = features[0::2], features[1::2]
+    split = np.flatnonzero(ids[x] != ids[y])
+    if split.size:
+        i = split[0]
+        raise InputError(f"expected the y row of feature {ids[x[i]]} (x on line {x[i] + 3}), got id {ids[y[i]]}",
+                         source, f"line {y[i] + 3}")
+    duplicate = first_duplicate(ids[x])
+    if duplicate is not None:
+        earlier = x[np.flatnonzero(ids[x] == ids[x[duplicate]])[0]]
+        raise InputError(f"duplicate feature id {ids[x[duplicate]]} (also on line {earlier + 3})", source,
+                         f"line {x[duplicate] + 3}")
+    return pose, features, end_id
+
+
+def _covariance_of_information(information: np.ndarray, first: int, source: str) -> np.ndarray:
+    """The inverse of an information matrix stored from line ``first`` + 1, checked symmetric positive definite."""
+    excess = asymmetry(information)
+    if (excess > 0).any():
+        i, j = (int(index) for index in np.unravel_index(np.argmax(excess), excess.shape))
+        raise InputError(f"expected a symmetric information matrix, but entries ({i + 1}, {j + 1}) and "
+                         f"({j + 1}, {i + 1}) differ: {float(information[i, j])!r} vs "
+                         f"{float(information[j, i])!r}", source, f"line {first + i + 1}")
+    covariance, failed = _spd_inverse((information + information.T) / 2)
+    if covariance is None:
+        raise InputError(f"expected a positive definite information matrix; its leading {failed}x{failed} block "
+                         "is not", source, f"line {first + failed}")
+    return covariance
+
+
+def _spd_inverse(matrix: np.ndarray) -> tuple[np.ndarray | None, int]:
+    """The inverse of a symmetric positive definite matrix by Cholesky (exactly symmetric), or None and the
+    order of the first leading block that is not positive definite."""
+    from scipy.linalg import lapack  # only the formats that store information matrices need it
+
+    factor, failed = lapack.dpotrf(matrix, lower=True)
+    if failed:
+        return None, failed
+    inverse, failed = lapack.dpotri(factor, lower=True)
+    if failed:
+        return None, failed
+    lower = np.tril(inverse)
+    return lower + np.tril(lower, -1).T, 0
+
+
+def spherical_diagonal(local_map: LocalMap) -> np.ndarray:
+    """The covariance diagonal a map without a full covariance stands for: x y phi, then x y per feature."""
+    return np.concatenate([local_map.pose_variances[[0, 0, 1]], np.repeat(local_map.feature_variances, 2)])
+
+
+def dump(maps: Sequence[LocalMap]) -> str:
+    """One map as Linear SLAM text; the information matrix is the inverse of its covariance."""
+    [local_map] = maps
+    if local_map.end_id == 0:
+        raise InputError("cannot be written as Linear SLAM text: its end pose id 0 would be the row id -0, "
+                         "which reads as a feature", local_map.name)
+    if local_map.size and local_map.feature_ids.min() == 0:
+        log.warning("%s: feature id 0 written as Linear SLAM text (mapjoin reads it back; Linear SLAM's own code "
+                    "expects positive feature ids)", local_map.name)
+    if local_map.covariance is None:
+        information = np.diag(1.0 / spherical_diagonal(local_map))
+    else:
+        information, _ = _spd_inverse(local_map.covariance)
+    if information is None or not np.isfinite(information).all():
+        raise InputError("the covariance is numerically singular, so it has no finite information matrix",
+                         local_map.name, "covariance")
+    ids = np.concatenate([np.full(3, -local_map.end_id), np.repeat(local_map.feature_ids, 2)])
+    values = np.concatenate([local_map.end_pose, local_map.features.ravel()])
+    lines = [str(local_map.start_id), str(len(ids)),
+             *(f"{i} {value!r}" for i, value in zip(ids.tolist(), values.tolist())),
+             *(" ".join(map(repr, row)) for row in information.tolist())]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,183 @@
+"""The one table of mapjoin's file formats, and everything derived from it.
+
+:data:`FORMATS` says per format its name, extensions, how a stream is recognised, what it
+reads and writes (local maps, a global map, ground truth, tables) and how (text or binary,
+one map per file or a stream). Extension lookup, the names of local-map files in a folder,
+stream sniffing, the command line's format choices and help, and every error text listing
+formats are derived from it. Adding a format: one module (see :mod:`mapjoin.io`) and one
+:class:`Format` line in :data:`FORMATS`.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+from ..errors import InputError
+from . import csv_maps, csvtable, g2o, global_maps, linearslam, mat_maps, tables, yaml_maps, yamldoc
+from .paths import STDIN
+
+__all__ = ["FORMATS", "GLOBAL_MAP", "LOCAL_MAPS", "LOCAL_MAP_FILE", "MAP_FORMATS", "TABLE", "TABLE_FORMATS", "TRUTH",
+           "Codec", "Format", "Kind", "by_name", "codec", "detect_format", "extension_format", "extensions_text",
+           "local_map_files_text",
+           "map_file_name", "names", "sniff"]
+
+
+class Codec(NamedTuple):
+    """How a format reads and writes one kind of data; None where it cannot."""
+
+    read: Callable[[Any, str], Any] | None = None  # (text, or bytes when binary; source name) -> data
+    dump: Callable[[Any], str | bytes] | None = None  # data -> text, or bytes when binary
+    read_files: Callable[[Sequence[str]], list[Any]] | None = None  # many files at once, as one by one, faster
+
+
+class Kind(NamedTuple):
+    """A kind of data formats hold."""
+
+    field: str  # the Format field holding its codec
+    what: str  # how messages name it
+    default: str  # the format written when nothing names one (stdout); listed first
+
+
+LOCAL_MAPS = Kind("local_maps", "local maps", "yaml")
+GLOBAL_MAP = Kind("global_map", "a global map", "csv")
+TRUTH = Kind("truth", "ground truth", "csv")
+TABLE = Kind("table", "a table", "csv")
+
+
+@dataclass(frozen=True)
+class Format:
+    """One file format: its names, how it is recognised, and its codec for each kind of data it holds."""
+
+    name: str  # as --format, --to and --input-format take it
+    title: str  # how messages name it
+    extensions: tuple[str, ...]  # the first is the one written
+    named_only: bool = False  # the extension tells the format only in a file named localmap_<k><extension>
+    sniff: Callable[[str], bool] | None = None  # whether a stream's text is in this format
+    sniff_text: str = ""  # what sniff looks for, for the error when no format's does match
+    binary: bool = False  # bytes (files only), not text
+    note: str = ""  # for command-line help: what to know when choosing it
+    local_maps: Codec | None = None
+    global_map: Codec | None = None
+    truth: Codec | None = None
+    table: Codec | None = None
+    spherical_only: bool = False  # local maps: full covariances are dropped on writing
+    one_map_per_file: bool = False  # local maps: a file holds exactly one map
+    map_number: Callable[[str], int | None] | None = None  # local maps: the end id k a file's name must give
+
+    def codec(self, kind: Kind) -> Codec | None:
+        """Its codec for ``kind``, None if it holds no such data."""
+        return getattr(self, kind.field)
+
+
+FORMATS: tuple[Format, ...] = (
+    Format("yaml", "YAML", (".yaml", ".yml"), sniff=yamldoc.looks_like_yaml,
+           sniff_text="YAML starting with format:, ---, %YAML or #",
+           local_maps=Codec(yaml_maps.read, yaml_maps.dump),
+           global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_yaml),
+           truth=Codec(global_maps.read_truth_yaml, global_maps.dump_truth_yaml), table=Codec(None, tables.dump_yaml)),
+    Format("csv", "CSV", (".csv",), sniff=csvtable.names_kind_column, sniff_text="a CSV header naming a kind column",
+           local_maps=Codec(csv_maps.read, csv_maps.dump), spherical_only=True,
+           global_map=Codec(global_maps.read_global_csv, global_maps.dump_global_csv),
+           truth=Codec(global_maps.read_truth_csv, global_maps.dump_truth_csv), table=Codec(None, tables.dump_csv)),
+    Format("mat", "I-SLSJF .mat", (".mat",), binary=True,
+           local_maps=Codec(mat_maps.read, mat_maps.dump, mat_maps.read_files), one_map_per_file=True,
+           map_number=mat_maps.map_number),
+    Format("linearslam", "Linear SLAM", (".txt",), named_only=True, sniff=linearslam.looks_like_linearslam,
+           sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump), one_map_per_file=True),
+    Format("json", "JSON", (".json",), table=Codec(None, tables.dump_json)),
+    Format("g2o", "g2o", (".g2o",), note="VERTEX_SE2 poses and VERTEX_XY features, for g2o's viewer or GTSAM",
+           global_map=Codec(None, g2o.dump)),
+)
+
+by_name: dict[str, Format] = {fmt.name: fmt for fmt in FORMATS}
+_EXTENSIONS = {extension: fmt.name for fmt in FORMATS if not fmt.named_only for extension in fmt.extensions}
+_MAP_STEM = "localmap_"
+_NAMED_FILES = [(re.compile(rf"{_MAP_STEM}[0-9]+{re.escape(extension)}", re.IGNORECASE), fmt)
+                for fmt in FORMATS if fmt.named_only for extension in fmt.extensions]
+#: the files a folder of local maps holds: ``localmap_<k>`` and a local-map format's extension (k: group 1)
+LOCAL_MAP_FILE = re.compile(rf"{_MAP_STEM}([0-9]+)(?:"
+                            + "|".join(re.escape(extension) for fmt in FORMATS if fmt.local_maps
+                                       for extension in fmt.extensions) + ")", re.IGNORECASE)
+
+
+def names(kind: Kind, *, writing: bool = False) -> tuple[str, ...]:
+    """The formats that read (``writing``: write) ``kind``: its default first, then in :data:`FORMATS` order."""
+    usable = [fmt.name for fmt in FORMATS if (codec := fmt.codec(kind)) and (codec.dump if writing else codec.read)]
+    return tuple(sorted(usable, key=lambda name: name != kind.default))
+
+
+MAP_FORMATS: tuple[str, ...] = names(LOCAL_MAPS)
+TABLE_FORMATS: tuple[str, ...] = names(TABLE, writing=True)
+
+
+def _or(items: Sequence[str]) -> str:
+    """``a, b or c``."""
+    return " or ".join([", ".join(items[:-1]), items[-1]] if len(items) > 1 else items)
+
+
+def extensions_text(kind: Kind, *, writing: bool = True) -> str:
+    """The extensions of the formats that write (or read) ``kind``, e.g. ``.csv, .yaml or .g2o``."""
+    return _or([by_name[name].extensions[0] for name in names(kind, writing=writing)])
+
+
+def local_map_files_text() -> str:
+    """The names of local-map files in a folder, e.g. ``localmap_<k>.yaml, .yml, ... or .txt (Linear SLAM)``."""
+    return _MAP_STEM + "<k>" + _or([extension + (f" ({fmt.title})" if fmt.named_only else "")
+                                    for fmt in FORMATS if fmt.local_maps for extension in fmt.extensions])
+
+
+def map_file_name(end_id: int, fmt: str) -> str:
+    """The name of the file a folder holds the map ending at pose ``end_id`` in, e.g. ``localmap_7.txt``."""
+    return f"{_MAP_STEM}{end_id}{by_name[fmt].extensions[0]}"
+
+
+def detect_format(path_or_name: str, explicit: str | None = None) -> str:
+    """``explicit`` if given (checked against the known formats), else the format its extension names.
+
+    A ``.txt`` file is a Linear SLAM local map when named ``localmap_<k>.txt``, as Linear SLAM
+    names them; other ``.txt`` files need ``explicit``.
+    """
+    name = "<stdin>" if path_or_name == STDIN else str(path_or_name)
+    if explicit is not None:
+        if explicit not in by_name:
+            raise InputError(f"unknown format {explicit!r}; expected one of {', '.join(by_name)}", name)
+        return explicit
+    named = next((fmt.name for pattern, fmt in _NAMED_FILES if pattern.fullmatch(os.path.basename(name))), None)
+    if named is not None:
+        return named
+    suffix = os.path.splitext(name)[1].lower()
+    if suffix not in _EXTENSIONS:
+        got = f"the extension {suffix!r}" if suffix else "no extension"
+        named_files = "".join(f", a {fmt.title} {_MAP_STEM}<k>{extension}" for _, fmt in _NAMED_FILES
+                              for extension in fmt.extensions)
+        raise InputError(f"cannot tell the format from {got}; expected one of {', '.join(_EXTENSIONS)}{named_files}, "
+                         "or ", name, argument="format")
+    return _EXTENSIONS[suffix]
+
+
+def extension_format(name: str) -> str | None:
+    """The format the extension of ``name`` alone names, if any."""
+    return _EXTENSIONS.get(os.path.splitext(name)[1].lower())
+
+
+def sniff(text: str, name: str) -> str:
+    """The format of a stream, from its text (the first format whose ``sniff`` says yes)."""
+    found = next((fmt.name for fmt in FORMATS if fmt.sniff and fmt.sniff(text)), None)
+    if found is None:
+        expected = [fmt.sniff_text for fmt in FORMATS if fmt.sniff]
+        raise InputError(f"cannot tell the format (expected {', '.join(expected[:-1])}, or {expected[-1]}); ", name,
+                         argument="format")
+    return found
+
+
+def codec(fmt: str, kind: Kind, name: str, *, writing: bool = False) -> tuple[Format, Codec]:
+    """The format ``fmt`` and its codec for ``kind``; InputError if it cannot hold it (or cannot write it)."""
+    usable = names(kind, writing=writing)
+    if fmt not in usable:
+        raise InputError(f"cannot {'write' if writing else 'read'} {kind.what} as {fmt}; expected one of "
+                         f"{', '.join(usable)}", name)
+    return by_name[fmt], by_name[fmt].codec(kind)

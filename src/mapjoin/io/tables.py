@@ -1,0 +1,100 @@
+"""Tables: rows of dataclass instances written as CSV, YAML or JSON; minima tables read back.
+
+Written tables (e.g. a per-join report): CSV with the field names as header (``None`` ->
+empty cell), YAML as a list of mappings or JSON as a list of objects (``None`` -> null).
+Numpy scalars and arrays become plain numbers/lists.
+
+Minima tables (``check-minima --batch``, and any table holding the columns): CSV with a
+header naming ``a`` and ``c_phi`` (and optionally ``join``), one row per problem of
+Theorem 2 (``a`` >= 0, ``c_phi`` finite), or a YAML/JSON list of mappings with them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from . import csvtable, yamldoc
+
+__all__ = ["MinimaTable", "dump_csv", "dump_json", "dump_yaml", "read_minima_csv", "read_minima_records"]
+
+
+@dataclasses.dataclass(frozen=True)
+class MinimaTable:
+    """Theorem 2's ``a`` and ``C_phi`` of each row of a table; ``join`` the join numbers when it has a join column."""
+
+    source: str
+    a: np.ndarray
+    c_phi: np.ndarray
+    join: np.ndarray | None = None
+
+
+_MINIMA_COLUMNS = {"a": "nonnegative", "c_phi": "number"}  # column -> kind of its values; "join" ("id") optional
+
+
+def read_minima_csv(text: str, source: str) -> MinimaTable:
+    """A CSV table whose header names a and c_phi (in any order, among any other columns)."""
+    table = csvtable.Table(text, source, None)
+    if not set(_MINIMA_COLUMNS) <= set(table.header):
+        raise InputError(f"expected a header with the columns a and c_phi (as `mapjoin join --report` writes "
+                         f"them), got {','.join(table.header) or 'nothing'}", source, f"line {table.header_line}")
+    a, c_phi = (table.values((column,), None, kind)[:, 0] for column, kind in _MINIMA_COLUMNS.items())
+    join = table.values(("join",), None, "id")[:, 0] if "join" in table.header else None
+    return MinimaTable(source, a, c_phi, join)
+
+
+def read_minima_records(text: str, source: str) -> MinimaTable:
+    """A YAML or JSON list of mappings with a and c_phi, and join in every one or none (JSON is read as
+    YAML, so that errors name lines)."""
+    document = yamldoc.document(text, source)
+    records = document.get((), "list")
+    for row in range(len(records)):
+        document.get((row,), "mapping")
+    kinds = {**_MINIMA_COLUMNS, **({"join": "id"} if any("join" in record for record in records) else {})}
+    columns = {key: [document.get((row, key), kind) for row in range(len(records))] for key, kind in kinds.items()}
+    join = np.array(columns["join"], dtype=np.int64) if "join" in columns else None
+    return MinimaTable(source, np.array(columns["a"], dtype=float), np.array(columns["c_phi"], dtype=float), join)
+
+
+def _table(rows: Sequence[Any]) -> tuple[list[str], list[list[Any]]]:
+    """Field names and plain-Python values of dataclass instances of one type."""
+    if not rows:
+        return [], []
+    kind = type(rows[0])
+    if any(type(row) is not kind for row in rows):
+        raise TypeError(f"table rows must all be {kind.__name__} instances")
+    names = [field.name for field in dataclasses.fields(kind)]
+    return names, [[_plain(getattr(row, name)) for name in names] for row in rows]
+
+
+def _plain(value: Any) -> Any:
+    """Numpy scalars and arrays as Python numbers and lists, tuples as lists."""
+    if isinstance(value, (np.ndarray, np.generic)):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    return value
+
+
+def dump_csv(rows: Sequence[Any]) -> str:
+    """Dataclass instances as a CSV table, their field names as header."""
+    names, values = _table(rows)
+    return csvtable.to_text([names, *values]) if names else ""
+
+
+def dump_yaml(rows: Sequence[Any]) -> str:
+    """Dataclass instances as a YAML list of mappings."""
+    names, values = _table(rows)
+    return yamldoc.dump([[dict(zip(names, row)) for row in values]])
+
+
+def dump_json(rows: Sequence[Any]) -> str:
+    """Dataclass instances as a JSON list of objects."""
+    import json
+
+    names, values = _table(rows)
+    return json.dumps([dict(zip(names, row)) for row in values], indent=2) + "\n"

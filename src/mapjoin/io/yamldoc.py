@@ -1,0 +1,274 @@
+"""YAML documents with typed, line-numbered field access: mapjoin's YAML layer.
+
+The YAML formats (local maps, global maps, ground truth, minima tables) read a document
+through :class:`Document`, whose getters check each field's kind and raise
+:class:`~mapjoin.errors.InputError` naming the file, the field and its line. PyYAML is
+imported on first use, so commands that read and write no YAML do not pay for it. Numbers
+like ``1e-6`` (no dot: a string in YAML 1.1) are read as numbers, and written so.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import re
+import reprlib
+import sys
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..maps import first_duplicate
+
+if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written
+    import yaml
+
+__all__ = ["FIELD_KINDS", "Document", "document", "documents", "dump", "looks_like_yaml", "records", "stack"]
+
+
+_YAML_FLOAT = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$")
+_PLAIN_FLOAT = re.compile(r"[-+]?[0-9]+\.[0-9]*(?:[eE][-+][0-9]+)?")  # as repr writes them; YAML 1.1 floats
+
+
+@functools.cache
+def _yaml_classes() -> tuple[type, type]:
+    """mapjoin's YAML loader and dumper, made (and PyYAML imported) on first use: commands that read and write
+    no YAML do not pay for importing it."""
+    import yaml
+
+    class Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
+        """Safe loader that also reads ``1e-6`` (no dot: a string in YAML 1.1) as a float, and reads floats faster."""
+
+        def resolve(self, kind: type, value: str, implicit: tuple[bool, bool]) -> str:
+            if kind is yaml.ScalarNode and implicit[0] and _PLAIN_FLOAT.fullmatch(value):
+                return "tag:yaml.org,2002:float"  # what PyYAML's resolver says too, without its slow search
+            return super().resolve(kind, value, implicit)
+
+        def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
+            try:  # the common decimal forms; .inf, .nan and base 60 take PyYAML's slower path
+                return float(node.value)
+            except ValueError:
+                return super().construct_yaml_float(node)
+
+    class Dumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # type: ignore[misc]
+        """Safe dumper that quotes strings the loader would read as floats."""
+
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML_FLOAT, list("-+.0123456789"))
+    Loader.add_constructor("tag:yaml.org,2002:float", Loader.construct_yaml_float)
+    Dumper.add_implicit_resolver("tag:yaml.org,2002:float", _YAML_FLOAT, list("-+.0123456789"))
+    return Loader, Dumper
+
+
+_NUMBER_TYPES = frozenset({int, float})
+
+
+def _is_number(value: Any) -> bool:
+    """A finite number, not a bool (an int beyond the float range is not)."""
+    if type(value) is int:
+        return abs(value) <= sys.float_info.max
+    return type(value) is float and math.isfinite(value)
+
+
+#: kind of a field -> (its check, what the error says was expected); the CSV layer says the same
+FIELD_KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "id": (lambda value: type(value) is int and 0 <= value < 2**63, "a non-negative integer"),
+    "number": (_is_number, "a finite number"),
+    "nonnegative": (lambda value: _is_number(value) and value >= 0, "a non-negative finite number"),
+    "variance": (lambda value: _is_number(value) and value > 0, "a positive finite number"),
+    "text": (lambda value: type(value) is str, "a string"),
+    "list": (lambda value: type(value) is list, "a list"),
+    "mapping": (lambda value: type(value) is dict, "a mapping"),
+}
+
+_FieldPath = tuple[str | int, ...]
+
+
+class Document:
+    """One parsed YAML document; its getters check types, and errors name the field and its line."""
+
+    def __init__(self, data: Any, node: yaml.Node, source: str):
+        self.data, self.node, self.source = data, node, source
+
+    def error(self, path: _FieldPath, message: str) -> InputError:
+        """The error of the field at ``path``, naming it and its line."""
+        where = f"line {self._line(path)}" + (f", field {_render(path)}" if path else "")
+        return InputError(message, self.source, where)
+
+    def get(self, path: _FieldPath, kind: str, *, optional: bool = False) -> Any:
+        """The value at ``path`` (keys and indices; the containers were checked by earlier calls)."""
+        check, expected = FIELD_KINDS[kind]
+        if path:
+            parent, key = self._value(path[:-1]), path[-1]
+            if isinstance(key, str) and key not in parent:
+                if optional:
+                    return None
+                raise self.error(path, f"missing; expected {expected}")
+            value = parent[key]
+        else:
+            value = self.data
+        if not check(value):
+            raise self.error(path, f"expected {expected}, got {reprlib.repr(value)}")
+        return value
+
+    def only(self, path: _FieldPath, allowed: Sequence[str]) -> None:
+        """Reject keys of the mapping at ``path`` other than ``allowed`` (catches typos)."""
+        unknown = next((key for key in self._value(path) if key not in allowed), None)
+        if unknown is not None:
+            raise self.error(path, f"unknown field {reprlib.repr(unknown)}; expected only {', '.join(allowed)}")
+
+    def matrix(self, path: _FieldPath, shape: tuple[int, int], *, optional: bool = False) -> np.ndarray | None:
+        """The list of number lists at ``path`` as an array of ``shape``."""
+        rows = self.get(path, "list", optional=optional)
+        if rows is None:
+            return None
+        if len(rows) != shape[0]:
+            raise self.error(path, f"expected {shape[0]} rows of {shape[1]} numbers, got {len(rows)} rows")
+        for i, row in enumerate(rows):
+            if type(row) is not list or len(row) != shape[1]:
+                raise self.error((*path, i), f"expected a list of {shape[1]} numbers, got {reprlib.repr(row)}")
+        values = None
+        if all(_NUMBER_TYPES.issuperset(map(type, row)) for row in rows):  # no bools, strings, ...
+            with contextlib.suppress(OverflowError):  # an int beyond the float range
+                values = np.array(rows, dtype=float).reshape(shape)
+        if values is None or not np.isfinite(values).all():
+            i, j = next((i, j) for i, row in enumerate(rows)
+                        for j, value in enumerate(row) if not _is_number(value))
+            raise self.error((*path, i, j), f"expected a finite number, got {reprlib.repr(rows[i][j])}")
+        return values
+
+    def record(self, path: _FieldPath, fields: Mapping[str, str],
+               matrices: Mapping[str, tuple[int, int]] | None = None) -> dict[str, Any]:
+        """The mapping at ``path`` with exactly ``fields`` (name -> kind) and optional ``matrices``."""
+        matrices = matrices or {}
+        self.get(path, "mapping")
+        self.only(path, (*fields, *matrices))
+        values = {key: self.get((*path, key), kind) for key, kind in fields.items()}
+        values.update({key: self.matrix((*path, key), shape, optional=True) for key, shape in matrices.items()})
+        return values
+
+    def records(self, path: _FieldPath, fields: Mapping[str, str],
+                matrices: Mapping[str, tuple[int, int]] | None = None) -> dict[str, np.ndarray | None]:
+        """The list of records at ``path`` as columns; ids must be unique, matrices on all records or none."""
+        matrices = matrices or {}
+        count = len(self.get(path, "list"))
+        items = [self.record((*path, index), fields, matrices) for index in range(count)]
+        columns: dict[str, np.ndarray | None] = {
+            key: np.array([item[key] for item in items], dtype=np.int64 if kind == "id" else float)
+            for key, kind in fields.items()}
+        for key, shape in matrices.items():
+            present = [item[key] is not None for item in items]
+            if any(present) and not all(present):
+                missing = present.index(False)
+                raise self.error((*path, missing, key), f"missing; expected a {shape[0]}x{shape[1]} matrix "
+                                 f"as on {_render((*path, present.index(True)))}")
+            columns[key] = (np.array([item[key] for item in items]).reshape(-1, *shape)
+                            if items and all(present) else None)
+        if "id" in fields:
+            duplicate = first_duplicate(columns["id"])
+            if duplicate is not None:
+                raise self.error((*path, duplicate, "id"), f"duplicate id {columns['id'][duplicate]}")
+        return columns
+
+    def header(self, kind: str, keys: Sequence[str]) -> None:
+        """Check the document is a mapping of ``format: kind``, version 1, with no keys beyond ``keys``."""
+        self.get((), "mapping")
+        found = self.get(("format",), "text")
+        if found != kind:
+            raise self.error(("format",), f"expected {kind}, got {reprlib.repr(found)}")
+        version = self.get(("version",), "id")
+        if version != 1:
+            raise self.error(("version",), f"unsupported version {version}; this mapjoin reads version 1")
+        self.only((), keys)
+
+    def relocated(self, error: InputError) -> InputError:
+        """A data-model validation error re-raised naming this file and the field's line."""
+        return self.error((error.where,) if error.where else (), error.detail)
+
+    def _value(self, path: _FieldPath) -> Any:
+        """The value at ``path``, which exists."""
+        value = self.data
+        for key in path:
+            value = value[key]
+        return value
+
+    def _line(self, path: _FieldPath) -> int:
+        """Line (1-based) of the deepest node of ``path`` that exists."""
+        import yaml
+
+        node = self.node
+        for key in path:
+            if isinstance(node, yaml.MappingNode):
+                found = [value for name, value in node.value
+                         if isinstance(name, yaml.ScalarNode) and name.value == key]
+                if not found:
+                    break
+                node = found[-1]
+            elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
+                node = node.value[key]
+            else:
+                break
+        return node.start_mark.line + 1
+
+
+def _render(path: _FieldPath) -> str:
+    """``("features", 3, "var")`` -> ``features[3].var``."""
+    text = ""
+    for key in path:
+        text += f"[{key}]" if isinstance(key, int) else f".{key}" if text else str(key)
+    return text
+
+
+def documents(text: str, source: str) -> list[Document]:
+    """The documents of a YAML stream (malformed YAML raises, naming the line)."""
+    import yaml
+
+    loader = _yaml_classes()[0](text)
+    parsed = []
+    try:
+        while loader.check_node():
+            node = loader.get_node()
+            parsed.append(Document(loader.construct_document(node), node, source))
+    except yaml.MarkedYAMLError as error:
+        mark = error.problem_mark or error.context_mark
+        raise InputError(f"malformed YAML: {error.problem or error.context}", source,
+                         f"line {mark.line + 1}" if mark else None) from None
+    except (yaml.YAMLError, ValueError, OverflowError, RecursionError) as error:
+        raise InputError(f"malformed YAML: {error}", source) from None
+    finally:
+        loader.dispose()
+    return parsed
+
+
+def document(text: str, source: str) -> Document:
+    """The one document of a YAML stream."""
+    parsed = documents(text, source)
+    if len(parsed) != 1:
+        raise InputError(f"expected one YAML document, got {len(parsed)}", source)
+    return parsed[0]
+
+
+def dump(data: Sequence[Any], *, explicit_start: bool = False) -> str:
+    """``data`` (plain Python values) as a YAML stream of one document each, in mapjoin's style."""
+    import yaml
+
+    return yaml.dump_all(data, Dumper=_yaml_classes()[1], sort_keys=False, default_flow_style=None,
+                         allow_unicode=True, width=1 << 30, explicit_start=explicit_start)
+
+
+def records(columns: Mapping[str, np.ndarray | None]) -> list[dict[str, Any]]:
+    """Columns (arrays, None = absent) as a list of records of plain Python values."""
+    present = {key: column.tolist() for key, column in columns.items() if column is not None}
+    return [dict(zip(present, values)) for values in zip(*present.values())]
+
+
+def stack(columns: Mapping[str, np.ndarray | None], *keys: str) -> np.ndarray:
+    """The columns ``keys`` side by side, as a (rows x keys) array."""
+    return np.column_stack([columns[key] for key in keys]).reshape(-1, len(keys))
+
+
+def looks_like_yaml(text: str) -> bool:
+    """Whether a stream without a named format is YAML: it starts with ``format:``, ``---``, ``%YAML`` or ``#``."""
+    return text.lstrip().startswith(("format:", "---", "%YAML", "#"))
