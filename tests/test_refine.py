@@ -26,19 +26,10 @@ from scipy.sparse.linalg import splu, spsolve
 from mapjoin import GlobalMap, JoinError, LocalMap, formats
 from mapjoin.cli import main
 from mapjoin.joining import join_sequential
-from mapjoin.refine import (
-    _GROUP_OVERHEAD,
-    ExactProblem,
-    RefineResult,
-    _block_whitening,
-    _classes,
-    _closed_pattern,
-    _selected_inverse,
-    _Supernodes,
-    _triangular_inverse,
-    exact_cost,
-    refine,
-)
+from mapjoin.refine import RefineResult, exact_cost, refine
+from mapjoin.refine.groups import _GROUP_OVERHEAD, _block_whitening, _triangular_inverse, size_classes
+from mapjoin.refine.problem import ExactProblem
+from mapjoin.refine.sparse import Supernodes, closed_pattern, selected_inverse
 from mapjoin.simulate import simulate
 
 KNOWN_OPTIMA = {  # chi^2 at the exact optimum
@@ -248,7 +239,7 @@ def test_size_classes_are_the_cheapest_runs_of_sizes(sizes, independent):
     over every way to cut the kind's distinct sizes into runs (up to 10 distinct sizes)."""
     sizes = np.array(sizes)
     kinds = np.resize(np.array(independent + [False], dtype=bool), len(sizes))
-    classes = _classes(sizes, kinds)
+    classes = size_classes(sizes, kinds)
     assert np.array_equal(np.sort(np.concatenate(classes)), np.arange(len(sizes)))
 
     def cost(groups):
@@ -379,10 +370,10 @@ def test_selected_inversion_of_a_sparse_matrix_with_structural_zeros():
     Lrow, Lcol = L.row[lower].astype(np.int64), L.col[lower].astype(np.int64)
     Acoo = A.tocoo()
     ar, ac = q[Acoo.row], q[Acoo.col]
-    keys = _closed_pattern(np.concatenate([Lcol, ac[ar > ac]]) * n + np.concatenate([Lrow, ar[ar > ac]]), n)
-    structure = _Supernodes(keys, np.ones(n, dtype=np.int64))
+    keys = closed_pattern(np.concatenate([Lcol, ac[ar > ac]]) * n + np.concatenate([Lrow, ar[ar > ac]]), n)
+    structure = Supernodes(keys, np.ones(n, dtype=np.int64))
     rows, cols = np.maximum(ar, ac), np.minimum(ar, ac)
-    values = _selected_inverse(structure, Lrow, Lcol, L.data[lower], factor.U.diagonal(), rows, cols)
+    values = selected_inverse(structure, Lrow, Lcol, L.data[lower], factor.U.diagonal(), rows, cols)
     Z = np.linalg.inv(A.toarray())
     np.testing.assert_allclose(values, Z[Acoo.row, Acoo.col], rtol=1e-9, atol=1e-12 * np.abs(Z).max())
 

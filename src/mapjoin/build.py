@@ -9,8 +9,8 @@ its poses except ``b_j`` (``R(phi_i)^T (f - t_i) - z``), each whitened by its
 covariance. Observations from ``b_j`` belong to the next map, which sees them from its
 origin, so each is used once; the last map also takes those from the last pose.
 
-The problem is refine's exact joining problem (:class:`mapjoin.refine.ExactProblem`),
-solved by the same sparse Gauss-Newton/LM code (:func:`mapjoin.refine.minimise`): one
+The problem is refine's exact joining problem (:class:`mapjoin.refine.problem.ExactProblem`),
+solved by the same sparse Gauss-Newton/LM code (:func:`mapjoin.refine.solver.minimise`): one
 measurement block per odometry step, its relative pose plus the observations made from
 its start pose with their block-diagonal covariance (I-SLSJF's one-step local maps are
 exactly these blocks). Observations from the last pose of the data form one more block
@@ -53,7 +53,9 @@ from .joining import join_sequential
 from .maps import (GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, marginal_variances, size_groups,
                    unstack)
 from .raw import RawData
-from .refine import TOLERANCE, Blocks, ExactProblem, Minimum, RefineResult, minimise
+from .refine import TOLERANCE, RefineResult, spherical_variances
+from .refine.problem import Blocks, ExactProblem
+from .refine.solver import Minimum, minimise
 
 __all__ = ["PIECE_STEPS", "BuildResult", "batch", "build", "cut"]
 
@@ -222,9 +224,7 @@ def _batch_result(solved: _Solved, bounds: np.ndarray, seconds: float, covarianc
     if covariances:
         pose_covariances, feature_covariances = problem.marginals(found.final_factor(problem))
         pose_covariances = pose_covariances[kept]
-        pose_variances = np.stack([(pose_covariances[:, 0, 0] + pose_covariances[:, 1, 1]) / 2,
-                                   pose_covariances[:, 2, 2]], axis=1)
-        feature_variances = np.trace(feature_covariances, axis1=1, axis2=2) / 2
+        pose_variances, feature_variances = spherical_variances(pose_covariances, feature_covariances)
     else:
         pose_covariances = feature_covariances = None
         pose_variances, feature_variances = np.ones((len(kept), 2)), np.ones(len(features))
@@ -235,11 +235,7 @@ def _batch_result(solved: _Solved, bounds: np.ndarray, seconds: float, covarianc
         feature_variances=feature_variances, pose_ids=np.arange(1, len(kept) + 1), poses=poses[kept],
         pose_variances=pose_variances, provenance=Provenance((name,), "full", "gauss-newton", "batch"),
         feature_covariances=feature_covariances, pose_covariances=pose_covariances, name=f"{name} (batch)")
-    result = RefineResult(
-        global_map=global_map, cost=found.cost, costs=tuple(found.costs), iterations=found.iterations,
-        converged=found.converged, reason=found.reason, seconds=seconds, covariance_seconds=covariance_seconds,
-        residuals=problem.n_residuals, unknowns=problem.n_unknowns,
-        gradient_norm=float(np.max(np.abs(found.gradient), initial=0.0)), rejected=found.rejected)
+    result = RefineResult.of(problem, found, global_map, seconds, covariance_seconds)
     _check(np.array([result.cost]), np.array([result.degrees_of_freedom]), name)
     return result
 
