@@ -7,7 +7,7 @@ import time
 import click
 
 from .. import formats
-from ..joining import STRATEGIES, join
+from ..joining import STRATEGIES
 from . import common, main
 from .common import format_option, input_format_option, inputs_argument, output_option, progress_bar, say
 
@@ -59,31 +59,27 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
       mapjoin simulate -o - | mapjoin refine - --no-covariances > exact.csv
       mapjoin refine ../shared/data/VicPark_6898_local_maps --start tree -o vp_exact.csv
     """
-    from ..refine import refine as refine_maps  # scipy.sparse: imported only when refining
+    from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
     paths = formats.resolve_inputs(inputs)
     formats.check_not_overwriting(paths, [output] if output != "-" else [])
     start = time.perf_counter()
     maps = formats.read_map_paths(paths, format=input_format)
 
-    joined = time.perf_counter()
-    with progress_bar(ctx, len(maps), "fast join") as progress:
-        initial = join(maps, strategy=strategy, progress=progress)
-    joined = time.perf_counter() - joined
-
     def report(iteration: int, cost: float) -> None:
         say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
 
-    result = refine_maps(maps, initial.global_map, max_iterations=max_iterations, tolerance=tolerance,
-                         covariances=not no_covariances, progress=report if ctx.obj["verbose"] else None)
+    with progress_bar(ctx, len(maps), "fast join") as progress:
+        result = join_and_refine(maps, start=strategy, join_progress=progress, max_iterations=max_iterations,
+                                 tolerance=tolerance, covariances=not no_covariances,
+                                 progress=report if ctx.obj["verbose"] else None)
     elapsed = time.perf_counter() - start
     formats.write_global_map(result.global_map, output, common.output_format(output, output_format, "csv"))
     common.warn_if_doubtful(result)
-    g = result.global_map
-    two = sum(r.minima == 2 for r in initial.report)
+    g, joins = result.global_map, result.fast_join.report
+    two = sum(r.minima == 2 for r in joins)
     say(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{len(initial.report)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
+             f"{len(joins)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (fast join "
-             f"{joined:.3f} s, solve {result.seconds:.3f} s, covariances {result.covariance_seconds:.3f} s) -> "
-             f"{'stdout' if output == '-' else output}")
-
+             f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
+             f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")

@@ -53,7 +53,7 @@ class Group:
     nodes: np.ndarray         # (G, m + 2) nodes [pose k, features, base pose]
     coupled: np.ndarray       # (G, m + 2, m + 2) node pairs whose block of J_k^T J_k can be non-zero
     layout: PieceLayout      # which entries of J_k^T J_k are evaluated (see piece_layout)
-    rotated: tuple = ()       # parts of P_k^-1 = W^T W, see ExactProblem.linearise
+    rotated: tuple = ()       # parts of P_k^-1 = W^T W, see rotated_information
     block_offset: int = 0     # where the group's J_k^T J_k blocks start in the flat buffer
     gradient_offset: int = 0  # where its J_k^T r_k start
 

@@ -178,7 +178,8 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
                 return stop("no step lowers the cost (damping limit reached)")
 
 
-def _step(problem: ExactProblem, data: np.ndarray, gradient: np.ndarray, mode: _Mode) -> tuple[object, np.ndarray | None]:
+def _step(problem: ExactProblem, data: np.ndarray, gradient: np.ndarray, mode: _Mode
+          ) -> tuple[object, np.ndarray | None]:
     """The factor of the normal matrix ``data`` (damped as ``mode`` says) and the step
     ``-(data)^-1 gradient``; a Newton step of a singular matrix is None (Gauss-Newton's: an error)."""
     factor = None
