@@ -25,8 +25,8 @@ from scipy.sparse.linalg import splu, spsolve
 
 from mapjoin import GlobalMap, JoinError, LocalMap, formats
 from mapjoin.cli import main
-from mapjoin.joining import join_sequential
-from mapjoin.refine import RefineResult, exact_cost, refine
+from mapjoin.joining import join, join_sequential
+from mapjoin.refine import RefineResult, exact_cost, join_and_refine, refine
 from mapjoin.refine.groups import _GROUP_OVERHEAD, _block_whitening, _triangular_inverse, size_classes
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.sparse import Supernodes, closed_pattern, selected_inverse
@@ -477,6 +477,20 @@ def test_max_iterations_stops_early_and_says_so(real):
     result = refine(real("DLR_200_local_maps"), max_iterations=1, covariances=False)
     assert not result.converged and result.reason == "max iterations reached"
     assert result.iterations == 1 and len(result.costs) == 2
+
+
+def test_join_and_refine_is_the_fast_join_then_refine_from_it(real):
+    """The pipeline both commands run: the fast join it made is kept, and refine's default start is it."""
+    maps = real("8240_data_50_local_maps")
+    for start in ("sequential", "tree"):
+        piped = join_and_refine(maps, start=start, covariances=False)
+        fast = join(maps, strategy=start)
+        assert piped.fast_join.report == fast.report and piped.initial_seconds > 0
+        direct = refine(maps, fast.global_map, covariances=False)
+        assert direct.fast_join is None and direct.initial_seconds == 0
+        np.testing.assert_array_equal(piped.global_map.features, direct.global_map.features)
+        assert piped.costs == direct.costs
+    assert refine(maps, covariances=False).costs == join_and_refine(maps, covariances=False).costs
 
 
 def test_bad_chains_and_starts_are_join_errors():

@@ -35,7 +35,7 @@ from ..errors import JoinError
 from ..maps import GlobalMap, LocalMap, locate
 from ..onestep import wrap
 from . import groups as grouping
-from .groups import Group, PieceLayout
+from .groups import Group
 from .sparse import BlockPattern, diagonal_blocks, factorise, fill_reducing_order
 
 __all__ = ["Blocks", "ExactProblem"]

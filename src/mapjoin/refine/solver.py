@@ -123,6 +123,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
     rejected = 0
 
     def stop(reason: str, converged: bool = False, factor: object = None) -> Minimum:
+        """Where the solver is now (x and its linearisation), and why it stops there."""
         return Minimum(x, data, gradient, cost, costs, len(costs) - 1, converged, reason, rejected, factor)
 
     while True:
