@@ -17,7 +17,7 @@ from scipy.stats import chi2
 from mapjoin import io as mapio
 from mapjoin.cli import main
 from mapjoin.errors import InputError
-from mapjoin.evaluate import compare, evaluate, nees_bounds
+from mapjoin.evaluate import CHI2_LEVEL, chi2_interval, chi2_verdict, compare, evaluate, nees_bounds
 from mapjoin.io.matfile import variables as mat_variables
 from mapjoin.joining import join_sequential
 from mapjoin.maps import GlobalMap, GroundTruth
@@ -197,6 +197,16 @@ def test_nees_bounds_are_chi_square_quantiles_of_the_average():
     n, p = len(truth.feature_ids), len(truth.pose_ids)
     assert result.nees_bounds_features == nees_bounds(2, n)
     assert result.nees_bounds_poses == pytest.approx((chi2.ppf(0.025, 3 * p) / p, chi2.ppf(0.975, 3 * p) / p))
+
+
+def test_chi2_verdict_places_each_value_against_its_interval_and_skips_no_degrees_of_freedom():
+    low, high = chi2_interval(100, CHI2_LEVEL)
+    assert (low, high) == (pytest.approx(chi2.ppf(0.0005, 100)), pytest.approx(chi2.ppf(0.9995, 100)))
+    verdict = chi2_verdict([low / 2, 100.0, 2 * high, 5.0], [100, 100, 100, 0])
+    assert verdict.too_small.tolist() == [True, False, False, False]
+    assert verdict.too_large.tolist() == [False, False, True, False]
+    assert verdict.outside.tolist() == [0, 2] and math.isnan(verdict.low[3]) and verdict.level == CHI2_LEVEL
+    assert verdict.low[0] == low and verdict.high[0] == high
 
 
 def test_evaluate_only_features_gives_no_pose_nees():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -125,6 +126,20 @@ def test_pose_revisited_in_chain_is_an_error():
     loop = LocalMap("back", 2, 0, np.zeros(3), [], np.zeros((0, 2)), [], [1.0, 1.0])
     with pytest.raises(JoinError, match="pose 0 appears twice"):
         join_sequential(maps + [loop])
+
+
+def test_a_join_asked_not_to_warn_says_nothing_and_leaves_the_logger_alone(caplog):
+    """build joins internal pieces with warn=False instead of raising the logger's level."""
+    maps, _, _ = noise_free_chain(2, count=2)
+    second = maps[1]
+    disjoint = LocalMap("disjoint", 1, 2, second.end_pose, second.feature_ids + 10**6, second.features,
+                        second.feature_variances, second.pose_variances)
+    level = logging.getLogger("mapjoin").level
+    with caplog.at_level(logging.WARNING, logger="mapjoin"):
+        quiet = join_sequential([maps[0], disjoint], warn=False)
+    assert caplog.text == "" and logging.getLogger("mapjoin").level == level
+    loud = join_sequential([maps[0], disjoint])
+    np.testing.assert_array_equal(quiet.global_map.poses, loud.global_map.poses)
 
 
 def test_map_sharing_no_feature_is_placed_by_its_start_pose(caplog):

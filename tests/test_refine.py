@@ -26,20 +26,11 @@ from scipy.sparse.linalg import splu, spsolve
 from mapjoin import GlobalMap, JoinError, LocalMap
 from mapjoin import io as mapio
 from mapjoin.cli import main
-from mapjoin.joining import join_sequential
-from mapjoin.refine import (
-    _GROUP_OVERHEAD,
-    ExactProblem,
-    RefineResult,
-    _block_whitening,
-    _classes,
-    _closed_pattern,
-    _selected_inverse,
-    _Supernodes,
-    _triangular_inverse,
-    exact_cost,
-    refine,
-)
+from mapjoin.joining import join, join_sequential
+from mapjoin.refine import RefineResult, exact_cost, join_and_refine, refine
+from mapjoin.refine.groups import _GROUP_OVERHEAD, _block_whitening, _triangular_inverse, size_classes
+from mapjoin.refine.problem import ExactProblem
+from mapjoin.refine.sparse import Supernodes, closed_pattern, selected_inverse
 from mapjoin.simulate import simulate
 
 KNOWN_OPTIMA = {  # chi^2 at the exact optimum
@@ -249,7 +240,7 @@ def test_size_classes_are_the_cheapest_runs_of_sizes(sizes, independent):
     over every way to cut the kind's distinct sizes into runs (up to 10 distinct sizes)."""
     sizes = np.array(sizes)
     kinds = np.resize(np.array(independent + [False], dtype=bool), len(sizes))
-    classes = _classes(sizes, kinds)
+    classes = size_classes(sizes, kinds)
     assert np.array_equal(np.sort(np.concatenate(classes)), np.arange(len(sizes)))
 
     def cost(groups):
@@ -380,10 +371,10 @@ def test_selected_inversion_of_a_sparse_matrix_with_structural_zeros():
     Lrow, Lcol = L.row[lower].astype(np.int64), L.col[lower].astype(np.int64)
     Acoo = A.tocoo()
     ar, ac = q[Acoo.row], q[Acoo.col]
-    keys = _closed_pattern(np.concatenate([Lcol, ac[ar > ac]]) * n + np.concatenate([Lrow, ar[ar > ac]]), n)
-    structure = _Supernodes(keys, np.ones(n, dtype=np.int64))
+    keys = closed_pattern(np.concatenate([Lcol, ac[ar > ac]]) * n + np.concatenate([Lrow, ar[ar > ac]]), n)
+    structure = Supernodes(keys, np.ones(n, dtype=np.int64))
     rows, cols = np.maximum(ar, ac), np.minimum(ar, ac)
-    values = _selected_inverse(structure, Lrow, Lcol, L.data[lower], factor.U.diagonal(), rows, cols)
+    values = selected_inverse(structure, Lrow, Lcol, L.data[lower], factor.U.diagonal(), rows, cols)
     Z = np.linalg.inv(A.toarray())
     np.testing.assert_allclose(values, Z[Acoo.row, Acoo.col], rtol=1e-9, atol=1e-12 * np.abs(Z).max())
 
@@ -487,6 +478,20 @@ def test_max_iterations_stops_early_and_says_so(real):
     result = refine(real("DLR_200_local_maps"), max_iterations=1, covariances=False)
     assert not result.converged and result.reason == "max iterations reached"
     assert result.iterations == 1 and len(result.costs) == 2
+
+
+def test_join_and_refine_is_the_fast_join_then_refine_from_it(real):
+    """The pipeline both commands run: the fast join it made is kept, and refine's default start is it."""
+    maps = real("8240_data_50_local_maps")
+    for start in ("sequential", "tree"):
+        piped = join_and_refine(maps, start=start, covariances=False)
+        fast = join(maps, strategy=start)
+        assert piped.fast_join.report == fast.report and piped.initial_seconds > 0
+        direct = refine(maps, fast.global_map, covariances=False)
+        assert direct.fast_join is None and direct.initial_seconds == 0
+        np.testing.assert_array_equal(piped.global_map.features, direct.global_map.features)
+        assert piped.costs == direct.costs
+    assert refine(maps, covariances=False).costs == join_and_refine(maps, covariances=False).costs
 
 
 def test_bad_chains_and_starts_are_join_errors():

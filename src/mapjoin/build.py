@@ -9,8 +9,8 @@ its poses except ``b_j`` (``R(phi_i)^T (f - t_i) - z``), each whitened by its
 covariance. Observations from ``b_j`` belong to the next map, which sees them from its
 origin, so each is used once; the last map also takes those from the last pose.
 
-The problem is refine's exact joining problem (:class:`mapjoin.refine.ExactProblem`),
-solved by the same sparse Gauss-Newton/LM code (:func:`mapjoin.refine.minimise`): one
+The problem is refine's exact joining problem (:class:`mapjoin.refine.problem.ExactProblem`),
+solved by the same sparse Gauss-Newton/LM code (:func:`mapjoin.refine.solver.minimise`): one
 measurement block per odometry step, its relative pose plus the observations made from
 its start pose with their block-diagonal covariance (I-SLSJF's one-step local maps are
 exactly these blocks). Observations from the last pose of the data form one more block
@@ -36,13 +36,12 @@ only each map's own (3 + 2m)^2 Schur complement is inverted.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import itertools
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,7 +52,9 @@ from .joining import join_sequential
 from .maps import (GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, marginal_variances, size_groups,
                    unstack)
 from .raw import RawData
-from .refine import TOLERANCE, Blocks, ExactProblem, Minimum, RefineResult, minimise
+from .refine import TOLERANCE, RefineResult, spherical_variances
+from .refine.problem import Blocks, ExactProblem
+from .refine.solver import Minimum, minimise
 
 __all__ = ["PIECE_STEPS", "BuildResult", "batch", "build", "cut"]
 
@@ -124,7 +125,8 @@ def build(raw: RawData, bounds: Sequence[int], *, jobs: int = 1, piece_steps: in
     that many runs of consecutive maps, each built in a worker process exactly as one job
     builds all (the solver stops per run, so results agree to rounding, not bit for bit).
     ``with_batch``: also the batch solution (:func:`batch`), started from these maps joined.
-    Warns when chi^2 is implausible."""
+    Whether chi^2 is plausible: :func:`mapjoin.evaluate.chi2_verdict` of ``costs`` and
+    ``degrees_of_freedom``."""
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     bounds = np.asarray(bounds, dtype=np.int64)
@@ -155,7 +157,6 @@ def build(raw: RawData, bounds: Sequence[int], *, jobs: int = 1, piece_steps: in
                          seconds=max(p.seconds for p in parts),
                          covariance_seconds=max(p.covariance_seconds for p in parts),
                          pieces=sum(p.pieces for p in parts))
-    _check(result.costs, result.degrees_of_freedom, raw.name)
     if with_batch:
         start = time.perf_counter()
         pieces = _Pieces(bounds, poses, maps)
@@ -205,8 +206,7 @@ def batch(raw: RawData, bounds: Sequence[int] | None = None, *, piece_steps: int
     """The full batch SLAM solution, built as one local map (so from pieces, certified joins
     and refinement): every feature and the poses at chain indices ``bounds[1:]`` (default:
     every pose), pose k labelled k as the k-th built map's end pose is, in the frame of the
-    first pose, with marginal covariances (else unit variances). Warns when chi^2 is
-    implausible."""
+    first pose, with marginal covariances (else unit variances)."""
     bounds = np.arange(raw.steps + 1) if bounds is None else np.asarray(bounds, dtype=np.int64)
     start = time.perf_counter()
     solved = _solve(raw, np.array([0, raw.steps]), piece_steps, max_iterations, tolerance, progress)
@@ -222,9 +222,7 @@ def _batch_result(solved: _Solved, bounds: np.ndarray, seconds: float, covarianc
     if covariances:
         pose_covariances, feature_covariances = problem.marginals(found.final_factor(problem))
         pose_covariances = pose_covariances[kept]
-        pose_variances = np.stack([(pose_covariances[:, 0, 0] + pose_covariances[:, 1, 1]) / 2,
-                                   pose_covariances[:, 2, 2]], axis=1)
-        feature_variances = np.trace(feature_covariances, axis1=1, axis2=2) / 2
+        pose_variances, feature_variances = spherical_variances(pose_covariances, feature_covariances)
     else:
         pose_covariances = feature_covariances = None
         pose_variances, feature_variances = np.ones((len(kept), 2)), np.ones(len(features))
@@ -235,13 +233,7 @@ def _batch_result(solved: _Solved, bounds: np.ndarray, seconds: float, covarianc
         feature_variances=feature_variances, pose_ids=np.arange(1, len(kept) + 1), poses=poses[kept],
         pose_variances=pose_variances, provenance=Provenance((name,), "full", "gauss-newton", "batch"),
         feature_covariances=feature_covariances, pose_covariances=pose_covariances, name=f"{name} (batch)")
-    result = RefineResult(
-        global_map=global_map, cost=found.cost, costs=tuple(found.costs), iterations=found.iterations,
-        converged=found.converged, reason=found.reason, seconds=seconds, covariance_seconds=covariance_seconds,
-        residuals=problem.n_residuals, unknowns=problem.n_unknowns,
-        gradient_norm=float(np.max(np.abs(found.gradient), initial=0.0)), rejected=found.rejected)
-    _check(np.array([result.cost]), np.array([result.degrees_of_freedom]), name)
-    return result
+    return RefineResult.of(problem, found, global_map, seconds, covariance_seconds)
 
 
 # ---------------------------------------------------------------------------------------
@@ -449,25 +441,12 @@ def _joined(pieces: _Pieces, bounds: np.ndarray, steps: int) -> np.ndarray:
     piece_bounds, local = pieces.bounds, pieces.block_poses
     start_of_piece = np.zeros((len(pieces.maps), 3))         # each piece's start in its map's frame
     owner = np.searchsorted(bounds, piece_bounds[:-1], side="right") - 1
-    with _quiet():
-        for j in range(len(bounds) - 1):
-            members = np.flatnonzero(owner == j)
-            if len(members) > 1:
-                joined = join_sequential([pieces.maps[i] for i in members]).global_map
-                start_of_piece[members[1:]] = joined.poses[np.searchsorted(joined.pose_ids, members[1:])]
+    for j in range(len(bounds) - 1):
+        members = np.flatnonzero(owner == j)
+        if len(members) > 1:     # no warnings: they would name pieces the user never sees
+            joined = join_sequential([pieces.maps[i] for i in members], warn=False).global_map
+            start_of_piece[members[1:]] = joined.poses[np.searchsorted(joined.pose_ids, members[1:])]
     return _compose(start_of_piece[_segment_of_blocks(piece_bounds, len(local), steps)], local)
-
-
-@contextlib.contextmanager
-def _quiet() -> Iterator[None]:
-    """Silence the joins of internal pieces (their warnings name pieces the user never sees)."""
-    logger = logging.getLogger("mapjoin")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    try:
-        yield
-    finally:
-        logger.setLevel(level)
 
 
 def _covariance_blocks(problem: ExactProblem, data: np.ndarray, selected: list[np.ndarray]) -> list[np.ndarray]:
@@ -510,30 +489,3 @@ def _covariance_blocks(problem: ExactProblem, data: np.ndarray, selected: list[n
                 schur[j][:, low:high] = block[first[j]:first[j + 1], :min(k, high) - low]
     covariances = [np.linalg.inv((s + s.T) / 2) for s in schur]
     return [(c + c.T) / 2 for c in covariances]     # exactly symmetric (LocalMap then takes it as is)
-
-
-def _check(costs: np.ndarray, dofs: np.ndarray, name: str) -> None:
-    """Warn when chi^2, in all and map by map, is outside the 99.9% interval of a chi-square
-    with its degrees of freedom."""
-    from scipy.special import chdtr, chdtrc  # (scipy.stats costs ~1 s to import)
-
-    from .evaluate import CHI2_LEVEL, chi2_interval
-
-    level = (1 - CHI2_LEVEL) / 2
-    total, dof = float(costs.sum()), int(dofs.sum())
-    if dof > 0:
-        low, high = chi2_interval(dof, CHI2_LEVEL)
-        if not low <= total <= high:
-            look = "pessimistic (too large)" if total < low else "optimistic (too small), or there are outliers"
-            log.warning("%s: chi^2 = %.6g is outside the %g%% interval [%.6g, %.6g] of a chi-square with %d degrees "
-                        "of freedom (chi^2/dof = %.3f): the noise numbers look %s", name, total, 100 * CHI2_LEVEL,
-                        low, high, dof, total / dof, look)
-    if len(costs) > 1:
-        counted = np.flatnonzero(dofs > 0)
-        outside = counted[(chdtrc(dofs[counted], costs[counted]) < level)
-                          | (chdtr(dofs[counted], costs[counted]) < level)]
-        if outside.size:
-            j = int(outside[0])
-            log.warning("%s: %d of %d local maps have chi^2 outside the %g%% interval for their degrees of freedom "
-                        "(first: map %d, chi^2 %.4g for %d)", name, outside.size, len(costs), 100 * CHI2_LEVEL,
-                        j + 1, costs[j], dofs[j])

@@ -25,6 +25,7 @@ value just outside the bounds is weak evidence; an order of magnitude is not.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -34,8 +35,8 @@ from .errors import InputError
 from .maps import GlobalMap, GroundTruth
 from .onestep import wrap
 
-__all__ = ["ALIGNMENTS", "Alignment", "Difference", "Evaluation", "chi2_interval", "compare", "evaluate",
-           "nees_bounds"]
+__all__ = ["ALIGNMENTS", "CHI2_LEVEL", "Alignment", "Chi2Verdict", "Difference", "Evaluation", "chi2_interval",
+           "chi2_verdict", "compare", "evaluate", "nees_bounds"]
 
 Alignment = Literal["none", "rigid"]
 ALIGNMENTS: tuple[str, ...] = ("none", "rigid")
@@ -168,12 +169,57 @@ def evaluate(global_map: GlobalMap, truth: GroundTruth, align: Alignment = "none
         nees_bounds_features=bounds_features, nees_bounds_poses=bounds_poses, consistent=consistent)
 
 
-def chi2_interval(dof: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """The central ``confidence`` interval of a chi-square distribution with ``dof`` degrees of freedom."""
+def chi2_interval(dof: int | np.ndarray, confidence: float = CONFIDENCE
+                  ) -> tuple[float, float] | tuple[np.ndarray, np.ndarray]:
+    """The central ``confidence`` interval of a chi-square distribution with ``dof`` degrees of
+    freedom (floats; arrays of bounds for an array of ``dof``)."""
     from scipy.special import chdtri  # inverse survival function; scipy.stats costs ~1 s to import
 
     tail = (1 - confidence) / 2
-    return float(chdtri(dof, 1 - tail)), float(chdtri(dof, tail))
+    low, high = chdtri(dof, 1 - tail), chdtri(dof, tail)
+    return (low, high) if np.ndim(low) else (float(low), float(high))
+
+
+@dataclass(frozen=True)
+class Chi2Verdict:
+    """Values of chi^2 (``costs``) against the central ``level`` interval ``[low, high]`` of a
+    chi-square with their degrees of freedom ``dofs`` (the distribution of chi^2 at the
+    optimum of a least-squares problem whose covariances are right; bounds NaN where
+    ``dofs <= 0``: not tested). Below the interval, the covariances look pessimistic (too
+    large); above, optimistic (too small), or the data disagree (outliers)."""
+
+    costs: np.ndarray
+    dofs: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    level: float
+
+    @property
+    def too_small(self) -> np.ndarray:
+        """Which values are below their interval."""
+        return self.costs < self.low
+
+    @property
+    def too_large(self) -> np.ndarray:
+        """Which values are above their interval."""
+        return self.costs > self.high
+
+    @property
+    def outside(self) -> np.ndarray:
+        """Indices of the values outside their interval."""
+        return np.flatnonzero(self.too_small | self.too_large)
+
+
+def chi2_verdict(costs: Sequence[float] | np.ndarray, dofs: Sequence[int] | np.ndarray,
+                 level: float = CHI2_LEVEL) -> Chi2Verdict:
+    """Whether each chi^2 in ``costs`` is plausible for its degrees of freedom ``dofs``: see
+    :class:`Chi2Verdict` (imports scipy.special)."""
+    costs, dofs = np.asarray(costs, dtype=float).ravel(), np.asarray(dofs, dtype=np.int64).ravel()
+    tested = dofs > 0
+    low, high = np.full(len(costs), math.nan), np.full(len(costs), math.nan)
+    if tested.any():
+        low[tested], high[tested] = chi2_interval(dofs[tested], level)
+    return Chi2Verdict(costs, dofs, low, high, level)
 
 
 def nees_bounds(dof: int, count: int, confidence: float = CONFIDENCE) -> tuple[float, float]:

@@ -200,8 +200,9 @@ def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray,
 
 def _solve_join(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarray, odometry_xy: complex,
                 odometry_phi: float, odometry_variances: tuple[float, float], solver: Solver,
-                label: tuple[str, int, int, int], level: int) -> _Joins:
-    """One join as :func:`_solve_joins` computes it, on Python numbers: the sequential strategy's step."""
+                label: tuple[str, int, int, int], level: int, warn: bool = True) -> _Joins:
+    """One join as :func:`_solve_joins` computes it, on Python numbers: the sequential strategy's step
+    (``warn``: as :func:`_row`)."""
     var_o, p_phi = odometry_variances
     k = point_constants(z0, var0, z1, var1, odometry_xy, var_o)
     found = global_orientation(k.a0, k.phi0, odometry_phi, p_phi, solver)
@@ -211,14 +212,15 @@ def _solve_join(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarr
     turn = complex(math.cos(phi), math.sin(phi))
     other_cost = float(linked_cost(k, odometry_phi, p_phi, other)) if other is not None else None
     row = _row(*label[:3], len(z0), label[3], found.minima.a, found.minima.c_phi, found.minima.count, phi,
-               float(linked_cost(k, odometry_phi, p_phi, phi)), other, other_cost, found.iterations, level)
+               float(linked_cost(k, odometry_phi, p_phi, phi)), other, other_cost, found.iterations, level, warn=warn)
     return _Joins(phi, turn, k.mean0 - turn * k.mean1, phi_variance, _t_variance(k.weight, k.mean1, phi_variance),
                   [row])
 
 
-def _row(name: str, start_id: int, end_id: int, common: int, size: int, *solution) -> tuple:
-    """A join's report entry (JoinRecord's fields after ``join``); warns when the join has no common feature."""
-    if not common:
+def _row(name: str, start_id: int, end_id: int, common: int, size: int, *solution, warn: bool = True) -> tuple:
+    """A join's report entry (JoinRecord's fields after ``join``); with ``warn``, warns when the join has
+    no common feature."""
+    if not common and warn:
         log.warning("%s shares no feature with the maps it is joined onto: it is placed by its "
                     "start pose alone (no correction of the map so far)", name)
     return (name, start_id, end_id, common, size - common, *solution)
@@ -332,12 +334,14 @@ class _Labels:
 
 def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
                     solver: Solver = "bisection",
-                    progress: Callable[[int], None] | None = None) -> JoinResult:
+                    progress: Callable[[int], None] | None = None, *, warn: bool = True) -> JoinResult:
     """Join ``maps`` (a connected chain) one after the other; the global frame is the first map's start.
 
     The global map lives in arrays indexed by compact feature id, so join k reads and writes
     only the rows of map k (its common features first, then its new ones: two slices); the
     1-D problem and the poses are Python numbers. ``progress`` is called with the number of maps joined.
+    ``warn``: warn about each map that shares no feature with those before it (callers joining
+    pieces of their own, which the user never sees, say False).
     """
     feature_ids, pieces = _prepare(maps, covariance)
     offsets = np.searchsorted(pieces.feature_piece, np.arange(len(maps) + 1))
@@ -364,7 +368,7 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         z0, var0 = positions[shared], position_variances[shared]
         joins = _solve_join(z0, var0, z[rows][:common], var[rows][:common], pose_xy[k - 1], pose_phi[k - 1],
                             (var_xy[k - 1], var_phi[k - 1]), solver,
-                            (local_map.name, local_map.start_id, local_map.end_id, local_map.size), k)
+                            (local_map.name, local_map.start_id, local_map.end_id, local_map.size), k, warn)
         move = (joins.turn, joins.t, joins.t_variance, joins.phi_variance)
         placed, spread = _place(*move, z[rows], var[rows], squared[rows])
         positions[shared], position_variances[shared] = _fuse(z0, var0, placed[:common], information[rows][:common])

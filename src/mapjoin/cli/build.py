@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import time
+from collections.abc import Sequence
 
 import click
+import numpy as np
 
 from .. import io as mapio
 from ..errors import InputError
@@ -13,6 +16,8 @@ from ..io.registry import GLOBAL_MAP, LOCAL_MAPS
 from ..raw import RAW_FORMATS, read_raw
 from . import common, main
 from .common import format_option, say
+
+log = logging.getLogger("mapjoin")
 
 #: maps built when neither --maps nor --poses-per-map is given (the paper's Victoria Park experiment)
 DEFAULT_MAPS = 200
@@ -83,6 +88,9 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
 
     result = builder.build(raw, bounds, jobs=jobs, progress=report if ctx.obj["verbose"] else None,
                            with_batch=global_path is not None)
+    _warn_if_doubtful(raw.name, result.costs, result.degrees_of_freedom)
+    if result.batch is not None:
+        _warn_if_doubtful(raw.name, [result.batch.cost], [result.batch.degrees_of_freedom])
     writing = time.perf_counter()
     written = mapio.write_maps(result.maps, output if stream else os.path.join(output, ""), fmt)
     writing = time.perf_counter() - writing
@@ -117,3 +125,27 @@ def _planned_folder(folder: str, fmt: str, count: int) -> list[str]:
             raise InputError(f"holds local maps this build would not replace (e.g. {os.path.basename(stale[0])}), "
                              "which would be joined with the new ones; choose a new or empty folder", folder)
     return planned
+
+
+def _warn_if_doubtful(name: str, costs: Sequence[float], dofs: Sequence[int]) -> None:
+    """Warn when chi^2, in all and map by map, is outside the 99.9% interval of a chi-square with
+    its degrees of freedom (skipped under -q, which silences warnings)."""
+    if not log.isEnabledFor(logging.WARNING):
+        return
+    from ..evaluate import chi2_verdict
+
+    total, dof = float(np.sum(costs)), int(np.sum(dofs))
+    verdict = chi2_verdict([total], [dof])
+    if verdict.outside.size:
+        look = "pessimistic (too large)" if verdict.too_small[0] else "optimistic (too small), or there are outliers"
+        log.warning("%s: chi^2 = %.6g is outside the %g%% interval [%.6g, %.6g] of a chi-square with %d degrees "
+                    "of freedom (chi^2/dof = %.3f): the noise numbers look %s", name, total, 100 * verdict.level,
+                    verdict.low[0], verdict.high[0], dof, total / dof, look)
+    if len(costs) > 1:
+        each = chi2_verdict(costs, dofs)
+        outside = each.outside
+        if outside.size:
+            j = int(outside[0])
+            log.warning("%s: %d of %d local maps have chi^2 outside the %g%% interval for their degrees of freedom "
+                        "(first: map %d, chi^2 %.4g for %d)", name, outside.size, len(costs), 100 * each.level,
+                        j + 1, costs[j], dofs[j])

@@ -68,7 +68,9 @@ def say(ctx: click.Context, message: str) -> None:
 
 @contextlib.contextmanager
 def progress_bar(ctx: click.Context, length: int, label: str) -> Iterator[Callable[[int], None] | None]:
-    """A progress callback drawing a bar on stderr when it is a terminal (and not -q), else None."""
+    """A progress callback drawing a bar on stderr when it is a terminal (and not -q), else None.
+    The bar's line ends when the count reaches ``length``, so that what the command does and
+    says next (e.g. a refinement after the fast join) comes below it."""
     if ctx.obj["quiet"] or not sys.stderr.isatty() or length < 2:
         yield None
         return
@@ -79,6 +81,9 @@ def progress_bar(ctx: click.Context, length: int, label: str) -> Iterator[Callab
             nonlocal done
             bar.update(count - done)
             done = count
+            if done >= length and not bar.hidden:
+                bar.render_finish()
+                bar.hidden = True          # finished: nothing more to draw, not even on leaving
 
         yield update
 
@@ -109,16 +114,17 @@ def warn_if_doubtful(result: RefineResult) -> None:
     if not result.converged:
         log.warning("the exact join did not converge (%s after %d iterations): the map written is the "
                     "last iterate, chi^2 = %.10g", result.reason, result.iterations, result.cost)
-    cost, dof = result.cost, result.residuals - result.unknowns
+    dof = result.degrees_of_freedom
     if dof <= 0 or not log.isEnabledFor(logging.WARNING):
         return
-    from ..evaluate import CHI2_LEVEL, chi2_interval
+    from ..evaluate import chi2_verdict
 
-    low, high = chi2_interval(dof, CHI2_LEVEL)
-    if low <= cost <= high:
+    verdict = chi2_verdict([result.cost], [dof])
+    if not verdict.outside.size:
         return
-    which = ("pessimistic (too large)" if cost < low
+    which = ("pessimistic (too large)" if verdict.too_small[0]
              else "optimistic (too small), or the maps disagree (outliers, wrong data association)")
     log.warning("final chi^2 = %.6g is outside the %g%% interval [%.6g, %.6g] of a chi-square with %d degrees "
                 "of freedom (%d residuals - %d unknowns; chi^2/dof = %.3f): the local maps' covariances look %s",
-                cost, 100 * CHI2_LEVEL, low, high, dof, result.residuals, result.unknowns, cost / dof, which)
+                result.cost, 100 * verdict.level, verdict.low[0], verdict.high[0], dof, result.residuals,
+                result.unknowns, result.cost / dof, which)

@@ -59,13 +59,16 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
     with progress_bar(ctx, len(maps), "joining") as progress:
-        result = join_maps(maps, covariance, solver, strategy, jobs, progress)
-    global_map = result.global_map
-    if exact:
-        from ..refine import refine  # scipy.sparse: imported only when refining
+        if exact:
+            from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
-        refined = refine(maps, global_map)
-        global_map = refined.global_map
+            refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
+                                      join_progress=progress)
+            result, global_map = refined.fast_join, refined.global_map
+        else:
+            result = join_maps(maps, covariance, solver, strategy, jobs, progress)
+            global_map = result.global_map
+    if exact:
         common.warn_if_doubtful(refined)
         say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
                  f"{refined.iterations} iterations ({refined.reason})")

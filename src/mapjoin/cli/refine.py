@@ -8,7 +8,7 @@ import click
 
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP
-from ..joining import STRATEGIES, join
+from ..joining import STRATEGIES
 from . import common, main
 from .common import (global_map_format_option, global_map_output_option, input_format_option, inputs_argument,
                      progress_bar, say)
@@ -60,7 +60,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
       mapjoin simulate -o - | mapjoin refine - --no-covariances > exact.csv
       mapjoin refine ../shared/data/VicPark_6898_local_maps --start tree -o vp_exact.csv
     """
-    from ..refine import refine as refine_maps  # scipy.sparse: imported only when refining
+    from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
     paths = mapio.resolve_inputs(inputs)
     mapio.check_not_overwriting(paths, [output] if output != "-" else [])
@@ -68,25 +68,21 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
 
-    joined = time.perf_counter()
-    with progress_bar(ctx, len(maps), "fast join") as progress:
-        initial = join(maps, strategy=strategy, progress=progress)
-    joined = time.perf_counter() - joined
-
     def report(iteration: int, cost: float) -> None:
         say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
 
-    result = refine_maps(maps, initial.global_map, max_iterations=max_iterations, tolerance=tolerance,
-                         covariances=not no_covariances, progress=report if ctx.obj["verbose"] else None)
+    with progress_bar(ctx, len(maps), "fast join") as progress:
+        result = join_and_refine(maps, start=strategy, join_progress=progress, max_iterations=max_iterations,
+                                 tolerance=tolerance, covariances=not no_covariances,
+                                 progress=report if ctx.obj["verbose"] else None)
     elapsed = time.perf_counter() - start
     with common.options_for(format="--format"):
         mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
     common.warn_if_doubtful(result)
-    g = result.global_map
-    two = sum(r.minima == 2 for r in initial.report)
+    g, joins = result.global_map, result.fast_join.report
+    two = sum(r.minima == 2 for r in joins)
     say(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{len(initial.report)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
+             f"{len(joins)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (fast join "
-             f"{joined:.3f} s, solve {result.seconds:.3f} s, covariances {result.covariance_seconds:.3f} s) -> "
-             f"{'stdout' if output == '-' else output}")
-
+             f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
+             f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")

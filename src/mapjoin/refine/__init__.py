@@ -1,0 +1,153 @@
+"""Exact least-squares map joining (the problem I-SLSJF solves): sparse Gauss-Newton.
+
+The problem (method.md, "Exact joining"): the global end poses of all maps and the
+global positions of all features minimising ``sum_k e_k^T P_k^-1 e_k`` over the local
+maps k, each weighted by its full covariance (:mod:`.problem`). It is solved by
+Gauss-Newton with Levenberg-Marquardt and Newton safeguards (:mod:`.solver`) from a fast
+join (:func:`join_and_refine`), on normal equations of fixed sparse pattern factorised by
+SuperLU; the marginal covariances at the optimum come by selected inversion of that
+factor (:mod:`.sparse`).
+
+:func:`join_and_refine` is the whole pipeline, fast join then refinement, that ``mapjoin
+join --refine`` and ``mapjoin refine`` run; :func:`refine` starts from a given map.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..joining import DEFAULT_COVARIANCE, JoinResult, Strategy, join
+from ..maps import CovarianceMode, GlobalMap, LocalMap, Provenance
+from ..onestep import Solver
+from .problem import ExactProblem
+from .solver import TOLERANCE, Minimum, minimise
+
+__all__ = ["TOLERANCE", "RefineResult", "exact_cost", "join_and_refine", "refine", "spherical_variances"]
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """The exact join and how it was found.
+
+    ``global_map``: poses and features at the optimum; with covariances, its
+    ``feature_covariances`` (n, 2, 2) and ``pose_covariances`` (p, 3, 3) are the marginal
+    blocks of ``(J^T J)^-1`` and its spherical variances their summary (see
+    :func:`spherical_variances`); without, the variances of the initial map are kept.
+    ``cost``: chi^2 at the optimum. ``costs``: chi^2 before the first iteration and after
+    each accepted one (decreasing; the last may rise by rounding, see
+    :func:`.solver.minimise`). ``seconds``: time of the solve (problem set-up and
+    iterations; neither the initial join nor the covariances), ``covariance_seconds``: time
+    of the marginal covariances, ``initial_seconds``: time of the fast join that gave the
+    initial value (0 when one was given), ``fast_join``: that join (None when an initial
+    map was given). ``gradient_norm``: max |J^T r| at the optimum (r whitened residuals).
+    ``rejected``: steps computed but not taken (they did not lower chi^2, or a Newton step
+    was no descent).
+    """
+
+    global_map: GlobalMap
+    cost: float
+    costs: tuple[float, ...]
+    iterations: int
+    converged: bool
+    reason: str
+    seconds: float
+    covariance_seconds: float = 0.0
+    initial_seconds: float = 0.0
+    residuals: int = 0
+    unknowns: int = 0
+    gradient_norm: float = math.nan
+    rejected: int = 0
+    fast_join: JoinResult | None = None
+
+    @property
+    def degrees_of_freedom(self) -> int:
+        """Residuals minus unknowns: the expected value of chi^2 at the optimum."""
+        return self.residuals - self.unknowns
+
+    @classmethod
+    def of(cls, problem: ExactProblem, found: Minimum, global_map: GlobalMap, seconds: float,
+           covariance_seconds: float) -> RefineResult:
+        """The result of ``problem`` solved to ``found``, its solution ``global_map``."""
+        return cls(global_map=global_map, cost=found.cost, costs=tuple(found.costs), iterations=found.iterations,
+                   converged=found.converged, reason=found.reason, seconds=seconds,
+                   covariance_seconds=covariance_seconds, residuals=problem.n_residuals,
+                   unknowns=problem.n_unknowns, gradient_norm=float(np.max(np.abs(found.gradient), initial=0.0)),
+                   rejected=found.rejected)
+
+
+def spherical_variances(pose_covariances: np.ndarray, feature_covariances: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The spherical summary ``(pose variances (p, 2), feature variances (n,))`` of marginal
+    covariances (p, 3, 3) and (n, 2, 2): half the trace of each x/y block, and the
+    orientation variance as is."""
+    pose_variances = np.stack([(pose_covariances[:, 0, 0] + pose_covariances[:, 1, 1]) / 2,
+                               pose_covariances[:, 2, 2]], axis=1)
+    return pose_variances, np.trace(feature_covariances, axis1=1, axis2=2) / 2
+
+
+def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy = "sequential",
+                    covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection", jobs: int = 1,
+                    join_progress: Callable[[int], None] | None = None, max_iterations: int = 100,
+                    tolerance: float = TOLERANCE, covariances: bool = True,
+                    progress: Callable[[int, float], None] | None = None) -> RefineResult:
+    """Join the chain ``maps`` fast (:func:`mapjoin.joining.join` with strategy ``start``,
+    ``covariance``, ``solver``, ``jobs`` and ``join_progress``), then refine that to the
+    exact least-squares join (:func:`refine` with the other arguments). The result holds
+    the fast join (``fast_join``) and its time (``initial_seconds``)."""
+    maps = list(maps)
+    began = time.perf_counter()
+    fast = join(maps, covariance, solver, start, jobs, join_progress)
+    initial_seconds = time.perf_counter() - began
+    result = refine(maps, fast.global_map, max_iterations=max_iterations, tolerance=tolerance,
+                    covariances=covariances, progress=progress)
+    return dataclasses.replace(result, initial_seconds=initial_seconds, fast_join=fast)
+
+
+def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_iterations: int = 100,
+           tolerance: float = TOLERANCE, covariances: bool = True,
+           progress: Callable[[int, float], None] | None = None) -> RefineResult:
+    """Solve the exact least-squares joining problem of the chain ``maps``.
+
+    Starts from ``initial`` (which must hold every pose and feature; extra ones are
+    ignored) or else from the sequential join (:func:`join_and_refine`, which needs a
+    chain); the steps and the stopping rules are those of :func:`.solver.minimise`.
+    ``covariances``: compute the marginal covariances (else the initial map's variances
+    are kept).
+    """
+    if initial is None:
+        return join_and_refine(maps, max_iterations=max_iterations, tolerance=tolerance, covariances=covariances,
+                               progress=progress)
+    maps = list(maps)
+    start = time.perf_counter()
+    problem = ExactProblem(maps)
+    found = minimise(problem, problem.pack(initial), max_iterations=max_iterations, tolerance=tolerance,
+                     progress=progress)
+    seconds = time.perf_counter() - start
+
+    poses, features = problem.unpack(found.x)
+    start = time.perf_counter()
+    if covariances:
+        pose_covariances, feature_covariances = problem.marginals(found.final_factor(problem))
+        pose_variances, feature_variances = spherical_variances(pose_covariances, feature_covariances)
+    else:
+        pose_covariances = feature_covariances = None
+        pose_variances, feature_variances = problem.variances(initial)
+    covariance_seconds = time.perf_counter() - start if covariances else 0.0
+    global_map = GlobalMap(
+        feature_ids=problem.feature_ids, features=features, feature_variances=feature_variances,
+        pose_ids=problem.pose_ids, poses=poses, pose_variances=pose_variances,
+        provenance=Provenance(tuple(m.name for m in maps), "full", "gauss-newton", "exact"),
+        feature_covariances=feature_covariances, pose_covariances=pose_covariances)
+    return RefineResult.of(problem, found, global_map, seconds, covariance_seconds)
+
+
+def exact_cost(maps: Sequence[LocalMap], global_map: GlobalMap) -> float:
+    """chi^2 of ``global_map`` in the exact joining problem of ``maps``."""
+    problem = ExactProblem(maps)
+    return problem.cost(problem.pack(global_map))

@@ -1,0 +1,208 @@
+"""The solver of the exact join: Gauss-Newton with safeguards (:func:`minimise`).
+
+An overshooting Gauss-Newton step is first halved (a line search along it), then
+Levenberg-Marquardt damping (Marquardt's ``lambda diag(J^T J)``, steps accepted only if they
+lower the cost, lambda adapted by the gain ratio as in Nielsen's rule) takes over; it
+switches to Newton's method (the exact Hessian: ``J^T J`` plus the second-order term, which
+only touches the base angles) once steps are good, for quadratic convergence. The damping
+alone would cut the directions ``J^T J`` hardly constrains (long chains of maps) by orders
+of magnitude and creep; the halving keeps Gauss-Newton's direction.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import JoinError
+from .problem import ExactProblem
+
+__all__ = ["TOLERANCE", "Minimum", "minimise"]
+
+#: default stopping tolerance: relative chi^2 change, and step size relative to (1 + largest |unknown|);
+#: 1e-12 puts the solution within ~1e-7 m of the optimum on the real datasets from either fast join
+TOLERANCE = 1e-12
+_MAX_DAMPING = 1e16  # Marquardt lambda at which the solver gives up looking for a decrease
+_HALVINGS = 10       # an overshooting Gauss-Newton step is tried at 1/2 ... 1/2^10 of its length before damping
+
+
+@dataclass
+class Minimum:
+    """Where :func:`minimise` stopped: the unknowns ``x``, the data of J^T J, J^T r and chi^2
+    there, chi^2 before the first step and after each accepted one (``costs``), why it
+    stopped, and ``factor``: the undamped Gauss-Newton factor of J^T J at ``x`` when the
+    last one computed was that (else None)."""
+
+    x: np.ndarray
+    data: np.ndarray
+    gradient: np.ndarray
+    cost: float
+    costs: list[float]
+    iterations: int
+    converged: bool
+    reason: str
+    rejected: int
+    factor: object = None
+
+    def final_factor(self, problem: ExactProblem):
+        """The undamped factor of J^T J at the optimum (for covariances)."""
+        return self.factor if self.factor is not None else problem.factorise(self.data)
+
+
+@dataclass
+class _Mode:
+    """Which step comes next: Gauss-Newton, undamped (``damping`` 0) or with Marquardt's
+    ``damping`` (multiplied by ``growth`` after each rejected step), or Newton's while
+    ``newton`` (never again once Newton's model has failed: ``newton_allowed``)."""
+
+    damping: float = 0.0
+    growth: float = 2.0
+    newton: bool = False
+    newton_allowed: bool = True
+
+    @property
+    def plain(self) -> bool:
+        """An undamped Gauss-Newton step: its factor is that of J^T J."""
+        return self.damping == 0.0 and not self.newton
+
+    def abandon_newton(self) -> None:
+        """Newton's step was no descent or did not lower chi^2: Gauss-Newton from now on."""
+        self.newton = self.newton_allowed = False
+
+    def accept(self, ratio: float) -> None:
+        """After an accepted step of gain ratio ``ratio``: less damping (Nielsen), and near the
+        optimum (a good undamped step) Newton's quadratic convergence."""
+        self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+        if self.damping < 1e-12:
+            self.damping = 0.0
+        self.growth = 2.0
+        self.newton = self.newton_allowed and self.damping == 0.0 and ratio > 0.5
+
+    def damp(self) -> bool:
+        """After a rejected Gauss-Newton step: more damping; False past the limit."""
+        self.damping = 1e-6 if self.damping == 0.0 else self.damping * self.growth
+        self.growth *= 2.0
+        return self.damping <= _MAX_DAMPING
+
+
+def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100, tolerance: float = TOLERANCE,
+             progress: Callable[[int, float], None] | None = None) -> Minimum:
+    """Minimise chi^2 of ``problem`` from ``x``: Gauss-Newton (``J^T J``), undamped while steps
+    lower the cost (an overshooting one is first halved up to ten times: a backtracking line
+    search along it), with Marquardt damping ``lambda diag(J^T J)`` adapted by the gain ratio
+    (Nielsen) after one that does not; after a good undamped step, Newton's (``J^T J`` plus
+    the second-order term, for quadratic convergence on these non-zero-residual problems),
+    falling back to Gauss-Newton for good if a Newton step is not a descent or does not
+    lower the cost. A step predicted to lower chi^2 by at most ``tolerance`` relative is
+    accepted unless chi^2 rises by more than that: comparing the costs is rounding there,
+    and it would make the stopping point random. Stops when an accepted step lowers chi^2
+    by at most ``tolerance`` relative, or a step is at most ``tolerance * (1 + max |x|)`` in
+    every unknown, or one predicted to lower chi^2 by at most ``tolerance`` relative raises
+    it by more (these two not taken), or after ``max_iterations`` accepted steps. The relative
+    tolerances on chi^2 are at least its rounding, ``sqrt(residuals)`` machine epsilons, so
+    that ``tolerance=0`` means "to rounding" rather than a damped search for what rounding hides.
+    ``progress(iteration, cost)`` is called with the initial chi^2 (iteration 0) and after
+    each accepted step.
+    """
+    if max_iterations < 0:
+        raise ValueError(f"max_iterations must be >= 0, got {max_iterations}")
+    if not tolerance >= 0:
+        raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+    # chi^2's own rounding (sqrt(residuals) machine epsilons, relative): comparing costs or predicted
+    # decreases below it is noise, so a smaller tolerance (e.g. 0) stops there instead of damping on
+    relative = max(tolerance, math.sqrt(problem.n_residuals) * np.finfo(float).eps)
+    data, gradient, cost = problem.linearise(x)           # the first step is Gauss-Newton's
+    second = None
+    costs = [cost]
+    if progress:
+        progress(0, cost)
+    mode = _Mode()
+    rejected = 0
+
+    def stop(reason: str, converged: bool = False, factor: object = None) -> Minimum:
+        """Where the solver is now (x and its linearisation), and why it stops there."""
+        return Minimum(x, data, gradient, cost, costs, len(costs) - 1, converged, reason, rejected, factor)
+
+    while True:
+        if len(costs) - 1 >= max_iterations:
+            return stop("max iterations reached")
+        factor, step = _step(problem, data + second if mode.newton else data, gradient, mode)
+        finite = step is not None and bool(np.all(np.isfinite(step)))
+        if finite and np.max(np.abs(step), initial=0.0) <= tolerance * (1.0 + np.max(np.abs(x), initial=0.0)):
+            return stop("step below tolerance", True, factor if mode.plain else None)
+        if mode.newton and (not finite or step @ gradient >= 0):
+            mode.abandon_newton()       # not a descent direction: Gauss-Newton from now on
+            rejected += 1
+            continue
+        if not finite:
+            raise JoinError("the normal equations of the exact join are singular")
+        trial = x + step
+        trial_cost = problem.cost(trial)
+        # the model's decrease, -g.step + damping step.D.step (the gain ratio's denominator)
+        predicted = -(step @ gradient) + mode.damping * (step * step) @ problem.diagonal(data)
+        negligible = 0 <= predicted <= relative * cost
+        if trial_cost >= cost and not negligible and mode.plain:
+            shorter = _halved(problem, x, step, cost)
+            if shorter is not None:
+                rejected += 1
+                trial, trial_cost, fraction = shorter
+                predicted *= fraction * (2 - fraction)     # the model's decrease along it
+        if negligible and trial_cost > cost * (1.0 + relative):
+            # at the optimum to within rounding, and the model no longer holds: damped retries would only
+            # shrink the step
+            return stop("predicted decrease below tolerance", True, factor if mode.plain else None)
+        if trial_cost < cost or negligible:
+            # a step of negligible predicted decrease is taken however chi^2 compares: at that level the
+            # comparison is rounding noise (it would make where the solver stops random), and the model's
+            # minimiser is the better estimate; the relative cost change then stops the solver
+            mode.accept((cost - trial_cost) / predicted if predicted > 0 else 1.0)
+            x, previous = trial, cost
+            done = previous - trial_cost <= relative * previous
+            if mode.newton and not done:     # the second-order term only where a Newton step follows
+                data, gradient, cost, second = problem.linearise(x, curvature=True)
+            else:
+                data, gradient, cost = problem.linearise(x)
+            costs.append(cost)
+            if progress:
+                progress(len(costs) - 1, cost)
+            if done:
+                return stop("relative cost change below tolerance", True)
+        elif mode.newton:
+            mode.abandon_newton()       # Newton's model failed here: Gauss-Newton from now on
+            rejected += 1
+        else:
+            rejected += 1
+            if not mode.damp():
+                return stop("no step lowers the cost (damping limit reached)")
+
+
+def _step(problem: ExactProblem, data: np.ndarray, gradient: np.ndarray, mode: _Mode
+          ) -> tuple[object, np.ndarray | None]:
+    """The factor of the normal matrix ``data`` (damped as ``mode`` says) and the step
+    ``-(data)^-1 gradient``; a Newton step of a singular matrix is None (Gauss-Newton's: an error)."""
+    factor = None
+    try:
+        factor = problem.factorise(data, mode.damping)
+        return factor, problem.solve(factor, -gradient)
+    except RuntimeError:          # SuperLU: exactly singular
+        if not mode.newton:
+            raise JoinError("the normal equations of the exact join are singular") from None
+        return factor, None
+
+
+def _halved(problem: ExactProblem, x: np.ndarray, step: np.ndarray, cost: float
+            ) -> tuple[np.ndarray, float, float] | None:
+    """Gauss-Newton's step overshoots: the first of 1/2 ... 1/2^10 of it that lowers chi^2
+    below ``cost``, as ``(x, chi^2, fraction)``, else None. Its direction is one of descent;
+    shortening it first keeps it, where damping, scaled by diag(J^T J), would cut the
+    directions J^T J hardly constrains by orders of magnitude and let the solver creep along
+    them (as on long runs with loop closures)."""
+    for halving in range(1, _HALVINGS + 1):
+        shorter = x + 0.5 ** halving * step
+        shorter_cost = problem.cost(shorter)
+        if shorter_cost < cost:
+            return shorter, shorter_cost, 0.5 ** halving
+    return None

@@ -1,0 +1,386 @@
+"""Sparse symmetric factorisation of the normal equations and selected inversion.
+
+The normal matrix ``J^T J`` of the exact join (method.md, "Exact joining") is a matrix of
+node blocks: a node is a pose (3 unknowns) or a feature (2), and two nodes are coupled
+when one local map sees both. Its pattern is fixed, so the work that depends only on it
+is done once:
+
+* :func:`fill_reducing_order`: multiple minimum degree (SuperLU's) on the node graph,
+  re-postordered so that supernodes chain, with the closed symbolic pattern of the factor;
+* :class:`BlockPattern`: the scalar CSC pattern of the node-block matrix in that order, and
+  where each scalar entry, its mirror and each diagonal entry live;
+* :func:`factorise`: SuperLU in symmetric mode without pivoting (``J^T J`` is positive
+  definite), ``J^T J = L D L^T`` in the given order.
+
+Marginal covariances (:func:`diagonal_blocks`): the diagonal blocks of ``(J^T J)^-1`` by
+supernodal selected inversion (Takahashi's recursion, :func:`selected_inverse`) on the
+factor: only the entries of the inverse on the pattern of L (closed under elimination)
+are computed, top-down along the supernodal elimination tree, never the whole inverse.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+__all__ = ["BlockPattern", "Supernodes", "closed_pattern", "diagonal_blocks", "factorise", "fill_reducing_order",
+           "selected_inverse"]
+
+_SUPERLU = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}
+_SUPERNODE_OVERHEAD = 5e4  # flops worth one supernode's Python overhead in the selected inversion
+
+
+def fill_reducing_order(row: np.ndarray, col: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(order, closed)`` for the symmetric node pattern ``(row, col)`` (both triangles and
+    the diagonal): ``order[node]`` its position, by minimum degree then a postorder of the
+    same elimination tree (same fill) putting each node's heaviest child right before it, so
+    that supernodes can be merged; ``closed``: the strictly lower pattern of the factor in
+    positions (keys ``col * n_nodes + row``, sorted, closed under elimination, see
+    :func:`closed_pattern`), for the selected inversion."""
+    # The values make the matrix a weighted Laplacian plus 1e-3 I: an M-matrix, so its factor
+    # has no cancellation (nor, as the shift is small, decay to underflow), and its pattern is
+    # the symbolic one.
+    off = row != col
+    graph = sp.csc_matrix((np.where(off, -1.0, 1e-3 + np.bincount(col[off], minlength=n_nodes)[col]),
+                           (row, col)), shape=(n_nodes, n_nodes))
+    lu = splu(graph, permc_spec="MMD_AT_PLUS_A", **_SUPERLU)
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        raise np.linalg.LinAlgError("SuperLU pivoted on the node graph")
+    order = np.asarray(lu.perm_c, dtype=np.int64)   # node -> position
+    L = lu.L.tocsc()
+    L.sort_indices()
+    L = L.tocoo()
+    lower = L.row > L.col
+    pattern = L.col[lower].astype(np.int64) * n_nodes + L.row[lower]   # sorted; no cancellation: contains A's
+    a_row, a_col = order[row[off]], order[col[off]]
+    below = a_row > a_col
+    found = np.searchsorted(pattern, a_col[below] * n_nodes + a_row[below])
+    if not np.array_equal(pattern[np.minimum(found, len(pattern) - 1)], a_col[below] * n_nodes + a_row[below]):
+        pattern = np.concatenate([pattern, a_col[below] * n_nodes + a_row[below]])   # (underflow): add A's
+    pattern = closed_pattern(pattern, n_nodes)
+    relabel = _heavy_last_postorder(pattern, n_nodes)
+    pattern = np.sort(relabel[pattern // n_nodes] * n_nodes + relabel[pattern % n_nodes])
+    return relabel[order], pattern
+
+
+class BlockPattern:
+    """The scalar CSC pattern of a symmetric matrix of node blocks in a node order.
+
+    Built from the node pattern ``(col, row)`` (natural node ids, both triangles), the
+    node order ``order[node] = position`` and each node's scalar size. Scalar unknowns are
+    numbered node by node in natural order; ``position[i]`` is unknown i's row/column. Only
+    the lower triangle is accumulated (see :meth:`mirrored`). Node entry t (column node C,
+    row node at or below it) holds scalar (i, j) at ``column_start[C] + j * col_length[C] +
+    row_offset[t] + i``; ``rank[e]`` is the node entry of the e-th given pair.
+    """
+
+    def __init__(self, col: np.ndarray, row: np.ndarray, order: np.ndarray, node_size: np.ndarray):
+        n_nodes = len(node_size)
+        self.size = size = np.empty(n_nodes, dtype=np.int64)
+        size[order] = node_size                           # node size by position
+        start = np.concatenate([[0], np.cumsum(size)])
+        unknown_node = np.repeat(np.arange(n_nodes), node_size)
+        unknown_offset = np.arange(len(unknown_node)) - np.repeat(np.cumsum(node_size) - node_size, node_size)
+        self.n = len(unknown_node)
+        self.position = start[order[unknown_node]] + unknown_offset
+        # node CSC pattern in positions
+        pkeys = order[col] * n_nodes + order[row]
+        sort = np.argsort(pkeys)
+        self.rank = np.empty(len(sort), dtype=np.int64)
+        self.rank[sort] = np.arange(len(sort))
+        pkeys = pkeys[sort]
+        ncol, nrow = pkeys // n_nodes, pkeys % n_nodes
+        nptr = np.searchsorted(ncol, np.arange(n_nodes + 1))
+        row_size = size[nrow]
+        cum = np.concatenate([[0], np.cumsum(row_size)])
+        self.row_offset = cum[:-1] - cum[nptr[ncol]]           # scalar rows above node entry t in its column
+        self.col_length = col_length = cum[nptr[1:]] - cum[nptr[:-1]]       # scalar rows of each node column
+        # scalar CSC: every scalar column of node column c holds the rows of c's node entries, in order
+        # (a "template" per node column: node entry t and row offset i of each of its scalar rows)
+        column_length = np.repeat(col_length, size)
+        indptr = np.concatenate([[0], np.cumsum(column_length)])
+        self.nnz = nnz = int(indptr[-1])
+        template_entry = np.repeat(np.arange(len(pkeys)), row_size)
+        template_row = start[nrow][template_entry] + np.arange(len(template_entry)) - cum[:-1][template_entry]
+        # the lower triangle is accumulated; an entry above the diagonal takes its mirror's value
+        transposed_slot = np.searchsorted(pkeys, nrow * n_nodes + ncol)
+        template_mirror = self.row_offset[transposed_slot][template_entry]
+        scalar_node = np.repeat(np.arange(n_nodes), size)
+        column = np.repeat(np.arange(len(column_length)), column_length)
+        template = np.arange(nnz) - np.repeat(indptr[:-1] - cum[nptr[scalar_node]], column_length)
+        indices = template_row[template]
+        within = np.repeat(np.arange(len(scalar_node)) - start[scalar_node], column_length)   # column offset j
+        self.from_lower = np.where(indices >= column, np.arange(nnz),
+                                   indptr[indices] + template_mirror[template] + within)
+        self.indptr, self.indices = indptr.astype(np.int32), indices.astype(np.int32)
+        self.column_start = indptr[start[:-1]]
+        diagonal_slot = np.searchsorted(pkeys, np.arange(n_nodes) * (n_nodes + 1))
+        self.diagonal = (indptr[self.position] + self.row_offset[diagonal_slot[order[unknown_node]]]
+                         + unknown_offset)                # CSC index of A[i, i], natural order
+
+    def mirrored(self, lower: np.ndarray) -> np.ndarray:
+        """The CSC data from data holding the lower triangle (and a spare last slot)."""
+        return lower[self.from_lower]
+
+    def matrix(self, data: np.ndarray) -> sp.csc_matrix:
+        """The matrix of CSC ``data``: entry (position[i], position[j]) is (i, j)."""
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+
+def factorise(matrix: sp.csc_matrix):
+    """SuperLU factor ``L D L^T`` of a positive definite matrix in its given order (symmetric mode)."""
+    return splu(matrix, permc_spec="NATURAL", **_SUPERLU)
+
+
+def diagonal_blocks(factor, pattern: BlockPattern, closed: np.ndarray, blocks: list[np.ndarray]) -> list[np.ndarray]:
+    """Diagonal blocks of the inverse of the matrix ``factor`` (from :func:`factorise`, with
+    ``pattern``) factorises: for each (k, s) array of unknowns in ``blocks``, the (k, s, s)
+    blocks of the inverse over each row's unknowns, by selected inversion on ``closed``, the
+    closed node pattern of :func:`fill_reducing_order` (or, when SuperLU reordered after
+    all, on the factor's own pattern closed)."""
+    nv = pattern.n
+    if not (np.array_equal(factor.perm_r, factor.perm_c)):
+        raise np.linalg.LinAlgError("SuperLU pivoted: not a symmetric factorisation")
+    L = factor.L.tocoo()
+    lower = L.row > L.col
+    Lrow, Lcol, Lval = L.row[lower].astype(np.int64), L.col[lower].astype(np.int64), L.data[lower]
+    D = factor.U.diagonal()
+    natural = np.array_equal(factor.perm_c, np.arange(nv))
+    where = pattern.position if natural else np.asarray(factor.perm_c)[pattern.position]
+    placed = [(where[b], b.shape[1]) for b in blocks]
+    rows = np.concatenate([np.repeat(b, size, axis=1).ravel() for b, size in placed])
+    cols = np.concatenate([np.tile(b, (1, size)).ravel() for b, size in placed])
+    wanted = (np.maximum(rows, cols), np.minimum(rows, cols))
+    values = None
+    if natural:   # the factor is in node order: use the symbolic node pattern
+        values = selected_inverse(Supernodes(closed, pattern.size), Lrow, Lcol, Lval, D, *wanted)
+    if values is None:   # general: close the factor's own pattern (with that of the matrix)
+        A = pattern.matrix(np.ones(pattern.nnz)).tocoo()
+        q = np.asarray(factor.perm_c)
+        ar, ac = q[A.row], q[A.col]
+        keep = ar > ac
+        keys = closed_pattern(np.concatenate([Lcol, ac[keep]]) * nv + np.concatenate([Lrow, ar[keep]]), nv)
+        values = selected_inverse(Supernodes(keys, np.ones(nv, dtype=np.int64)), Lrow, Lcol, Lval, D, *wanted)
+        if values is None:
+            raise np.linalg.LinAlgError("the factor's pattern is not closed")
+    ends = np.cumsum([b.size * b.shape[1] for b in blocks])[:-1]
+    return [v.reshape(len(b), b.shape[1], b.shape[1]) for v, b in zip(np.split(values, ends), blocks)]
+
+
+def closed_pattern(keys: np.ndarray, n: int) -> np.ndarray:
+    """A superset of a strictly lower pattern (keys ``col * n + row``, row > col) closed
+    under elimination, sorted keys: for every column j with parent p = min struct(j),
+    struct(j) minus p lies in struct(p) (then any two rows of a column are linked by an
+    entry, as Takahashi's recursion needs). One vectorised round per level of missing
+    entries; a symbolic pattern passes the check in one round."""
+    keys = np.asarray(keys, dtype=np.int64)
+    if len(keys) > 1 and not (keys[1:] > keys[:-1]).all():
+        keys = np.unique(keys)
+    while True:
+        c, r = keys // n, keys % n
+        first = np.searchsorted(c, np.arange(n + 1))
+        parent = np.full(n, -1, dtype=np.int64)
+        has = first[1:] > first[:-1]
+        parent[has] = r[first[:-1][has]]
+        p = parent[c]
+        need = r != p
+        required = p[need] * n + r[need]
+        at = np.searchsorted(keys, required)
+        found = keys[np.minimum(at, len(keys) - 1)] == required if len(keys) else np.zeros(0, bool)
+        if found.all():
+            return keys
+        keys = np.unique(np.concatenate([keys, required[~found]]))
+
+
+
+def _heavy_last_postorder(keys: np.ndarray, n: int) -> np.ndarray:
+    """``relabel[old] = new``: a postorder of the elimination tree of the closed pattern
+    ``keys`` (parent = first row below the diagonal) visiting each node's children lightest
+    subtree first, so the heaviest child comes right before its parent."""
+    c, r = keys // n, keys % n
+    first = np.searchsorted(c, np.arange(n + 1))
+    parent = np.full(n, -1, dtype=np.int64)
+    has = first[1:] > first[:-1]
+    parent[has] = r[first[:-1][has]]
+    parents = parent.tolist()
+    weight = [1] * n                                   # subtree sizes; children precede parents
+    for j, p in enumerate(parents):
+        if p >= 0:
+            weight[p] += weight[j]
+    weight = np.array(weight, dtype=np.int64)
+    # siblings (and roots) lightest first; a subtree occupies [first[v], first[v] + weight[v]),
+    # its children's subtrees in that order, then v itself
+    by = np.lexsort((weight, parent))
+    grouped = parent[by]
+    cumulative = np.cumsum(weight[by]) - weight[by]
+    group_start = np.searchsorted(grouped, grouped)  # first sibling of each
+    offset = np.empty(n, dtype=np.int64)
+    offset[by] = cumulative - cumulative[group_start]
+    offsets = offset.tolist()
+    first = [0] * n
+    for v in range(n - 1, -1, -1):                     # parents before children
+        p = parents[v]
+        first[v] = (first[p] if p >= 0 else 0) + offsets[v]
+    return np.array(first, dtype=np.int64) + weight - 1
+
+
+class Supernodes:
+    """Supernodal structure of a closed pattern given on "units" (nodes of ``unit_size``
+    consecutive scalars each, in factor order): runs of units with nested identical
+    structure become one supernode; per supernode J its scalar columns ``start .. start +
+    size`` and the scalar rows ``S_J`` below them, the parent supernode (holding the first
+    row of S_J), and where each row of S_J sits in the parent's block ``[P; S_P]``."""
+
+    def __init__(self, keys: np.ndarray, unit_size: np.ndarray):
+        nu = len(unit_size)
+        kc, kr = keys // nu, keys % nu
+        first = np.searchsorted(kc, np.arange(nu + 1))
+        counts = np.diff(first)
+        parent = np.full(nu, -1, dtype=np.int64)
+        has = counts > 0
+        parent[has] = kr[first[:-1][has]]
+        joins = (parent[:-1] == np.arange(1, nu)) & (counts[:-1] == counts[1:] + 1)
+        ustart = np.flatnonzero(np.concatenate([[True], ~joins]))
+        ulast = np.append(ustart[1:], nu) - 1
+        scalar = np.concatenate([[0], np.cumsum(unit_size)])
+        ustart, ulast = _amalgamate(ustart, ulast, parent, scalar,
+                                    np.bincount(kc, unit_size[kr], minlength=nu).astype(np.int64))
+        self.n = n = int(scalar[-1])
+        self.count = count = len(ustart)
+        self.start = scalar[ustart]
+        self.size = scalar[ulast + 1] - self.start
+        self.super_of = np.repeat(np.arange(count), self.size)
+        # S_J: the structure of J's last unit, expanded to scalars
+        unit_counts = counts[ulast]
+        unit_rows = kr[np.repeat(first[ulast] - np.concatenate([[0], np.cumsum(unit_counts)])[:-1], unit_counts)
+                       + np.arange(unit_counts.sum())]
+        expanded = unit_size[unit_rows]
+        self.below = np.bincount(np.repeat(np.arange(count), unit_counts), expanded, minlength=count
+                                 ).astype(np.int64)
+        self.s_offset = np.concatenate([[0], np.cumsum(self.below)])
+        base = np.repeat(scalar[unit_rows], expanded)
+        within = np.arange(expanded.sum()) - np.repeat(np.concatenate([[0], np.cumsum(expanded)])[:-1], expanded)
+        self.s_rows = base + within
+        s_super = np.repeat(np.arange(count), self.below)
+        self.s_keys = s_super * n + self.s_rows
+        has_parent = self.below > 0
+        self.parent = np.full(count, -1, dtype=np.int64)
+        self.parent[has_parent] = self.super_of[self.s_rows[self.s_offset[:-1][has_parent]]]
+        self.children = np.bincount(self.parent[has_parent], minlength=count)
+        p = self.parent[s_super]
+        self.relative = self.locate(p, self.s_rows)
+        self.block_offset = np.concatenate([[0], np.cumsum(self.size * (self.size + self.below))])
+
+    def locate(self, J: np.ndarray, rows: np.ndarray) -> np.ndarray | None:
+        """Index of scalar row ``rows`` in the block ``[J; S_J]`` of supernode ``J`` (None if absent)."""
+        inside = rows < self.start[J] + self.size[J]
+        out = ~inside
+        result = np.empty(len(rows), dtype=np.int64)
+        result[inside] = rows[inside] - self.start[J[inside]]
+        wanted = J[out] * self.n + rows[out]
+        at = np.searchsorted(self.s_keys, wanted)
+        if len(wanted) and (len(self.s_keys) == 0
+                            or not np.array_equal(self.s_keys[np.minimum(at, len(self.s_keys) - 1)], wanted)):
+            return None
+        if (rows[inside] < self.start[J[inside]]).any():
+            return None
+        result[out] = self.size[J[out]] + at - self.s_offset[J[out]]
+        return result
+
+
+def _amalgamate(ustart: np.ndarray, ulast: np.ndarray, parent: np.ndarray, scalar: np.ndarray,
+                below: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge runs of fundamental supernodes (first and last unit ``ustart``, ``ulast``) whose
+    parent is the next one, while a merged supernode costs less than the pieces: dense
+    work (b s^2 + b^2 s + b^3/3 for b columns and s rows below) plus a fixed overhead per
+    supernode for the Python loop. The merged supernode takes the structure of its last
+    piece (a superset of the others' below it: explicit zeros, still a closed pattern).
+    ``below``: scalar rows below each unit (its structure, expanded)."""
+    count = len(ustart)
+    if count < 2:
+        return ustart, ulast
+    size = (scalar[ulast + 1] - scalar[ustart]).tolist()
+    rows = below[ulast].tolist()
+    super_of = np.repeat(np.arange(count), ulast - ustart + 1)
+    up = parent[ulast]
+    next_is_parent = (np.where(up >= 0, super_of[np.maximum(up, 0)], -1) == np.arange(count) + 1).tolist()
+
+    def cost(b: int, s: int) -> float:
+        return b * s * s + b * b * s + b * b * b / 3 + _SUPERNODE_OVERHEAD
+
+    firsts = [0]
+    b, work = size[0], cost(size[0], rows[0])
+    for J in range(count - 1):
+        nxt = J + 1
+        if next_is_parent[J]:
+            merged = cost(b + size[nxt], rows[nxt])
+            if merged <= work + cost(size[nxt], rows[nxt]):
+                b, work = b + size[nxt], merged
+                continue
+        firsts.append(nxt)
+        b, work = size[nxt], cost(size[nxt], rows[nxt])
+    firsts = np.array(firsts)
+    return ustart[firsts], ulast[np.append(firsts[1:], count) - 1]
+
+
+def selected_inverse(structure: Supernodes, Lrow: np.ndarray, Lcol: np.ndarray, Lval: np.ndarray,
+                      D: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray | None:
+    """Entries ``(rows, cols)`` (rows >= cols, factor order) of ``A^-1`` for ``A = L D L^T``
+    (unit lower L given by its strictly lower entries), by supernodal selected inversion
+    (Takahashi's recursion); None if L does not fit the structure.
+
+    Supernodes are visited from the last to the first. Supernode J needs ``Z[S, S]`` (S: the
+    rows below it), a submatrix of the block ``Z[P+S_P, P+S_P]`` of its parent P, which is
+    kept until P's last child is done. Per supernode: ``U = L_SJ L_JJ^-1``,
+    ``Z_SJ = -Z_SS U``, ``Z_JJ = (L_JJ D_J L_JJ^T)^-1 - U^T Z_SJ``. Only these blocks of
+    the inverse are formed, never the whole inverse.
+    """
+    st = structure
+    J = st.super_of[Lcol]
+    at = st.locate(J, Lrow)
+    if at is None:
+        return None
+    flat = np.zeros(st.block_offset[-1])          # per supernode, row jc = column jc of [L_JJ; L_SJ]
+    flat[st.block_offset[J] + (Lcol - st.start[J]) * (st.size[J] + st.below[J]) + at] = Lval
+    result = np.empty(st.block_offset[-1])        # the same layout for [Z_JJ; Z_SJ]
+    frontal: dict[int, np.ndarray] = {}
+    children = st.children.copy()
+    dtrtri = scipy.linalg.lapack.get_lapack_funcs("trtri", (D,))
+    for J in range(st.count - 1, -1, -1):
+        j0, b, s = st.start[J], st.size[J], st.below[J]
+        o0, o1 = st.block_offset[J], st.block_offset[J + 1]
+        block = flat[o0:o1].reshape(b, b + s)
+        Linv, info = dtrtri(block[:, :b].T + np.eye(b), lower=1, unitdiag=1)
+        if info:
+            raise np.linalg.LinAlgError("singular diagonal block in the factor")
+        Zjj = Linv.T @ (Linv / D[j0:j0 + b, None])
+        out = result[o0:o1].reshape(b, b + s)
+        if s:
+            U = block[:, b:].T @ Linv                     # (s, b)
+            P = st.parent[J]
+            rel = st.relative[st.s_offset[J]:st.s_offset[J + 1]]
+            Zss = frontal[P].take(rel, axis=0).take(rel, axis=1)
+            children[P] -= 1
+            if not children[P]:
+                del frontal[P]
+            Zsj = -Zss @ U
+            Zjj -= U.T @ Zsj
+            out[:, b:] = Zsj.T
+        out[:, :b] = Zjj
+        if children[J]:
+            F = np.empty((b + s, b + s))
+            F[:b, :b] = Zjj
+            if s:
+                F[b:, :b] = Zsj
+                F[:b, b:] = Zsj.T
+                F[b:, b:] = Zss
+            frontal[J] = F
+    J = st.super_of[cols]
+    at = st.locate(J, rows)
+    if at is None:
+        raise np.linalg.LinAlgError("a wanted entry of the inverse is outside the factor's pattern")
+    return result[st.block_offset[J] + (cols - st.start[J]) * (st.size[J] + st.below[J]) + at]
+
+
