@@ -32,7 +32,8 @@ from mapjoin import formats
 from mapjoin import plot as figures
 from mapjoin.cli import main
 from mapjoin.joining import join_sequential
-from mapjoin.onestep import analyse_minima, wrap
+from mapjoin.onestep import analyse_minima
+from mapjoin.se2 import wrap
 
 REPO = Path(__file__).resolve().parents[1]
 TWO_MINIMA = [str(REPO / "examples" / "two-minima" / f"localmap_{k}.yaml") for k in (1, 2)]

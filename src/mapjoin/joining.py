@@ -45,8 +45,8 @@ from .onestep import (
     global_orientation,
     linked_cost,
     point_constants,
-    wrap,
 )
+from .se2 import wrap
 
 __all__ = ["DEFAULT_COVARIANCE", "STRATEGIES", "JoinRecord", "JoinResult", "Strategy", "certify_pair",
            "check_chain", "join", "join_sequential", "join_tree"]

@@ -27,6 +27,8 @@ from typing import Literal
 
 import numpy as np
 
+from .se2 import rotation, wrap
+
 __all__ = [
     "Condition",
     "Constants",
@@ -52,28 +54,12 @@ __all__ = [
     "recover",
     "reduced_cost",
     "solve",
-    "wrap",
 ]
 
 Solver = Literal["bisection", "golden"]
 SOLVERS: tuple[str, ...] = ("bisection", "golden")
 _PI_LOW = 1.2246467991473532e-16  # pi - float(pi)
 TOLERANCE = 1e-12  # bracket width (rad) at which bisection and golden-section stop
-
-
-def wrap(angle):
-    """Map angles (a float or an array) into [-pi, pi)."""
-    wrapped = (angle + math.pi) % (2 * math.pi) - math.pi
-    # (angle + pi) % 2pi can round up to exactly 2pi for angles just below -pi
-    if isinstance(wrapped, float):
-        return wrapped - 2 * math.pi if wrapped >= math.pi else wrapped
-    return np.where(wrapped >= math.pi, wrapped - 2 * math.pi, wrapped)
-
-
-def rotation(phi: float) -> np.ndarray:
-    """R(phi)."""
-    c, s = math.cos(phi), math.sin(phi)
-    return np.array([[c, -s], [s, c]])
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,8 @@ from . import formats
 from .errors import InputError, JoinError, MapjoinError
 from .joining import check_chain, join_sequential
 from .maps import CovarianceMode, GlobalMap, GroundTruth, LocalMap, spherical_variances
-from .onestep import OneStepProblem, Solver, analyse_minima, constants, cost, solve, wrap
+from .onestep import OneStepProblem, Solver, analyse_minima, constants, cost, solve
+from .se2 import wrap
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

@@ -63,7 +63,7 @@ from scipy.sparse.linalg import splu
 from .errors import JoinError
 from .joining import join_sequential
 from .maps import GlobalMap, LocalMap, Provenance, locate
-from .onestep import wrap
+from .se2 import wrap
 
 __all__ = ["TOLERANCE", "Blocks", "ExactProblem", "Minimum", "RefineResult", "exact_cost", "minimise", "refine"]
 
