@@ -18,7 +18,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -142,7 +142,11 @@ class LocalMap:
 
     ``covariance`` (optional) is the full covariance of ``[end_pose, features.ravel()]``;
     when present it must be symmetric positive definite (rounding-level asymmetry, within
-    ``SYMMETRY_TOLERANCE``, is averaged away).
+    ``SYMMETRY_TOLERANCE``, is averaged away, in a copy).
+
+    ``checked`` is for :meth:`StackedMaps.local_maps` only: its values were checked for the
+    whole stack at once and are stored as they are (read-only arrays of the right dtypes and
+    shapes); otherwise the constructor copies and checks them.
     """
 
     name: str
@@ -154,9 +158,12 @@ class LocalMap:
     feature_variances: np.ndarray
     pose_variances: np.ndarray
     covariance: np.ndarray | None = None
+    checked: InitVar[bool] = False
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, checked: bool) -> None:
         """Each field as an array of its dtype and shape, then the values checked as a stack of one map."""
+        if checked:
+            return
         source = self.name
         for key in ("start_id", "end_id"):
             value = getattr(self, key)
@@ -181,8 +188,9 @@ class LocalMap:
         invalid = stack.first_invalid()
         if invalid is not None:
             raise invalid[1]
-        [checked] = stack.local_maps([self.start_id], [self.end_id])
-        vars(self).update(vars(checked))
+        [valid] = stack.local_maps([self.start_id], [self.end_id])
+        for key in StackedMaps._fields[1:]:
+            object.__setattr__(self, key, getattr(valid, key))
 
     @classmethod
     def from_covariance(cls, name: str, start_id: int, end_id: int, end_pose, feature_ids,
@@ -227,8 +235,7 @@ class StackedMaps(NamedTuple):
 
         Each check runs on the whole stack (one Cholesky factorisation for all covariances); the
         first row any check flags is the first invalid map, and the first check (in the order
-        below) that flags it gives its error. Covariances symmetric up to rounding are
-        symmetrised in place, as the constructor does.
+        below) that flags it gives its error. The arrays are not changed.
         """
         count = len(self.name)
         if not count:
@@ -263,37 +270,54 @@ class StackedMaps(NamedTuple):
 
     def _covariance_failures(self, first: Callable[[np.ndarray], int]
                              ) -> list[tuple[int, Callable[[int], InputError]]]:
-        """The checks of the covariances: finite, symmetric up to rounding (then symmetrised), positive definite."""
+        """The checks of the covariances: finite, symmetric up to rounding, positive definite (of the
+        symmetrised matrices, as the maps will hold them)."""
         covariance, name = self.covariance, self.name
         finite = ~_outside(covariance, False).any(axis=(1, 2))
-        rounded = finite & ~(covariance == covariance.transpose(0, 2, 1)).all(axis=(1, 2))  # the rest fail first
+        rounded = finite & ~_exactly_symmetric(covariance)  # the rest pass, or fail first
         asymmetric = np.zeros(len(covariance), dtype=bool)
         if rounded.any():
             asymmetric[rounded] = (asymmetry(covariance[rounded]) > 0).any(axis=(1, 2))
-            inexact = covariance[rounded & ~asymmetric]
-            covariance[rounded & ~asymmetric] = (inexact + inexact.transpose(0, 2, 1)) / 2
         return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], False)),
                 (first(asymmetric), lambda r: _asymmetry_error(covariance[r], name[r])),
-                (first(_indefinite(covariance)),
+                (first(_indefinite(_symmetrised(covariance, rounded & ~asymmetric))),
                  lambda r: InputError("expected a positive definite matrix", name[r], "covariance"))]
 
     def local_maps(self, start_ids: Sequence[int], end_ids: Sequence[int]) -> list[LocalMap]:
-        """The maps of the rows, with read-only views of the arrays and NOT checked: only once
-        :meth:`first_invalid` found none invalid; the ids must be non-negative ints, start != end."""
-        for array in self[1:]:
-            if array is not None:
-                array.flags.writeable = False
-        covariances = itertools.repeat(None) if self.covariance is None else self.covariance
-        maps = []
-        for fields in zip(self.name, start_ids, end_ids, self.end_pose, self.feature_ids, self.features,
-                          self.feature_variances, self.pose_variances, covariances):
-            local_map = object.__new__(LocalMap)  # the dataclass's checks done above, for all rows at once
-            vars(local_map).update(zip(_LOCAL_MAP_FIELDS, fields))
-            maps.append(local_map)
-        return maps
+        """The maps of the rows, NOT checked again: only once :meth:`first_invalid` found none invalid;
+        the ids must be non-negative ints, start != end. The maps hold read-only views of the arrays,
+        the covariances symmetric up to rounding symmetrised (in a copy)."""
+        if self.covariance is None:
+            covariances = itertools.repeat(None)
+        else:
+            covariances = _read_only(_symmetrised(self.covariance, ~_exactly_symmetric(self.covariance)))
+        return [LocalMap(*fields, checked=True) for fields in zip(
+            self.name, start_ids, end_ids, *map(_read_only, self[1:-1]), covariances)]
 
 
-_LOCAL_MAP_FIELDS = ("name", "start_id", "end_id", *StackedMaps._fields[1:])
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """A read-only view of ``array`` (the array itself stays as it is)."""
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
+def _exactly_symmetric(covariance: np.ndarray) -> np.ndarray:
+    """Which matrices of a stack equal their transpose."""
+    return (covariance == covariance.transpose(0, 2, 1)).all(axis=(1, 2))
+
+
+def _symmetrised(covariance: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """The stack with the matrices ``which`` replaced by their symmetric part ``(P + P^T) / 2``: a new
+    array if ``which`` flags any, else ``covariance`` itself (never changed)."""
+    if not which.any():
+        return covariance
+    symmetric = covariance.copy()
+    part = covariance[which]
+    symmetric[which] = (part + part.transpose(0, 2, 1)) / 2
+    return symmetric
+
+
 Stacks = Sequence[tuple[Sequence[int], StackedMaps]]  # (the places of a stack's maps in a list of maps, the stack)
 
 
