@@ -12,6 +12,7 @@ import click
 
 from .. import formats
 from .. import plot as figures
+from ..errors import InputError
 from . import main
 from .common import covariance_option, input_format_option, inputs_argument, say, solver_option
 
@@ -126,7 +127,12 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
             raise click.UsageError(f"{len(maps)} maps: choose a join with --join K (1 to {len(maps) - 1}; "
                                    "K is the join column of `mapjoin join --report`)")
         join_number = 1
-    problem = figures.join_problem(maps, join_number, covariance)
+    try:
+        problem = figures.join_problem(maps, join_number, covariance)
+    except InputError as error:
+        if error.where != "join=":
+            raise
+        raise InputError(error.detail, error.source, "--join") from None  # the argument is this option
     curve = figures.join_curve(problem, solver)
     incoming = maps[join_number]
     title = (f"join {join_number}: {_short(incoming.name)} onto "
