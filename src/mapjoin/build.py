@@ -50,8 +50,8 @@ import scipy.linalg
 
 from .errors import InputError
 from .joining import join_sequential
-from .maps import (GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, marginal_variances, size_groups,
-                   unstack)
+from .covariance import marginal_variances
+from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, size_groups, unstack
 from .raw import RawData
 from .refine import TOLERANCE, Blocks, ExactProblem, Minimum, RefineResult, minimise
 

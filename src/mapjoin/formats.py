@@ -144,8 +144,9 @@ from typing import TYPE_CHECKING, Any, NamedTuple, TextIO
 import numpy as np
 
 from .errors import InputError
+from .covariance import marginal_variances
 from .maps import (GlobalMap, GroundTruth, LocalMap, Provenance, StackedMaps, asymmetry, first_duplicate,
-                   first_flagged, first_invalid_map, marginal_variances, size_groups, unstack)
+                   first_flagged, first_invalid_map, size_groups, unstack)
 
 if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written; pathlib only names a path type here
     from pathlib import Path

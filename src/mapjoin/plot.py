@@ -26,7 +26,8 @@ import numpy as np
 from . import formats
 from .errors import InputError, JoinError, MapjoinError
 from .joining import check_chain, join_sequential
-from .maps import CovarianceMode, GlobalMap, GroundTruth, LocalMap, spherical_variances
+from .covariance import CovarianceMode, spherical_variances
+from .maps import GlobalMap, GroundTruth, LocalMap
 from .onestep import OneStepProblem, Solver, analyse_minima, constants, cost, solve
 from .se2 import wrap
 

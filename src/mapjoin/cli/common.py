@@ -11,8 +11,7 @@ from typing import TYPE_CHECKING
 import click
 
 from .. import formats
-from ..maps import COVARIANCE_MODES
-from ..joining import DEFAULT_COVARIANCE
+from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
 from ..onestep import SOLVERS
 
 if TYPE_CHECKING:
