@@ -453,9 +453,6 @@ class Orientations:
     iterations: np.ndarray
 
 
-_FEW = 24  # fewer problems than this are solved one by one (measured break-even, 2 cores)
-
-
 def batch_orientation(a0: np.ndarray, phi0: np.ndarray, z_phi: np.ndarray, p_phi: np.ndarray,
                       solver: Solver = "bisection", tolerance: float = TOLERANCE) -> Orientations:
     """Algorithm 1 on f_1 for many problems at once: :func:`global_orientation` as array operations.
@@ -466,14 +463,6 @@ def batch_orientation(a0: np.ndarray, phi0: np.ndarray, z_phi: np.ndarray, p_phi
     """
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
-    if len(a0) < _FEW:  # the same numbers, from the scalar path: numpy's cost per call outweighs the loop
-        found = [global_orientation(*args, solver, tolerance)
-                 for args in zip(a0.tolist(), phi0.tolist(), z_phi.tolist(), p_phi.tolist())]
-        return Orientations(np.array([f.phi for f in found]),
-                            np.array([math.nan if f.other_phi is None else f.other_phi for f in found]),
-                            np.array([f.minima.a for f in found]), np.array([f.minima.c_phi for f in found]),
-                            np.array([f.minima.count for f in found], dtype=np.intp),
-                            np.array([f.iterations for f in found], dtype=np.intp))
     a, c_phi = a0 * p_phi, wrap(z_phi - phi0)
     bad = ~(np.isfinite(a) & np.isfinite(c_phi) & (a >= 0))
     if bad.any():
