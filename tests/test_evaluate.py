@@ -21,7 +21,7 @@ from mapjoin.evaluate import CHI2_LEVEL, chi2_interval, chi2_verdict, compare, e
 from mapjoin.io.matfile import variables as mat_variables
 from mapjoin.joining import join_sequential
 from mapjoin.maps import GlobalMap, GroundTruth
-from mapjoin.onestep import wrap
+from mapjoin.se2 import wrap
 from mapjoin.simulate import simulate
 
 SIMULATIONS = ("535_data_5_local_maps", "8240_data_50_local_maps")

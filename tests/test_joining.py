@@ -268,7 +268,7 @@ def test_tree_of_two_maps_is_the_sequential_join():
 def test_each_sequential_join_is_the_one_step_problem_of_the_map_so_far(solver):
     """Join k, rebuilt from the documented per-join API: the global map of maps 1..k-1 (common
     features, their variances, the last pose as odometry) and map k go into ``onestep.solve``."""
-    from mapjoin.maps import spherical_variances
+    from mapjoin.covariance import spherical_variances
     from mapjoin.onestep import OneStepProblem, solve
 
     maps = noisy_chain(3, 7)
@@ -324,7 +324,7 @@ def _random_spd(rng, size: int, condition: float) -> np.ndarray:
 def test_information_variances_are_those_of_the_dense_inverse(seed, sizes, log_condition):
     """``information`` mode (maps of one size summarised as one stack) against each map's own dense inverse:
     sigma^2 = 2 / trace of each 2x2 block of P^-1, 1 / Lambda_phiphi for the pose orientation."""
-    from mapjoin.maps import batch_spherical_variances
+    from mapjoin.covariance import batch_spherical_variances
 
     rng = np.random.default_rng(seed)
     maps = []

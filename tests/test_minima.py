@@ -34,7 +34,6 @@ from hypothesis import strategies as st
 from theorem_oracles import _h_g, brute_count
 
 from mapjoin.onestep import (
-    _FEW,
     TOLERANCE,
     _batch_brackets,
     analyse_minima,
@@ -536,11 +535,11 @@ def test_batch_orientation_is_global_orientation(solver, tolerance):
 @pytest.mark.parametrize("solver", ["bisection", "golden"])
 @settings(max_examples=60, deadline=None)
 @given(problems=st.lists(st.tuples(st.floats(0, 1e6), st.floats(-10, 10), st.floats(-10, 10), st.floats(1e-6, 10)),
-                         min_size=1, max_size=3 * _FEW),
-       near=st.lists(st.tuples(st.floats(1, 40), st.floats(-1e-6, 1e-6)), max_size=2 * _FEW))
+                         min_size=1, max_size=72),
+       near=st.lists(st.tuples(st.floats(1, 40), st.floats(-1e-6, 1e-6)), max_size=48))
 def test_batch_orientation_is_global_orientation_property(problems, near, solver):
-    """Any problems, with boundary points of the two-minima region mixed in; small batches take
-    the scalar path, large ones the array path: the same numbers either way."""
+    """Any problems, with boundary points of the two-minima region mixed in, batches of any size
+    (one included): the same numbers as one by one."""
     a0, phi0, z_phi, p_phi = (np.array(column, dtype=float) for column in zip(*problems))
     if near:
         a, c = _boundary_points(*(np.array(column) for column in zip(*near)))
@@ -575,6 +574,6 @@ def test_batch_orientation_against_brute_force():
 @pytest.mark.parametrize("a0,phi0", [(math.nan, 0.0), (-1.0, 0.0), (1.0, math.inf)])
 def test_batch_orientation_bad_arguments_raise(a0, phi0):
     with pytest.raises(ValueError, match="finite a >= 0"), np.errstate(invalid="ignore"):
-        batch_orientation(np.full(_FEW, a0), np.full(_FEW, phi0), np.zeros(_FEW), np.ones(_FEW))
+        batch_orientation(np.full(24, a0), np.full(24, phi0), np.zeros(24), np.ones(24))
     with pytest.raises(ValueError, match="unknown solver"):
         batch_orientation(np.ones(3), np.zeros(3), np.zeros(3), np.ones(3), "newton")

@@ -35,8 +35,8 @@ from mapjoin.onestep import (
     cost,
     recover,
     solve,
-    wrap,
 )
+from mapjoin.se2 import wrap
 
 PI = math.pi
 SOLVERS = ("bisection", "golden")

@@ -31,8 +31,10 @@ from theorem_oracles import Dense, brute_count
 from mapjoin import io as mapio
 from mapjoin import plot as figures
 from mapjoin.cli import main
+from mapjoin.errors import InputError
 from mapjoin.joining import join_sequential
-from mapjoin.onestep import analyse_minima, wrap
+from mapjoin.onestep import analyse_minima
+from mapjoin.se2 import wrap
 
 REPO = Path(__file__).resolve().parents[1]
 TWO_MINIMA = [str(REPO / "examples" / "two-minima" / f"localmap_{k}.yaml") for k in (1, 2)]
@@ -278,6 +280,13 @@ def test_join_problem_is_the_problem_join_sequential_solved(simulated_folder):
         assert curve.minima[0][1] == pytest.approx(record.cost, rel=1e-9)
 
 
+def test_join_problem_names_its_argument_not_a_command_line_option(simulated_folder):
+    maps = mapio.read_maps([simulated_folder])
+    with pytest.raises(InputError) as error:
+        figures.join_problem(maps, len(maps), "information")
+    assert error.value.where == "join=" and "--join" not in str(error.value)
+
+
 # --------------------------------------------------------------------------- errors
 
 
@@ -297,7 +306,7 @@ def test_join_problem_is_the_problem_join_sequential_solved(simulated_folder):
     (["plot-minima", "{tmp}/empty.json", "-o", "{tmp}/m.png"], 1, "empty.json: expected at least one row"),
     (["plot", "{tmp}/old.png", "-o", "{tmp}/old.png"], 1, "old.png: is an input file"),
     (["plot-join", "{sim}", "-o", "{tmp}/m.png"], 2, "12 maps: choose a join with --join K (1 to 11"),
-    (["plot-join", "{sim}", "--join", "12", "-o", "{tmp}/m.png"], 1, "expected a join number from 1 to 11"),
+    (["plot-join", "{sim}", "--join", "12", "-o", "{tmp}/m.png"], 1, "--join: expected a join number from 1 to 11"),
     (["plot-join", "{map1}", "{map3}", "-o", "{tmp}/m.png"], 1, "does not connect"),
 ], ids=["missing-map", "bad-extension", "no-extension", "labels", "report-header", "report-value",
         "report-negative-a", "report-yaml-field", "report-empty", "overwrite-input", "join-needed",

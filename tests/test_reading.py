@@ -272,3 +272,22 @@ def test_the_command_line_imports_neither_yaml_nor_package_metadata_until_needed
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                             env={**os.environ, "PYTHONWARNINGS": "ignore"})
     assert result.stdout.strip() == "[]"
+
+
+def test_checking_a_stack_changes_none_of_its_arrays_and_its_maps_hold_a_symmetrised_copy():
+    """Covariances asymmetric by rounding are symmetrised in the maps only: the caller's arrays stay as they were."""
+    covariance = np.diag([2.0, 2.0, 1.0, 3.0, 3.0])
+    covariance[0, 1], covariance[1, 0] = 1e-9, 1.1e-9  # within SYMMETRY_TOLERANCE
+    stack = StackedMaps(["m"], np.zeros((1, 3)), np.array([[7]]), np.ones((1, 1, 2)), np.ones((1, 1)),
+                        np.ones((1, 2)), covariance[np.newaxis].copy())
+    before = [None if array is None else array.copy() for array in stack[1:]]
+    assert stack.first_invalid() is None
+    [local_map] = stack.local_maps([0], [1])
+    for array, original in zip(stack[1:], before):
+        assert np.array_equal(array, original) and array.flags.writeable
+    assert local_map.covariance[0, 1] == local_map.covariance[1, 0] == (1e-9 + 1.1e-9) / 2
+    assert not local_map.covariance.flags.writeable
+    given = covariance.copy()
+    assert np.array_equal(LocalMap("m", 0, 1, [0, 0, 0], [7], [[1, 1]], [1.0], [1, 1], given).covariance,
+                          local_map.covariance)
+    assert np.array_equal(given, covariance)

@@ -6,7 +6,8 @@ covariance matrices", Automatica 49 (2013) 3112-3119.
 """
 
 from .errors import InputError, JoinError, MapjoinError
-from .maps import COVARIANCE_MODES, GlobalMap, GroundTruth, LocalMap, Provenance, spherical_variances
+from .covariance import COVARIANCE_MODES, spherical_variances
+from .maps import GlobalMap, GroundTruth, LocalMap, Provenance
 
 __all__ = [
     "COVARIANCE_MODES",

@@ -48,11 +48,11 @@ import numpy as np
 import scipy.linalg
 
 from .errors import InputError
+from .covariance import marginal_variances, spherical_summary
 from .joining import join_sequential
-from .maps import (GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, marginal_variances, size_groups,
-                   unstack)
+from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, size_groups, unstack
 from .raw import RawData
-from .refine import TOLERANCE, RefineResult, spherical_variances
+from .refine import TOLERANCE, RefineResult
 from .refine.problem import Blocks, ExactProblem
 from .refine.solver import Minimum, minimise
 
@@ -222,7 +222,7 @@ def _batch_result(solved: _Solved, bounds: np.ndarray, seconds: float, covarianc
     if covariances:
         pose_covariances, feature_covariances = problem.marginals(found.final_factor(problem))
         pose_covariances = pose_covariances[kept]
-        pose_variances, feature_variances = spherical_variances(pose_covariances, feature_covariances)
+        pose_variances, feature_variances = spherical_summary(pose_covariances, feature_covariances)
     else:
         pose_covariances = feature_covariances = None
         pose_variances, feature_variances = np.ones((len(kept), 2)), np.ones(len(features))

@@ -33,7 +33,7 @@ import numpy as np
 
 from .errors import InputError
 from .maps import GlobalMap, GroundTruth
-from .onestep import wrap
+from .se2 import compose, rotation, transform, wrap
 
 __all__ = ["ALIGNMENTS", "CHI2_LEVEL", "Alignment", "Chi2Verdict", "Difference", "Evaluation", "chi2_interval",
            "chi2_verdict", "compare", "evaluate", "nees_bounds"]
@@ -131,10 +131,11 @@ def evaluate(global_map: GlobalMap, truth: GroundTruth, align: Alignment = "none
                          "nothing to evaluate", global_map.name)
     features, poses = global_map.features[fm], global_map.poses[pm]
     if align == "rigid":
-        rotation, translation, angle = _rigid_fit(
+        motion = _rigid_fit(
             np.concatenate([features, poses[:, :2]]), np.concatenate([truth.features[ft], truth.poses[pt, :2]]))
-        features = features @ rotation.T + translation
-        poses = np.column_stack([poses[:, :2] @ rotation.T + translation, wrap(poses[:, 2] + angle)])
+        features, poses = transform(motion, features), compose(motion, poses)
+        poses[:, 2] = wrap(poses[:, 2])
+        translation, angle = motion[:2], motion[2]
         alignment = (f"rigid: the map moved onto the truth by the least-squares 2D rigid fit of its "
                      f"{len(fm)} feature and {len(pm)} pose positions (rotation {angle:+.6f} rad, "
                      f"translation ({translation[0]:+.6g}, {translation[1]:+.6g}) m)")
@@ -265,12 +266,10 @@ def _average_nees(errors: np.ndarray, blocks: np.ndarray,
     return float(nees.mean()), nees_bounds(errors.shape[1], count)
 
 
-def _rigid_fit(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """``R, t, angle`` minimising ``sum |R s_i + t - t_i|^2`` (2D, proper rotation)."""
+def _rigid_fit(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The rigid motion ``(t, angle)`` minimising ``sum |R(angle) s_i + t - t_i|^2``, as a pose (x, y, angle)."""
     source_mean, target_mean = source.mean(axis=0), target.mean(axis=0)
     s, t = source - source_mean, target - target_mean
     # the optimal angle maximises sum t_i . R s_i = cos(a) sum(s.t) + sin(a) sum(s x t)
     angle = math.atan2(float(np.sum(s[:, 0] * t[:, 1] - s[:, 1] * t[:, 0])), float(np.sum(s * t)))
-    c, si = math.cos(angle), math.sin(angle)
-    rotation = np.array([[c, -si], [si, c]])
-    return rotation, target_mean - rotation @ source_mean, angle
+    return np.array([*(target_mean - rotation(angle) @ source_mean), angle])

@@ -13,14 +13,8 @@ odometry. The features seen only by right, and right's poses, are placed afterwa
   together, as arrays, and ``jobs > 1`` splits the lower levels into aligned subtrees
   joined in parallel processes (the result does not depend on ``jobs``).
 
-Spherical variances are propagated so that later joins weigh the estimates correctly
-(first order, each 2x2 covariance summarised by half its trace):
-
-- a common feature fuses both estimates: ``1 / (1/var0 + 1/var1)``;
-- the joined pose r1 (left's end) gets ``var_phi = 1 / (f''(phi*)/2)`` and
-  ``var_t = 1/W + |m1|^2 var_phi / 2`` (W, m1 from Theorem 1's reduction);
-- a point ``z`` of right placed in left's frame gets ``var_t + var_z + |z|^2 var_phi / 2``,
-  a pose orientation ``var_phi + p_phi``.
+Spherical variances are propagated so that later joins weigh the estimates correctly, as
+:mod:`mapjoin.covariance` describes (the joined pose r1 is left's end pose).
 """
 
 from __future__ import annotations
@@ -29,14 +23,15 @@ import logging
 import math
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
 from .errors import JoinError
-from .maps import (CovarianceMode, GlobalMap, LocalMap, Provenance, batch_spherical_variances, first_duplicate,
-                   locate)
+from .covariance import (DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances, fuse, placed_variances,
+                         squared_norm, translation_variance)
+from .maps import GlobalMap, LocalMap, Provenance, first_duplicate, locate
 from .onestep import (
     Solver,
     as_complex,
@@ -45,17 +40,14 @@ from .onestep import (
     global_orientation,
     linked_cost,
     point_constants,
-    wrap,
 )
+from .se2 import wrap
 
-__all__ = ["DEFAULT_COVARIANCE", "STRATEGIES", "JoinRecord", "JoinResult", "Strategy", "certify_pair",
+__all__ = ["STRATEGIES", "JoinRecord", "JoinResult", "Strategy", "certify_pair",
            "check_chain", "join", "join_sequential", "join_tree"]
 
 log = logging.getLogger("mapjoin")
 
-# Measured against the exact least-squares joins (README, "Covariance modes"): closest on
-# VicPark 200 and both simulations; "marginal" is closer on DLR 200 only.
-DEFAULT_COVARIANCE: CovarianceMode = "information"
 Strategy = Literal["sequential", "tree"]
 STRATEGIES: tuple[str, ...] = ("sequential", "tree")
 
@@ -86,9 +78,6 @@ class JoinRecord:
     cost2: float | None
     iterations: int
     level: int
-
-
-_RECORD_FIELDS = tuple(field.name for field in fields(JoinRecord))
 
 
 @dataclass(frozen=True)
@@ -195,7 +184,7 @@ def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray,
         labels, np.bincount(pair, minlength=count).tolist(), found.a.tolist(), found.c_phi.tolist(),
         found.count.tolist(), phi.tolist(), linked_cost(k, odometry_phi, p_phi, phi).tolist(), other_phi, other_cost,
         found.iterations.tolist())]
-    return _Joins(phi, turn, t, phi_variance, _t_variance(k.weight, k.mean1, phi_variance), rows)
+    return _Joins(phi, turn, t, phi_variance, translation_variance(k.weight, k.mean1, phi_variance), rows)
 
 
 def _solve_join(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarray, odometry_xy: complex,
@@ -213,7 +202,7 @@ def _solve_join(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarr
     other_cost = float(linked_cost(k, odometry_phi, p_phi, other)) if other is not None else None
     row = _row(*label[:3], len(z0), label[3], found.minima.a, found.minima.c_phi, found.minima.count, phi,
                float(linked_cost(k, odometry_phi, p_phi, phi)), other, other_cost, found.iterations, level, warn=warn)
-    return _Joins(phi, turn, k.mean0 - turn * k.mean1, phi_variance, _t_variance(k.weight, k.mean1, phi_variance),
+    return _Joins(phi, turn, k.mean0 - turn * k.mean1, phi_variance, translation_variance(k.weight, k.mean1, phi_variance),
                   [row])
 
 
@@ -226,28 +215,9 @@ def _row(name: str, start_id: int, end_id: int, common: int, size: int, *solutio
     return (name, start_id, end_id, common, size - common, *solution)
 
 
-def _t_variance(weight, mean1, phi_variance):
-    """var_t = 1/W + |m1|^2 var_phi / 2 of the joined pose (floats or arrays)."""
-    return 1.0 / weight + _squared(mean1) * phi_variance / 2
-
-
 def _report(rows: Sequence[tuple]) -> tuple[JoinRecord, ...]:
-    """The report: the joins' rows numbered from 1.
-
-    The records' fields are filled in directly: a frozen dataclass's ``__init__`` sets them one
-    by one through ``object.__setattr__`` (~3 us a record, 20 ms for the 6897 joins of VicPark 6898).
-    """
-    records = []
-    for number, row in enumerate(rows, start=1):
-        record = object.__new__(JoinRecord)
-        record.__dict__.update(zip(_RECORD_FIELDS, (number, *row)))
-        records.append(record)
-    return tuple(records)
-
-
-def _squared(points):
-    """|z|^2 of complex points (a number or an array)."""
-    return points.real**2 + points.imag**2
+    """The report: the joins' rows numbered from 1."""
+    return tuple(JoinRecord(number, *row) for number, row in enumerate(rows, start=1))
 
 
 def _place(turn, t, t_variance, phi_variance, points, variances, squared):
@@ -255,7 +225,7 @@ def _place(turn, t, t_variance, phi_variance, points, variances, squared):
 
     ``turn = exp(i phi)``; ``squared`` is ``|z|^2``. Numbers or arrays (broadcast).
     """
-    return turn * points + t, t_variance + variances + squared * phi_variance / 2
+    return turn * points + t, placed_variances(t_variance, phi_variance, variances, squared)
 
 
 def _move_poses(joins: _Joins, pair: np.ndarray, rows: np.ndarray, pose_xy: np.ndarray,
@@ -264,7 +234,7 @@ def _move_poses(joins: _Joins, pair: np.ndarray, rows: np.ndarray, pose_xy: np.n
     xy = pose_xy[rows]
     pose_xy[rows], pose_variances[rows, 0] = _place(joins.turn[pair], joins.t[pair], joins.t_variance[pair],
                                                     joins.phi_variance[pair], xy, pose_variances[rows, 0],
-                                                    _squared(xy))
+                                                    squared_norm(xy))
     pose_phi[rows] = wrap(joins.phi[pair] + pose_phi[rows])
     pose_variances[rows, 1] += joins.phi_variance[pair]
 
@@ -274,17 +244,6 @@ def _set_junctions(joins: _Joins, rows: np.ndarray, pose_xy: np.ndarray, pose_ph
     """Each left piece's end pose (``rows``, one per join) becomes the joined pose r1 = (t*, phi*), in place."""
     pose_xy[rows], pose_phi[rows] = joins.t, joins.phi
     pose_variances[rows, 0], pose_variances[rows, 1] = joins.t_variance, joins.phi_variance
-
-
-def _fuse(z0: np.ndarray, var0: np.ndarray, placed: np.ndarray, information1: np.ndarray
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """Theorem 1's X_L: each common feature as the information-weighted mean of both estimates.
-
-    ``information1`` is ``1 / var1``, the weight of the placed estimates.
-    """
-    w0 = 1.0 / var0
-    total = w0 + information1
-    return (w0 * z0 + information1 * placed) / total, 1.0 / total
 
 
 def _prepare(maps: Sequence[LocalMap], covariance: CovarianceMode) -> tuple[np.ndarray, _Pieces]:
@@ -350,7 +309,7 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     seen_before = first_row[pieces.feature_ids] < offsets[pieces.feature_piece]
     order = np.lexsort((~seen_before, pieces.feature_piece))  # stable: the input order within each part
     ids, z, var = pieces.feature_ids[order], pieces.features[order], pieces.feature_variances[order]
-    information, squared = 1.0 / var, _squared(z)
+    information, squared = 1.0 / var, squared_norm(z)
     starts = offsets.tolist()
     ends_common = (offsets[:-1] + np.bincount(pieces.feature_piece[seen_before], minlength=len(maps))).tolist()
 
@@ -371,10 +330,10 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
                             (local_map.name, local_map.start_id, local_map.end_id, local_map.size), k, warn)
         move = (joins.turn, joins.t, joins.t_variance, joins.phi_variance)
         placed, spread = _place(*move, z[rows], var[rows], squared[rows])
-        positions[shared], position_variances[shared] = _fuse(z0, var0, placed[:common], information[rows][:common])
+        positions[shared], position_variances[shared] = fuse(z0, var0, placed[:common], information[rows][:common])
         fresh = ids[ends_common[k]:starts[k + 1]]
         positions[fresh], position_variances[fresh] = placed[common:], spread[common:]
-        pose_xy[k], var_xy[k] = _place(*move, pose_xy[k], var_xy[k], _squared(pose_xy[k]))
+        pose_xy[k], var_xy[k] = _place(*move, pose_xy[k], var_xy[k], squared_norm(pose_xy[k]))
         pose_phi[k], var_phi[k] = wrap(joins.phi + pose_phi[k]), var_phi[k] + joins.phi_variance
         pose_xy[k - 1], pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1] = move[1], joins.phi, move[2], move[3]
         report += joins.rows
@@ -413,9 +372,9 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
     features, feature_variances = pieces.features.copy(), pieces.feature_variances.copy()
     pair, z = parent[right_rows], pieces.features[right_rows]
     placed, spread = _place(joins.turn[pair], joins.t[pair], joins.t_variance[pair], joins.phi_variance[pair], z,
-                            pieces.feature_variances[right_rows], _squared(z))
+                            pieces.feature_variances[right_rows], squared_norm(z))
     features[right_rows], feature_variances[right_rows] = placed, spread
-    features[lc], feature_variances[lc] = _fuse(features[lc], feature_variances[lc], placed[common],
+    features[lc], feature_variances[lc] = fuse(features[lc], feature_variances[lc], placed[common],
                                                 1.0 / pieces.feature_variances[rc])
     keep = np.ones(len(features), dtype=bool)
     keep[rc] = False  # common features live on in the left piece's rows

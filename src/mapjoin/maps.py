@@ -5,8 +5,8 @@ A local map holds, in the frame of its start pose, the estimate of its end pose
 ``sigma^2`` per feature, ``(sigma_xy^2, p_phi)`` for the end pose) and optionally the
 full covariance of its state vector ``[x, y, phi, f1x, f1y, f2x, ...]``.
 
-The joiner needs spherical covariances (method.md, Definition 2). ``spherical_variances``
-derives them from a map in one of the documented ``COVARIANCE_MODES``.
+The joiner needs spherical covariances (method.md, Definition 2); :mod:`mapjoin.covariance`
+derives them from a map.
 
 The values of local maps are checked on stacks of maps of one size (:class:`StackedMaps`):
 the constructor checks a stack of one, and readers of thousands of files check theirs with
@@ -18,29 +18,22 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import Literal, NamedTuple
+from dataclasses import InitVar, dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from .errors import InputError
 
 __all__ = [
-    "COVARIANCE_MODES",
-    "CovarianceMode",
     "LocalMap",
     "GlobalMap",
     "GroundTruth",
     "Provenance",
     "StackedMaps",
     "asymmetry",
-    "batch_spherical_variances",
-    "marginal_variances",
-    "spherical_variances",
 ]
 
-CovarianceMode = Literal["identity", "marginal", "information"]
-COVARIANCE_MODES: tuple[str, ...] = ("identity", "marginal", "information")
 SYMMETRY_TOLERANCE = 1e-6  # |P_ij - P_ji| allowed, relative to sqrt(P_ii P_jj); rounding in stored files
 
 
@@ -142,7 +135,11 @@ class LocalMap:
 
     ``covariance`` (optional) is the full covariance of ``[end_pose, features.ravel()]``;
     when present it must be symmetric positive definite (rounding-level asymmetry, within
-    ``SYMMETRY_TOLERANCE``, is averaged away).
+    ``SYMMETRY_TOLERANCE``, is averaged away, in a copy).
+
+    ``checked`` is for :meth:`StackedMaps.local_maps` only: its values were checked for the
+    whole stack at once and are stored as they are (read-only arrays of the right dtypes and
+    shapes); otherwise the constructor copies and checks them.
     """
 
     name: str
@@ -154,9 +151,12 @@ class LocalMap:
     feature_variances: np.ndarray
     pose_variances: np.ndarray
     covariance: np.ndarray | None = None
+    checked: InitVar[bool] = False
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, checked: bool) -> None:
         """Each field as an array of its dtype and shape, then the values checked as a stack of one map."""
+        if checked:
+            return
         source = self.name
         for key in ("start_id", "end_id"):
             value = getattr(self, key)
@@ -181,13 +181,16 @@ class LocalMap:
         invalid = stack.first_invalid()
         if invalid is not None:
             raise invalid[1]
-        [checked] = stack.local_maps([self.start_id], [self.end_id])
-        vars(self).update(vars(checked))
+        [valid] = stack.local_maps([self.start_id], [self.end_id])
+        for key in StackedMaps._fields[1:]:
+            object.__setattr__(self, key, getattr(valid, key))
 
     @classmethod
     def from_covariance(cls, name: str, start_id: int, end_id: int, end_pose, feature_ids,
                         features, covariance) -> "LocalMap":
         """A map whose spherical variances are the ``marginal`` summary of its full covariance."""
+        from .covariance import marginal_variances  # the covariance module builds on this one
+
         covariance = np.asarray(covariance, dtype=float)
         feature_variances, pose_variances = marginal_variances(covariance[np.newaxis])
         return cls(name, start_id, end_id, end_pose, feature_ids, features,
@@ -197,12 +200,6 @@ class LocalMap:
     def size(self) -> int:
         """Number of features."""
         return len(self.feature_ids)
-
-
-def marginal_variances(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The ``marginal`` spherical variances of a stack of full covariances of one size (k x n x n): the
-    feature variances (k x m) and pose variances (k x 2) that ``LocalMap.from_covariance`` gives each."""
-    return _summary(np.diagonal(covariances, axis1=-2, axis2=-1), 1.0)
 
 
 class StackedMaps(NamedTuple):
@@ -227,8 +224,7 @@ class StackedMaps(NamedTuple):
 
         Each check runs on the whole stack (one Cholesky factorisation for all covariances); the
         first row any check flags is the first invalid map, and the first check (in the order
-        below) that flags it gives its error. Covariances symmetric up to rounding are
-        symmetrised in place, as the constructor does.
+        below) that flags it gives its error. The arrays are not changed.
         """
         count = len(self.name)
         if not count:
@@ -263,37 +259,54 @@ class StackedMaps(NamedTuple):
 
     def _covariance_failures(self, first: Callable[[np.ndarray], int]
                              ) -> list[tuple[int, Callable[[int], InputError]]]:
-        """The checks of the covariances: finite, symmetric up to rounding (then symmetrised), positive definite."""
+        """The checks of the covariances: finite, symmetric up to rounding, positive definite (of the
+        symmetrised matrices, as the maps will hold them)."""
         covariance, name = self.covariance, self.name
         finite = ~_outside(covariance, False).any(axis=(1, 2))
-        rounded = finite & ~(covariance == covariance.transpose(0, 2, 1)).all(axis=(1, 2))  # the rest fail first
+        rounded = finite & ~_exactly_symmetric(covariance)  # the rest pass, or fail first
         asymmetric = np.zeros(len(covariance), dtype=bool)
         if rounded.any():
             asymmetric[rounded] = (asymmetry(covariance[rounded]) > 0).any(axis=(1, 2))
-            inexact = covariance[rounded & ~asymmetric]
-            covariance[rounded & ~asymmetric] = (inexact + inexact.transpose(0, 2, 1)) / 2
         return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], False)),
                 (first(asymmetric), lambda r: _asymmetry_error(covariance[r], name[r])),
-                (first(_indefinite(covariance)),
+                (first(_indefinite(_symmetrised(covariance, rounded & ~asymmetric))),
                  lambda r: InputError("expected a positive definite matrix", name[r], "covariance"))]
 
     def local_maps(self, start_ids: Sequence[int], end_ids: Sequence[int]) -> list[LocalMap]:
-        """The maps of the rows, with read-only views of the arrays and NOT checked: only once
-        :meth:`first_invalid` found none invalid; the ids must be non-negative ints, start != end."""
-        for array in self[1:]:
-            if array is not None:
-                array.flags.writeable = False
-        covariances = itertools.repeat(None) if self.covariance is None else self.covariance
-        maps = []
-        for fields in zip(self.name, start_ids, end_ids, self.end_pose, self.feature_ids, self.features,
-                          self.feature_variances, self.pose_variances, covariances):
-            local_map = object.__new__(LocalMap)  # the dataclass's checks done above, for all rows at once
-            vars(local_map).update(zip(_LOCAL_MAP_FIELDS, fields))
-            maps.append(local_map)
-        return maps
+        """The maps of the rows, NOT checked again: only once :meth:`first_invalid` found none invalid;
+        the ids must be non-negative ints, start != end. The maps hold read-only views of the arrays,
+        the covariances symmetric up to rounding symmetrised (in a copy)."""
+        if self.covariance is None:
+            covariances = itertools.repeat(None)
+        else:
+            covariances = _read_only(_symmetrised(self.covariance, ~_exactly_symmetric(self.covariance)))
+        return [LocalMap(*fields, checked=True) for fields in zip(
+            self.name, start_ids, end_ids, *map(_read_only, self[1:-1]), covariances)]
 
 
-_LOCAL_MAP_FIELDS = ("name", "start_id", "end_id", *StackedMaps._fields[1:])
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """A read-only view of ``array`` (the array itself stays as it is)."""
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
+def _exactly_symmetric(covariance: np.ndarray) -> np.ndarray:
+    """Which matrices of a stack equal their transpose."""
+    return (covariance == covariance.transpose(0, 2, 1)).all(axis=(1, 2))
+
+
+def _symmetrised(covariance: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """The stack with the matrices ``which`` replaced by their symmetric part ``(P + P^T) / 2``: a new
+    array if ``which`` flags any, else ``covariance`` itself (never changed)."""
+    if not which.any():
+        return covariance
+    symmetric = covariance.copy()
+    part = covariance[which]
+    symmetric[which] = (part + part.transpose(0, 2, 1)) / 2
+    return symmetric
+
+
 Stacks = Sequence[tuple[Sequence[int], StackedMaps]]  # (the places of a stack's maps in a list of maps, the stack)
 
 
@@ -345,60 +358,6 @@ def _indefinite(stack: np.ndarray) -> np.ndarray:
     if _has_cholesky_factor(stack):
         return np.zeros(len(stack), dtype=bool)
     return np.array([not _has_cholesky_factor(matrix) for matrix in stack])
-
-
-def spherical_variances(local_map: LocalMap, mode: CovarianceMode) -> tuple[np.ndarray, np.ndarray]:
-    """Spherical ``(feature_variances, pose_variances)`` of ``local_map`` in ``mode``.
-
-    - ``identity``: every variance 1, as in the paper's experiment (Section 7).
-    - ``marginal``: the mean of the diagonal of each 2x2 block of the covariance (the
-      average marginal variance of x and y), and ``P_phiphi`` for the orientation.
-    - ``information``: the same from the information matrix ``P^-1``: ``sigma^2 =
-      2 / trace(Lambda_jj)``, the conditional variance of a block given the rest of the map.
-
-    A map without a full covariance is block-diagonal spherical already, so
-    ``marginal`` and ``information`` both return its stored variances.
-    """
-    features, poses = batch_spherical_variances([local_map], mode)
-    return features, poses[0]
-
-
-def _summary(diagonal: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of each x/y pair of ``diagonal`` (the last axis: pose x, y, phi, then features), the phi entry as is; ``**power``."""
-    features = (diagonal[..., 3::2] + diagonal[..., 4::2]) / 2
-    poses = diagonal[..., 1:3].copy()
-    poses[..., 0] = (diagonal[..., 0] + diagonal[..., 1]) / 2
-    return features**power, poses**power
-
-
-def batch_spherical_variances(maps: Sequence[LocalMap], mode: CovarianceMode) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`spherical_variances` of many maps: all feature variances concatenated, and (len(maps), 2) pose ones.
-
-    Maps with full covariances of one size are summarised together (one batched inverse
-    per size for ``information``), so the cost is not a Python loop of matrix calls.
-    (numpy's batched inverse makes one LAPACK call per matrix; exact alternatives built from
-    batched products or Cholesky factors were measured no faster for these small matrices.)
-    """
-    if mode not in COVARIANCE_MODES:
-        raise ValueError(f"unknown covariance mode {mode!r}; expected one of {', '.join(COVARIANCE_MODES)}")
-    sizes = np.fromiter((m.size for m in maps), np.intp, len(maps))
-    offsets = np.concatenate([[0], np.cumsum(sizes)])
-    if mode == "identity":
-        return np.ones(offsets[-1]), np.ones((len(maps), 2))
-    features = np.concatenate([m.feature_variances for m in maps]) if maps else np.zeros(0)
-    poses = np.array([m.pose_variances for m in maps]).reshape(-1, 2)
-    full = np.flatnonzero(np.fromiter((m.covariance is not None for m in maps), bool, len(maps)))
-    for group in size_groups(sizes[full]):
-        members = full[group]
-        size = 3 + 2 * int(sizes[members[0]])
-        stacked = np.concatenate([maps[i].covariance for i in members.tolist()]).reshape(-1, size, size)
-        if mode == "information":  # sigma^2 = 2 / trace of each block of P^-1 = 1 / its mean
-            feature_part, pose_part = _summary(np.diagonal(np.linalg.inv(stacked), axis1=1, axis2=2), -1.0)
-        else:
-            feature_part, pose_part = _summary(np.diagonal(stacked, axis1=1, axis2=2), 1.0)
-        features[(offsets[members][:, None] + np.arange(feature_part.shape[1])).ravel()] = feature_part.ravel()
-        poses[members] = pose_part
-    return features, poses
 
 
 @dataclass(frozen=True)

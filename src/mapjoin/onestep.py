@@ -27,6 +27,8 @@ from typing import Literal
 
 import numpy as np
 
+from .se2 import rotation, wrap
+
 __all__ = [
     "Condition",
     "Constants",
@@ -52,28 +54,12 @@ __all__ = [
     "recover",
     "reduced_cost",
     "solve",
-    "wrap",
 ]
 
 Solver = Literal["bisection", "golden"]
 SOLVERS: tuple[str, ...] = ("bisection", "golden")
 _PI_LOW = 1.2246467991473532e-16  # pi - float(pi)
 TOLERANCE = 1e-12  # bracket width (rad) at which bisection and golden-section stop
-
-
-def wrap(angle):
-    """Map angles (a float or an array) into [-pi, pi)."""
-    wrapped = (angle + math.pi) % (2 * math.pi) - math.pi
-    # (angle + pi) % 2pi can round up to exactly 2pi for angles just below -pi
-    if isinstance(wrapped, float):
-        return wrapped - 2 * math.pi if wrapped >= math.pi else wrapped
-    return np.where(wrapped >= math.pi, wrapped - 2 * math.pi, wrapped)
-
-
-def rotation(phi: float) -> np.ndarray:
-    """R(phi)."""
-    c, s = math.cos(phi), math.sin(phi)
-    return np.array([[c, -s], [s, c]])
 
 
 @dataclass(frozen=True)
@@ -467,9 +453,6 @@ class Orientations:
     iterations: np.ndarray
 
 
-_FEW = 24  # fewer problems than this are solved one by one (measured break-even, 2 cores)
-
-
 def batch_orientation(a0: np.ndarray, phi0: np.ndarray, z_phi: np.ndarray, p_phi: np.ndarray,
                       solver: Solver = "bisection", tolerance: float = TOLERANCE) -> Orientations:
     """Algorithm 1 on f_1 for many problems at once: :func:`global_orientation` as array operations.
@@ -480,14 +463,6 @@ def batch_orientation(a0: np.ndarray, phi0: np.ndarray, z_phi: np.ndarray, p_phi
     """
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
-    if len(a0) < _FEW:  # the same numbers, from the scalar path: numpy's cost per call outweighs the loop
-        found = [global_orientation(*args, solver, tolerance)
-                 for args in zip(a0.tolist(), phi0.tolist(), z_phi.tolist(), p_phi.tolist())]
-        return Orientations(np.array([f.phi for f in found]),
-                            np.array([math.nan if f.other_phi is None else f.other_phi for f in found]),
-                            np.array([f.minima.a for f in found]), np.array([f.minima.c_phi for f in found]),
-                            np.array([f.minima.count for f in found], dtype=np.intp),
-                            np.array([f.iterations for f in found], dtype=np.intp))
     a, c_phi = a0 * p_phi, wrap(z_phi - phi0)
     bad = ~(np.isfinite(a) & np.isfinite(c_phi) & (a >= 0))
     if bad.any():

@@ -26,8 +26,10 @@ import numpy as np
 from . import io as mapio
 from .errors import InputError, JoinError, MapjoinError
 from .joining import check_chain, join_sequential
-from .maps import CovarianceMode, GlobalMap, GroundTruth, LocalMap, spherical_variances
-from .onestep import OneStepProblem, Solver, analyse_minima, constants, cost, solve, wrap
+from .covariance import CovarianceMode, spherical_variances
+from .maps import GlobalMap, GroundTruth, LocalMap
+from .onestep import OneStepProblem, Solver, analyse_minima, constants, cost, solve
+from .se2 import wrap
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -261,11 +263,12 @@ def join_problem(maps: Sequence[LocalMap], join: int, covariance: CovarianceMode
 
     Map 0 is the global map of maps 1..join joined sequentially (its features and its end
     pose, the start of the incoming map); map 1 is map join + 1. Its solution is the join
-    ``join_sequential(maps)`` made.
+    ``join_sequential(maps)`` made. A join number out of range raises InputError naming the
+    argument (``where="join="``).
     """
     if not 1 <= join < len(maps):
         raise InputError(f"expected a join number from 1 to {len(maps) - 1} for {len(maps)} maps, got {join}",
-                         None, "--join")
+                         None, "join=")
     check_chain(maps[:join + 1])
     so_far = join_sequential(maps[:join], covariance).global_map
     incoming = maps[join]

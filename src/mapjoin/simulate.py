@@ -65,6 +65,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .maps import GroundTruth, LocalMap, locate
+from .se2 import relative, to_frame, wrap
 
 __all__ = ["Simulation", "simulate"]
 
@@ -203,12 +204,6 @@ def _check_sigmas(values, name: str, count: int) -> tuple[float, ...]:
 
 # --- geometry --------------------------------------------------------------------------
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    """Angles wrapped into ``[-pi, pi)``."""
-    wrapped = np.mod(np.asarray(angle) + np.pi, 2 * np.pi) - np.pi
-    return np.where(wrapped >= np.pi, wrapped - 2 * np.pi, wrapped)
-
-
 def _radius(lap: int, step_length: float) -> float:
     """Radius of the circles on which ``lap / 2`` chords of ``step_length`` close a circle."""
     return step_length / (2 * math.sin(math.pi / (lap // 2)))
@@ -224,7 +219,7 @@ def _figure_eight(steps: np.ndarray, lap: int, step_length: float) -> np.ndarray
     angle = np.where(first, phase, phase - lobe) * turn
     sign = np.where(first, 1.0, -1.0)
     return np.stack([radius * np.sin(angle), sign * 2 * radius * np.sin(angle / 2) ** 2,
-                     _wrap(sign * angle)], axis=1)
+                     wrap(sign * angle)], axis=1)
 
 
 def _annulus(rng: np.random.Generator, count: int, centre_y: float, inner: float,
@@ -361,11 +356,8 @@ def _chunk_maps(chunk: np.ndarray, n: int, lap: int, step_length: float, true_fe
     steps = chunk[:, None] * n + np.arange(n + 1)                       # c x (n+1)
     poses = _figure_eight(steps.ravel(), lap, step_length).reshape(c, n + 1, 3)
     start = poses[:, 0]
-    cos0, sin0 = np.cos(start[:, 2]), np.sin(start[:, 2])
-    dx, dy = poses[..., 0] - start[:, None, 0], poses[..., 1] - start[:, None, 1]
-    local = np.stack([cos0[:, None] * dx + sin0[:, None] * dy,
-                      -sin0[:, None] * dx + cos0[:, None] * dy,
-                      _wrap(poses[..., 2] - start[:, None, 2])], axis=2)  # c x (n+1) x 3
+    local = relative(start[:, None], poses)  # c x (n+1) x 3
+    local[..., 2] = wrap(local[..., 2])
 
     # observations: (map, scan i, feature), grouped by (map, feature) in id order
     scan_index, obs_feature = visible.expand((steps[:, :n] % lap).ravel())
@@ -385,9 +377,7 @@ def _chunk_maps(chunk: np.ndarray, n: int, lap: int, step_length: float, true_fe
     rank = np.arange(g) - np.repeat(np.cumsum(per_map) - per_map, per_map)
 
     # true local features
-    fx, fy = (true_features[group_feature] - start[group_map, :2]).T
-    f_local = np.stack([cos0[group_map] * fx + sin0[group_map] * fy,
-                        -sin0[group_map] * fx + cos0[group_map] * fy], axis=1)   # g x 2
+    f_local = to_frame(start[group_map], true_features[group_feature])   # g x 2
 
     # odometry Jacobian (times sqrt(Q)): step l moves every point p attached to a later pose
     # by R(theta_l) [sf xi_f, sl xi_l] + sh xi_h S (p - t_{l+1}),  S = [[0, -1], [1, 0]]
@@ -438,7 +428,7 @@ def _chunk_maps(chunk: np.ndarray, n: int, lap: int, step_length: float, true_fe
         error[group_map, row + 1] += l10 * xi[:, 0] + l11 * xi[:, 1]
 
     end = local[:, n] + error[:, :3]
-    end[:, 2] = _wrap(end[:, 2])
+    end[:, 2] = wrap(end[:, 2])
     estimate = f_local + np.stack([error[group_map, row], error[group_map, row + 1]], axis=1)
     bounds = np.r_[0, np.cumsum(per_map)].tolist()
     result = []

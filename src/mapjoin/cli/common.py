@@ -11,10 +11,9 @@ from typing import TYPE_CHECKING
 import click
 
 from .. import io as mapio
+from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
 from ..errors import InputError
 from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, Kind, by_name, extensions_text, names
-from ..maps import COVARIANCE_MODES
-from ..joining import DEFAULT_COVARIANCE
 from ..onestep import SOLVERS
 
 if TYPE_CHECKING:
@@ -97,14 +96,18 @@ def output_format(path: str, explicit: str | None, kind: Kind) -> str:
 
 @contextlib.contextmanager
 def options_for(**options: str) -> Iterator[None]:
-    """Library errors that an argument of the calls inside would settle (:attr:`InputError.argument`, e.g.
-    ``format``) name the command's option for it instead (``options``: argument -> option)."""
+    """Library errors about an argument of the calls inside name the command's option for it instead
+    (``options``: argument -> option): an error that the argument would settle (:attr:`InputError.argument`,
+    e.g. ``format``) and an error in the argument's value (``where="join="``)."""
     try:
         yield
     except InputError as error:
-        if error.argument not in options:
-            raise
-        raise error.naming(options[error.argument]) from None
+        if error.argument in options:
+            raise error.naming(options[error.argument]) from None
+        argument = (error.where or "").removesuffix("=")
+        if error.source is None and error.where != argument and argument in options:
+            raise InputError(error.detail, None, options[argument]) from None
+        raise
 
 
 def warn_if_doubtful(result: RefineResult) -> None:

@@ -127,7 +127,8 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
             raise click.UsageError(f"{len(maps)} maps: choose a join with --join K (1 to {len(maps) - 1}; "
                                    "K is the join column of `mapjoin join --report`)")
         join_number = 1
-    problem = figures.join_problem(maps, join_number, covariance)
+    with common.options_for(join="--join"):
+        problem = figures.join_problem(maps, join_number, covariance)
     curve = figures.join_curve(problem, solver)
     incoming = maps[join_number]
     title = (f"join {join_number}: {_short(incoming.name)} onto "

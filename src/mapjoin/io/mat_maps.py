@@ -23,7 +23,8 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..maps import LocalMap, StackedMaps, first_flagged, first_invalid_map, marginal_variances, size_groups, unstack
+from ..covariance import marginal_variances
+from ..maps import LocalMap, StackedMaps, first_flagged, first_invalid_map, size_groups, unstack
 from . import matfile
 from .linearslam import spherical_diagonal
 from .paths import read_file

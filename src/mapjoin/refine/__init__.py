@@ -22,13 +22,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..joining import DEFAULT_COVARIANCE, JoinResult, Strategy, join
-from ..maps import CovarianceMode, GlobalMap, LocalMap, Provenance
+from ..covariance import DEFAULT_COVARIANCE, CovarianceMode, spherical_summary
+from ..joining import JoinResult, Strategy, join
+from ..maps import GlobalMap, LocalMap, Provenance
 from ..onestep import Solver
 from .problem import ExactProblem
 from .solver import TOLERANCE, Minimum, minimise
 
-__all__ = ["TOLERANCE", "RefineResult", "exact_cost", "join_and_refine", "refine", "spherical_variances"]
+__all__ = ["TOLERANCE", "RefineResult", "exact_cost", "join_and_refine", "refine"]
 
 
 @dataclass(frozen=True)
@@ -38,7 +39,7 @@ class RefineResult:
     ``global_map``: poses and features at the optimum; with covariances, its
     ``feature_covariances`` (n, 2, 2) and ``pose_covariances`` (p, 3, 3) are the marginal
     blocks of ``(J^T J)^-1`` and its spherical variances their summary (see
-    :func:`spherical_variances`); without, the variances of the initial map are kept.
+    :func:`~mapjoin.covariance.spherical_summary`); without, the variances of the initial map are kept.
     ``cost``: chi^2 at the optimum. ``costs``: chi^2 before the first iteration and after
     each accepted one (decreasing; the last may rise by rounding, see
     :func:`.solver.minimise`). ``seconds``: time of the solve (problem set-up and
@@ -79,16 +80,6 @@ class RefineResult:
                    covariance_seconds=covariance_seconds, residuals=problem.n_residuals,
                    unknowns=problem.n_unknowns, gradient_norm=float(np.max(np.abs(found.gradient), initial=0.0)),
                    rejected=found.rejected)
-
-
-def spherical_variances(pose_covariances: np.ndarray, feature_covariances: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray]:
-    """The spherical summary ``(pose variances (p, 2), feature variances (n,))`` of marginal
-    covariances (p, 3, 3) and (n, 2, 2): half the trace of each x/y block, and the
-    orientation variance as is."""
-    pose_variances = np.stack([(pose_covariances[:, 0, 0] + pose_covariances[:, 1, 1]) / 2,
-                               pose_covariances[:, 2, 2]], axis=1)
-    return pose_variances, np.trace(feature_covariances, axis1=1, axis2=2) / 2
 
 
 def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy = "sequential",
@@ -134,7 +125,7 @@ def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_it
     start = time.perf_counter()
     if covariances:
         pose_covariances, feature_covariances = problem.marginals(found.final_factor(problem))
-        pose_variances, feature_variances = spherical_variances(pose_covariances, feature_covariances)
+        pose_variances, feature_variances = spherical_summary(pose_covariances, feature_covariances)
     else:
         pose_covariances = feature_covariances = None
         pose_variances, feature_variances = problem.variances(initial)

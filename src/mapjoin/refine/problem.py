@@ -33,7 +33,7 @@ import scipy.sparse as sp
 
 from ..errors import JoinError
 from ..maps import GlobalMap, LocalMap, locate
-from ..onestep import wrap
+from ..se2 import wrap
 from . import groups as grouping
 from .groups import Group
 from .sparse import BlockPattern, diagonal_blocks, factorise, fill_reducing_order
