@@ -31,14 +31,16 @@ if TYPE_CHECKING:
 
 __all__ = [
     "COVARIANCE_MODES",
-    "CovarianceMode",
     "DEFAULT_COVARIANCE",
+    "CovarianceMode",
     "batch_spherical_variances",
     "fuse",
     "marginal_variances",
     "placed_variances",
     "spherical_variances",
     "squared_norm",
+    "state_covariance",
+    "state_variances",
     "translation_variance",
 ]
 
@@ -108,6 +110,20 @@ def batch_spherical_variances(maps: Sequence[LocalMap], mode: CovarianceMode) ->
         features[(offsets[members][:, None] + np.arange(feature_part.shape[1])).ravel()] = feature_part.ravel()
         poses[members] = pose_part
     return features, poses
+
+
+def state_variances(local_map: LocalMap) -> np.ndarray:
+    """The diagonal covariance of a local map's state vector ``[x, y, phi, x1, y1, ...]`` that its
+    spherical variances stand for (a map read without a full covariance, e.g. from CSV)."""
+    return np.concatenate([local_map.pose_variances[[0, 0, 1]], np.repeat(local_map.feature_variances, 2)])
+
+
+def state_covariance(local_map: LocalMap) -> np.ndarray:
+    """The covariance of a local map's state vector: the full one when the map has it, else the
+    diagonal of :func:`state_variances`."""
+    if local_map.covariance is not None:
+        return local_map.covariance
+    return np.diag(state_variances(local_map))
 
 
 def spherical_summary(pose_covariances: np.ndarray, feature_covariances: np.ndarray

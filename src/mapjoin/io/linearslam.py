@@ -23,10 +23,11 @@ from itertools import chain
 
 import numpy as np
 
+from ..covariance import state_variances
 from ..errors import InputError
 from ..maps import LocalMap, asymmetry, first_duplicate
 
-__all__ = ["dump", "looks_like_linearslam", "read", "spherical_diagonal"]
+__all__ = ["dump", "looks_like_linearslam", "read"]
 
 log = logging.getLogger("mapjoin")
 
@@ -170,11 +171,6 @@ def _spd_inverse(matrix: np.ndarray) -> tuple[np.ndarray | None, int]:
     return lower + np.tril(lower, -1).T, 0
 
 
-def spherical_diagonal(local_map: LocalMap) -> np.ndarray:
-    """The covariance diagonal a map without a full covariance stands for: x y phi, then x y per feature."""
-    return np.concatenate([local_map.pose_variances[[0, 0, 1]], np.repeat(local_map.feature_variances, 2)])
-
-
 def dump(maps: Sequence[LocalMap]) -> str:
     """One map as Linear SLAM text; the information matrix is the inverse of its covariance."""
     [local_map] = maps
@@ -185,7 +181,7 @@ def dump(maps: Sequence[LocalMap]) -> str:
         log.warning("%s: feature id 0 written as Linear SLAM text (mapjoin reads it back; Linear SLAM's own code "
                     "expects positive feature ids)", local_map.name)
     if local_map.covariance is None:
-        information = np.diag(1.0 / spherical_diagonal(local_map))
+        information = np.diag(1.0 / state_variances(local_map))
     else:
         information, _ = _spd_inverse(local_map.covariance)
     if information is None or not np.isfinite(information).all():

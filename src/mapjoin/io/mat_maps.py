@@ -22,11 +22,10 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
+from ..covariance import marginal_variances, state_covariance
 from ..errors import InputError
-from ..covariance import marginal_variances
 from ..maps import LocalMap, StackedMaps, first_flagged, first_invalid_map, size_groups, unstack
 from . import matfile
-from .linearslam import spherical_diagonal
 from .paths import read_file
 
 __all__ = ["STAB_NOISE", "dump", "map_number", "read", "read_files"]
@@ -192,8 +191,7 @@ def dump(maps: Sequence[LocalMap]) -> bytes:
     if local_map.size and local_map.feature_ids.max() >= 2**53:
         raise InputError(f"feature id {local_map.feature_ids.max()} is not exact as a double (2^53 or more), "
                          "so it cannot be written to a .mat file", local_map.name)
-    covariance = (np.diag(spherical_diagonal(local_map)) if local_map.covariance is None
-                  else local_map.covariance)
+    covariance = state_covariance(local_map)
     if covariance.diagonal()[:3].min() < STAB_NOISE:
         log.warning("%s: an end-pose variance is below %g; reading the .mat file back adds %g to the pose "
                     "diagonal, as I-SLSJF does", local_map.name, STAB_NOISE, STAB_NOISE)

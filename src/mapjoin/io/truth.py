@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 from typing import TYPE_CHECKING
 
@@ -10,6 +9,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..maps import GroundTruth
+from ..se2 import relative, to_frame, wrap
 from . import matfile
 from .paths import read_file
 from .registry import LOCAL_MAP_FILE
@@ -73,9 +73,7 @@ def read_truth_folder(folder: str | Path, maps: int | None = None) -> GroundTrut
                          files["store_beaconsTrue"], "store_beaconsTrue")
     k = np.arange(maps + 1)
     poses = robot[:, (2 * k * steps + maps) // (2 * maps)].T           # round(k*S/N), halves up
-    x0, y0, phi0 = robot[:, 0]
-    c, s = math.cos(phi0), math.sin(phi0)
-    to_start = np.array([[c, s], [-s, c]])                             # R(phi0)^T
-    phi = (poses[:, 2] - phi0 + math.pi) % (2 * math.pi) - math.pi
-    return GroundTruth(beacons[:, 0].astype(np.int64), (beacons[:, 1:] - (x0, y0)) @ to_start.T, k,
-                       np.column_stack([(poses[:, :2] - (x0, y0)) @ to_start.T, phi]), name=folder)
+    origin = robot[:, 0]                                               # the frame of the first local map
+    relative_poses = relative(origin, poses)
+    return GroundTruth(beacons[:, 0].astype(np.int64), to_frame(origin, beacons[:, 1:]), k,
+                       np.column_stack([relative_poses[:, :2], wrap(relative_poses[:, 2])]), name=folder)

@@ -31,6 +31,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse as sp
 
+from ..covariance import state_covariance
 from ..errors import JoinError
 from ..maps import GlobalMap, LocalMap, locate
 from ..se2 import wrap
@@ -67,7 +68,7 @@ class Blocks:
     def of_maps(cls, maps: Sequence[LocalMap]) -> Blocks:
         """One block per local map (a map without a full covariance: its spherical variances)."""
         def stacked(ks: np.ndarray) -> np.ndarray:
-            return np.stack([_covariance(maps[k]) for k in ks])
+            return np.stack([state_covariance(maps[k]) for k in ks])
 
         return cls(start_ids=np.array([m.start_id for m in maps], dtype=np.int64),
                    end_ids=np.array([m.end_id for m in maps], dtype=np.int64),
@@ -447,14 +448,6 @@ def _covariances_by_size(blocks: Blocks, sizes: np.ndarray) -> tuple[dict[int, t
         covariances[m] = ks, np.asarray(blocks.covariances(ks), dtype=float)
         independent[ks] = grouping.independent_points(covariances[m][1])
     return covariances, independent
-
-
-def _covariance(local_map: LocalMap) -> np.ndarray:
-    if local_map.covariance is not None:
-        return local_map.covariance
-    variances = np.concatenate([local_map.pose_variances[[0, 0, 1]],
-                                np.repeat(local_map.feature_variances, 2)])
-    return np.diag(variances)
 
 
 def _lookup(ids: np.ndarray, values: np.ndarray, wanted: np.ndarray, what: str, source: str) -> np.ndarray:
