@@ -35,7 +35,7 @@ from scipy.sparse.linalg import splu
 
 from mapjoin import io as mapio
 from mapjoin.build import batch, build, cut
-from mapjoin.evaluate import compare
+from mapjoin.evaluation import compare
 from mapjoin.joining import join_sequential
 from mapjoin.raw import RawData, read_raw
 from mapjoin.refine import refine

@@ -24,7 +24,7 @@ from common import DATA, median_seconds, write_section
 
 from mapjoin import COVARIANCE_MODES, GlobalMap, LocalMap
 from mapjoin import io as mapio
-from mapjoin.evaluate import compare, evaluate
+from mapjoin.evaluation import compare, evaluate
 from mapjoin.joining import DEFAULT_COVARIANCE, certify_pair, join_sequential
 from mapjoin.onestep import rotation, wrap
 from mapjoin.refine import refine

@@ -65,7 +65,7 @@ from mapjoin import io as mapio
 from mapjoin.joining import join
 from mapjoin.maps import LocalMap
 from mapjoin.refine import refine
-from mapjoin.simulate import simulate
+from mapjoin.simulation import simulate
 
 SEED = 1
 LARGE = 100_000           # sizes from here on are run --repeat-large times

@@ -24,7 +24,7 @@ import time
 from common import compile_mapjoin, dataset_arguments, median_seconds, write_section
 
 from mapjoin import io as mapio
-from mapjoin.evaluate import compare
+from mapjoin.evaluation import compare
 from mapjoin.joining import join
 from mapjoin.refine import refine
 

@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 from mapjoin import InputError
 from mapjoin import io as mapio
 from mapjoin.build import batch, build, cut
-from mapjoin.evaluate import compare
+from mapjoin.evaluation import compare
 from mapjoin.raw import RawData, _positive_definite, read_raw
 
 VICPARK = "VicPark_200_local_maps/VicPark_clean_data.mat"

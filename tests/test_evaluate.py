@@ -17,12 +17,12 @@ from scipy.stats import chi2
 from mapjoin import io as mapio
 from mapjoin.cli import main
 from mapjoin.errors import InputError
-from mapjoin.evaluate import CHI2_LEVEL, chi2_interval, chi2_verdict, compare, evaluate, nees_bounds
+from mapjoin.evaluation import CHI2_LEVEL, chi2_interval, chi2_verdict, compare, evaluate, nees_bounds
 from mapjoin.io.matfile import variables as mat_variables
 from mapjoin.joining import join_sequential
 from mapjoin.maps import GlobalMap, GroundTruth
 from mapjoin.se2 import wrap
-from mapjoin.simulate import simulate
+from mapjoin.simulation import simulate
 
 SIMULATIONS = ("535_data_5_local_maps", "8240_data_50_local_maps")
 

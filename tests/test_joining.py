@@ -198,7 +198,7 @@ def test_default_join_is_close_to_the_exact_join_on_vicpark(data_dir):
     from oracles import exact_join
 
     from mapjoin import io as mapio
-    from mapjoin.evaluate import compare
+    from mapjoin.evaluation import compare
 
     folder = data_dir / "VicPark_200_local_maps"
     exact = exact_join(str(folder))

@@ -31,7 +31,7 @@ from mapjoin.refine import RefineResult, exact_cost, join_and_refine, refine
 from mapjoin.refine.groups import _GROUP_OVERHEAD, _block_whitening, _triangular_inverse, size_classes
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.sparse import Supernodes, closed_pattern, selected_inverse
-from mapjoin.simulate import simulate
+from mapjoin.simulation import simulate
 
 KNOWN_OPTIMA = {  # chi^2 at the exact optimum
     "VicPark_200_local_maps": 3643.435,

@@ -1,4 +1,4 @@
-"""Tests of the seeded ground-truth simulator (``mapjoin.simulate``)."""
+"""Tests of the seeded ground-truth simulator (``mapjoin.simulation``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.stats import chi2
 
 from mapjoin.maps import LocalMap
-from mapjoin.simulate import Simulation, simulate
+from mapjoin.simulation import Simulation, simulate
 
 MIN_SHARED = 3  # the default guarantee
 
@@ -374,7 +374,7 @@ def test_empty_world_without_guarantee_gives_featureless_maps():
 
 
 def test_output_does_not_depend_on_the_internal_chunk_size(monkeypatch):
-    import mapjoin.simulate as module
+    import mapjoin.simulation as module
 
     reference = simulate(40, seed=13)
     monkeypatch.setattr(module, "_CHUNK", 7)

@@ -126,7 +126,7 @@ def build(raw: RawData, bounds: Sequence[int], *, jobs: int = 1, piece_steps: in
     that many runs of consecutive maps, each built in a worker process exactly as one job
     builds all (the solver stops per run, so results agree to rounding, not bit for bit).
     ``with_batch``: also the batch solution (:func:`batch`), started from these maps joined.
-    Whether chi^2 is plausible: :func:`mapjoin.evaluate.chi2_verdict` of ``costs`` and
+    Whether chi^2 is plausible: :func:`mapjoin.evaluation.chi2_verdict` of ``costs`` and
     ``degrees_of_freedom``."""
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")

@@ -132,7 +132,7 @@ def _warn_if_doubtful(name: str, costs: Sequence[float], dofs: Sequence[int]) ->
     its degrees of freedom (skipped under -q, which silences warnings)."""
     if not log.isEnabledFor(logging.WARNING):
         return
-    from ..evaluate import chi2_verdict
+    from ..evaluation import chi2_verdict
 
     total, dof = float(np.sum(costs)), int(np.sum(dofs))
     verdict = chi2_verdict([total], [dof])

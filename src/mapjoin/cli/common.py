@@ -120,7 +120,7 @@ def warn_if_doubtful(result: RefineResult) -> None:
     dof = result.degrees_of_freedom
     if dof <= 0 or not log.isEnabledFor(logging.WARNING):
         return
-    from ..evaluate import chi2_verdict
+    from ..evaluation import chi2_verdict
 
     verdict = chi2_verdict([result.cost], [dof])
     if not verdict.outside.size:

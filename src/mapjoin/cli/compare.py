@@ -9,7 +9,7 @@ import math
 import click
 
 from .. import io as mapio
-from ..evaluate import compare as compare_maps
+from ..evaluation import compare as compare_maps
 from . import main
 
 

@@ -9,8 +9,8 @@ import math
 import click
 
 from .. import io as mapio
-from ..evaluate import ALIGNMENTS, Evaluation
-from ..evaluate import evaluate as evaluate_map
+from ..evaluation import ALIGNMENTS, Evaluation
+from ..evaluation import evaluate as evaluate_map
 from ..maps import GlobalMap, GroundTruth
 from . import main
 

@@ -8,7 +8,7 @@ import click
 
 from .. import io as mapio
 from ..io.registry import LOCAL_MAPS, TRUTH, by_name, names
-from ..simulate import simulate as run_simulation
+from ..simulation import simulate as run_simulation
 from . import common, main
 from .common import say
 

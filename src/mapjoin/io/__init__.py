@@ -79,15 +79,19 @@ log = logging.getLogger("mapjoin")
 _TRUTH_FILES = ("truth.yaml", "truth.yml", "truth.csv")  # what `mapjoin simulate` writes into its folder
 
 
-def read_maps(inputs: Sequence[str], *, stdin: TextIO | None = None, format: str | None = None) -> list[LocalMap]:
-    """All local maps of all inputs (see :func:`resolve_inputs`), in order; ``-`` reads ``stdin`` once.
+def read_maps(inputs: str | os.PathLike | Sequence[str | os.PathLike], *, stdin: TextIO | None = None,
+              format: str | None = None) -> list[LocalMap]:
+    """All local maps of one input or a list of inputs (see :func:`resolve_inputs`: files, globs, folders),
+    in order; ``-`` reads ``stdin`` once.
 
     ``format`` is for the inputs whose names do not tell it (stdin, unknown extensions), so
     e.g. a folder of .mat files and CSV on stdin can be read together. Consecutive files of a
     format that reads many files at once (an I-SLSJF folder of thousands of .mat files) are
     parsed and checked together, with the errors and warnings of reading them one by one.
     """
-    return read_map_paths(resolve_inputs(inputs), stdin=stdin, format=format)
+    if isinstance(inputs, (str, os.PathLike)):
+        inputs = [inputs]
+    return read_map_paths(resolve_inputs([os.fspath(path) for path in inputs]), stdin=stdin, format=format)
 
 
 def read_map_paths(paths: Sequence[str], *, stdin: TextIO | None = None, format: str | None = None
