@@ -65,28 +65,29 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     if map_count is not None and poses_per_map is not None:
         raise click.UsageError("give --maps or --poses-per-map, not both")
     stream = mapio.is_special(output) or os.path.splitext(output)[1] != ""
+    outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--global-map": global_path},
+                            folders={} if stream else {"-o": output})
+    outputs.guard([raw_path])
+    with common.options_for(format="--format"):
+        fmt = (common.output_format(output, output_format, LOCAL_MAPS) if stream
+               else output_format or LOCAL_MAPS.default)
+    start = time.perf_counter()
+    with common.options_for(format="--raw-format"):
+        raw = read_raw(raw_path, raw_format)
+    reading = time.perf_counter() - start
+    if map_count is None and poses_per_map is None:
+        map_count = min(DEFAULT_MAPS, raw.steps)
+    bounds = builder.cut(raw.steps, map_count, poses_per_map)
+    if not stream:
+        _refuse_stale_maps(output, fmt, len(bounds) - 1)
 
     def report(iteration: int, cost: float) -> None:
         say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
 
-    with mapio.Outputs(files={**({"-o": output} if stream else {}), "--global-map": global_path},
-                       folders={} if stream else {"-o": output}) as outputs:
-        outputs.guard([raw_path])
-        with common.options_for(format="--format"):
-            fmt = (common.output_format(output, output_format, LOCAL_MAPS) if stream
-                   else output_format or LOCAL_MAPS.default)
-        start = time.perf_counter()
-        with common.options_for(format="--raw-format"):
-            raw = read_raw(raw_path, raw_format)
-        reading = time.perf_counter() - start
-        if map_count is None and poses_per_map is None:
-            map_count = min(DEFAULT_MAPS, raw.steps)
-        bounds = builder.cut(raw.steps, map_count, poses_per_map)
-        if not stream:
-            _refuse_stale_maps(output, fmt, len(bounds) - 1)
-        result = builder.build(raw, bounds, jobs=jobs, progress=report if ctx.obj["verbose"] else None,
-                               with_batch=global_path is not None)
-        writing = time.perf_counter()
+    result = builder.build(raw, bounds, jobs=jobs, progress=report if ctx.obj["verbose"] else None,
+                           with_batch=global_path is not None)
+    writing = time.perf_counter()
+    with outputs:
         written = mapio.write_maps(result.maps, output if stream else os.path.join(output, ""), fmt)
         if global_path:
             mapio.write_global_map(result.batch.global_map, global_path,

@@ -50,25 +50,25 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     """
     if jobs > 1 and strategy != "tree":
         raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
-    with mapio.Outputs(files={"-o": output, "--report": report_path}) as outputs:
-        paths = outputs.guard(mapio.resolve_inputs(inputs))
-        start = time.perf_counter()
-        with common.options_for(format="--input-format"):
-            maps = mapio.read_map_paths(paths, format=input_format)
-        with progress_bar(ctx, len(maps), "joining") as progress:
-            result = join_maps(maps, covariance, solver, strategy, jobs, progress)
-        global_map = result.global_map
-        if exact:
-            from ..refine import refine  # scipy.sparse: imported only when refining
+    outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
+    start = time.perf_counter()
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
+    with progress_bar(ctx, len(maps), "joining") as progress:
+        result = join_maps(maps, covariance, solver, strategy, jobs, progress)
+    global_map = result.global_map
+    if exact:
+        from ..refine import refine  # scipy.sparse: imported only when refining
 
-            refined = refine(maps, global_map)
-            global_map = refined.global_map
-            common.warn_if_doubtful(refined)
-            say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
-                     f"{refined.iterations} iterations ({refined.reason})")
-        elapsed = time.perf_counter() - start
-        with common.options_for(format="--format"):
-            mapio.write_global_map(global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
+        refined = refine(maps, global_map)
+        global_map = refined.global_map
+        common.warn_if_doubtful(refined)
+        say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
+                 f"{refined.iterations} iterations ({refined.reason})")
+    elapsed = time.perf_counter() - start
+    with outputs, common.options_for(format="--format"):
+        mapio.write_global_map(global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
         if report_path:
             mapio.write_table(result.report, report_path, common.output_format(report_path, None, TABLE))
     if ctx.obj["verbose"]:

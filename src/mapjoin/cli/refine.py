@@ -62,25 +62,25 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     """
     from ..refine import refine as refine_maps  # scipy.sparse: imported only when refining
 
+    outputs = mapio.Outputs(files={"-o": output})
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
+    start = time.perf_counter()
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
+
+    joined = time.perf_counter()
+    with progress_bar(ctx, len(maps), "fast join") as progress:
+        initial = join(maps, strategy=strategy, progress=progress)
+    joined = time.perf_counter() - joined
+
     def report(iteration: int, cost: float) -> None:
         say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
 
-    with mapio.Outputs(files={"-o": output}) as outputs:
-        paths = outputs.guard(mapio.resolve_inputs(inputs))
-        start = time.perf_counter()
-        with common.options_for(format="--input-format"):
-            maps = mapio.read_map_paths(paths, format=input_format)
-
-        joined = time.perf_counter()
-        with progress_bar(ctx, len(maps), "fast join") as progress:
-            initial = join(maps, strategy=strategy, progress=progress)
-        joined = time.perf_counter() - joined
-        result = refine_maps(maps, initial.global_map, max_iterations=max_iterations, tolerance=tolerance,
-                             covariances=not no_covariances, progress=report if ctx.obj["verbose"] else None)
-        elapsed = time.perf_counter() - start
-        with common.options_for(format="--format"):
-            mapio.write_global_map(result.global_map, output,
-                                   common.output_format(output, output_format, GLOBAL_MAP))
+    result = refine_maps(maps, initial.global_map, max_iterations=max_iterations, tolerance=tolerance,
+                         covariances=not no_covariances, progress=report if ctx.obj["verbose"] else None)
+    elapsed = time.perf_counter() - start
+    with outputs, common.options_for(format="--format"):
+        mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
     common.warn_if_doubtful(result)
     g = result.global_map
     two = sum(r.minima == 2 for r in initial.report)

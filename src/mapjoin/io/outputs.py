@@ -173,27 +173,31 @@ class Outputs:
 
     ``files`` and ``folders`` map how messages name each output (e.g. its option, ``-o``) to its
     path (None: not given; ``-``: stdout). They are checked when the object is made, before any
-    input is read. Use it as a context manager: the writes inside are staged and committed when the
-    block ends without an error, discarded otherwise (see the module's docstring)::
+    input is read. Use it as a context manager around the writes: they are staged and committed
+    when the block ends without an error, discarded otherwise (see the module's docstring)::
 
-        with Outputs(files={"-o": output, "--report": report}) as outputs:
-            paths = outputs.guard(resolve_inputs(inputs))
-            ...  # read, compute, write_global_map(..., output), write_table(..., report)
+        outputs = Outputs(files={"-o": output, "--report": report})
+        paths = outputs.guard(resolve_inputs(inputs))
+        ...  # read, compute
+        with outputs:
+            write_global_map(global_map, output)
+            write_table(rows, report)
     """
 
-    def __init__(self, files: Mapping[str, str | None] = {}, folders: Mapping[str, str | None] = {}) -> None:
+    def __init__(self, files: Mapping[str, str | None] | None = None,
+                 folders: Mapping[str, str | None] | None = None) -> None:
         self._outputs = _FileIndex()
         self._inputs = _FileIndex()
         self._declared: set[str] = set()  # real paths of the declared files
         self._new_folders: dict[str, str] = {}  # declared folders that do not exist yet -> the first missing one
-        self._folders: list[str] = []  # declared folders that exist (real paths)
+        self._folders: dict[str, str] = {}  # declared folders that exist: real path -> as named
         self._staging = _Staging()
         self._stdout: str | None = None
         self._paths: list[str] = []  # the declared files and folders
-        for label, folder in folders.items():
+        for label, folder in (folders or {}).items():
             if folder is not None:
                 self._declare(os.fspath(folder), label, folder=True)
-        for label, path in files.items():
+        for label, path in (files or {}).items():
             if path is not None:
                 self._declare(os.fspath(path), label, folder=False)
 
@@ -225,7 +229,7 @@ class Outputs:
                 top = os.path.dirname(top)
             _check_target(path if top == real else top, True, False)
             if os.path.isdir(real):
-                self._folders.append(real)
+                self._folders[real] = path
             else:
                 self._new_folders[real] = top
         self._paths.append(path)
@@ -237,7 +241,7 @@ class Outputs:
         for path in self._paths:
             _refuse_input(self._inputs, path)
         if self._folders:
-            folders = {_identity(folder): folder for folder in self._folders}
+            folders = {_identity(real): path for real, path in self._folders.items()}
             parents: dict[str, tuple[int, int] | None] = {}
             for path in inputs:
                 if path == STDIN:
