@@ -38,13 +38,14 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
       mapjoin convert 'maps/*.yaml' -o maps.csv
     """
     is_directory = output.endswith(os.sep) or os.path.isdir(output)
-    with mapio.Outputs(**{"folders" if is_directory else "files": {"-o": output}}) as outputs:
-        if to_format is None:
-            with common.options_for(format="--to"):
-                to_format = LOCAL_MAPS.default if is_directory else common.output_format(output, None, LOCAL_MAPS)
-        paths = outputs.guard(mapio.resolve_inputs(inputs))
-        with common.options_for(format="--input-format"):
-            maps = mapio.read_map_paths(paths, format=input_format)
+    outputs = mapio.Outputs(**{"folders" if is_directory else "files": {"-o": output}})
+    if to_format is None:
+        with common.options_for(format="--to"):
+            to_format = LOCAL_MAPS.default if is_directory else common.output_format(output, None, LOCAL_MAPS)
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
+    with common.options_for(format="--input-format"):
+        maps = mapio.read_map_paths(paths, format=input_format)
+    with outputs:
         written = mapio.write_maps(maps, output, to_format)
     say(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
              if output != "-" else f"converted {len(maps)} maps to {to_format}")

@@ -50,9 +50,10 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
                                       else LOCAL_MAPS.default)
     if not stream:
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
-    with mapio.Outputs(files={**({"-o": output} if stream else {}), "--truth": truth_path},
-                       folders={} if stream else {"-o": output}):
-        simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
+    outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--truth": truth_path},
+                            folders={} if stream else {"-o": output})
+    simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
+    with outputs:
         mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format)
         if truth_path:
             mapio.write_truth(simulation.truth, truth_path)
