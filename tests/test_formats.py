@@ -930,7 +930,7 @@ def test_garbage_mat_files_only_raise_input_error(scratch, data):
 
 
 def test_atomic_write_writes_exactly_and_leaves_no_temporary_file(tmp_path):
-    mapio.atomic_write(tmp_path / "out.csv", "a,b\r\n1,2\n")
+    mapio.write_output("a,b\r\n1,2\n", tmp_path / "out.csv")
     assert (tmp_path / "out.csv").read_bytes() == b"a,b\r\n1,2\n"
     assert os.listdir(tmp_path) == ["out.csv"]
 
@@ -939,13 +939,13 @@ def test_a_failed_atomic_write_keeps_the_old_file(tmp_path, monkeypatch):
     path = tmp_path / "out.yaml"
     path.write_text("old")
     with pytest.raises(UnicodeEncodeError):
-        mapio.atomic_write(path, "new \ud800")
+        mapio.write_output("new \ud800", path)
     def refuse(*args):
         raise PermissionError(13, "Permission denied")
 
     monkeypatch.setattr(os, "replace", refuse)
     with pytest.raises(InputError, match=re.escape(f"{path}: cannot write (Permission denied)")):
-        mapio.atomic_write(path, "new")
+        mapio.write_output("new", path)
     assert path.read_text() == "old"
     assert os.listdir(tmp_path) == ["out.yaml"]
 

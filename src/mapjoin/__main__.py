@@ -49,7 +49,8 @@ def _flush_stdout(code: int) -> int:
         _silence_stdout()
     except OSError as error:
         _silence_stdout()
-        print(f"mapjoin: error: cannot write to stdout ({error.strerror or error})", file=sys.stderr)
+        if code == 0:  # a command that failed has said why in its one line
+            print(f"mapjoin: error: cannot write to stdout ({error.strerror or error})", file=sys.stderr)
         return code or 1
     return code
 

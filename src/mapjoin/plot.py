@@ -95,7 +95,7 @@ def save(figure: Figure, path: str) -> None:
     """Render ``figure`` into ``path`` (format from the extension), atomically like every mapjoin output."""
     buffer = io.BytesIO()
     figure.savefig(buffer, format=figure_format(path), dpi=DPI)
-    mapio.atomic_write(path, buffer.getvalue())
+    mapio.write_output(buffer.getvalue(), path)
 
 
 # ---------------------------------------------------------------------------------------

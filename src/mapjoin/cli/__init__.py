@@ -3,7 +3,9 @@
 Exit codes: 0 success; 1 bad input or a join that cannot be done (one line on stderr,
 naming the file and field); 2 a usage error; 3 ``check-minima`` found two minima;
 130 interrupted (Ctrl-C).
-Data goes to stdout (or ``-o``); messages, warnings and progress go to stderr.
+Data goes to stdout (or ``-o``); messages, warnings and progress go to stderr. Each
+command declares its outputs to :class:`mapjoin.io.Outputs`, which checks them before any
+input is read and writes them all or none.
 """
 
 from __future__ import annotations
@@ -68,7 +70,10 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
     Each join is the spherical-covariance one-step problem of Wang, Huang, Frese and
     Dissanayake (Automatica 2013): a 1-D problem whose minima Theorem 2 counts.
     Inputs are files, globs, folders (e.g. an I-SLSJF folder of localmap_k.mat) or - for
-    stdin; data goes to stdout unless -o is given.
+    stdin; data goes to stdout unless -o is given. Outputs are checked before any input
+    is read, never overwrite an input or each other (links and letter case included),
+    and are written all or none; a symbolic link is written through (the file it points
+    to is replaced), a device or FIFO is written into (README, "Formats").
 
     \b
     Examples:

@@ -69,7 +69,10 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
 
     if map_count is not None and poses_per_map is not None:
         raise click.UsageError("give --maps or --poses-per-map, not both")
-    stream = output == "-" or os.path.splitext(output)[1] != ""
+    stream = mapio.is_special(output) or os.path.splitext(output)[1] != ""
+    outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--global-map": global_path},
+                            folders={} if stream else {"-o": output})
+    outputs.guard([raw_path])
     with common.options_for(format="--format"):
         fmt = (common.output_format(output, output_format, LOCAL_MAPS) if stream
                else output_format or LOCAL_MAPS.default)
@@ -80,8 +83,8 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     if map_count is None and poses_per_map is None:
         map_count = min(DEFAULT_MAPS, raw.steps)
     bounds = builder.cut(raw.steps, map_count, poses_per_map)
-    planned = ([output] if output != "-" else []) if stream else _planned_folder(output, fmt, len(bounds) - 1)
-    mapio.check_not_overwriting([raw_path], planned + ([global_path] if global_path else []))
+    if not stream:
+        _refuse_stale_maps(output, fmt, len(bounds) - 1)
 
     def report(iteration: int, cost: float) -> None:
         say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
@@ -92,7 +95,11 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     if result.batch is not None:
         _warn_if_doubtful(raw.name, [result.batch.cost], [result.batch.degrees_of_freedom])
     writing = time.perf_counter()
-    written = mapio.write_maps(result.maps, output if stream else os.path.join(output, ""), fmt)
+    with outputs:
+        written = mapio.write_maps(result.maps, output if stream else os.path.join(output, ""), fmt)
+        if global_path:
+            mapio.write_global_map(result.batch.global_map, global_path,
+                                   common.output_format(global_path, None, GLOBAL_MAP))
     writing = time.perf_counter() - writing
     dof = result.degrees_of_freedom
     pieces = f", from {result.pieces} pieces joined" if result.pieces else ""
@@ -105,26 +112,25 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
              f"{output if output != '-' else 'stdout'}{files}")
     if global_path:
         solution = result.batch
-        mapio.write_global_map(solution.global_map, global_path, common.output_format(global_path, None, GLOBAL_MAP))
         say(ctx, f"batch solution: chi^2 {solution.cost:.6f} (half: {solution.cost / 2:.6f}) for "
                  f"{solution.degrees_of_freedom} degrees of freedom, {solution.iterations} iterations "
                  f"({solution.reason}), {solution.seconds + solution.covariance_seconds:.3f} s -> {global_path}")
 
 
-def _planned_folder(folder: str, fmt: str, count: int) -> list[str]:
-    """The files the maps go to; local maps already in the folder that they would not replace are an
-    error (they would be joined with the new ones)."""
+def _refuse_stale_maps(folder: str, fmt: str, count: int) -> None:
+    """Refuse a folder holding local maps that the ``count`` maps built would not replace (they would be joined
+    with the new ones)."""
+    if not os.path.isdir(folder):
+        return
     planned = [os.path.join(folder, mapio.map_file_name(k, fmt)) for k in range(1, count + 1)]
-    if os.path.isdir(folder):
-        try:
-            present = mapio.resolve_inputs([folder])
-        except InputError:                           # no local maps in it
-            present = []
-        stale = sorted(set(map(os.path.normpath, present)) - set(map(os.path.normpath, planned)))
-        if stale:
-            raise InputError(f"holds local maps this build would not replace (e.g. {os.path.basename(stale[0])}), "
-                             "which would be joined with the new ones; choose a new or empty folder", folder)
-    return planned
+    try:
+        present = mapio.resolve_inputs([folder])
+    except InputError:                           # no local maps in it
+        present = []
+    stale = sorted(set(map(os.path.normpath, present)) - set(map(os.path.normpath, planned)))
+    if stale:
+        raise InputError(f"holds local maps this build would not replace (e.g. {os.path.basename(stale[0])}), "
+                         "which would be joined with the new ones; choose a new or empty folder", folder)
 
 
 def _warn_if_doubtful(name: str, costs: Sequence[float], dofs: Sequence[int]) -> None:

@@ -56,9 +56,13 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     if sum(modes) != 1:
         raise click.UsageError("give exactly one of: --a A --c-phi C; two map files; --batch FILE")
     if batch is not None:
+        outputs = mapio.Outputs(files={"-o": output})
+        outputs.guard([batch])
+        fmt = common.output_format(output, None, TABLE)
         table = mapio.read_minima_table(batch)
         rows = [summarise_minima(ra, rc, solver) for ra, rc in zip(table.a.tolist(), table.c_phi.tolist())]
-        mapio.write_table(rows, output, common.output_format(output, None, TABLE))
+        with outputs:
+            mapio.write_table(rows, output, fmt)
         ctx.exit(EXIT_TWO_MINIMA if any(r.minima == 2 for r in rows) else 0)
     preamble: list[str] = []
     record = None

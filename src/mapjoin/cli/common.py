@@ -88,10 +88,11 @@ def progress_bar(ctx: click.Context, length: int, label: str) -> Iterator[Callab
 
 
 def output_format(path: str, explicit: str | None, kind: Kind) -> str:
-    """The format to write ``path`` in: ``explicit``, else its extension, else ``kind``'s default for stdout."""
+    """The format to write ``path`` in: ``explicit``, else ``kind``'s default for stdout or a special file (a
+    device, a FIFO: written through), else its extension's."""
     if explicit:
         return explicit
-    return kind.default if path == "-" else mapio.detect_format(path)
+    return kind.default if mapio.is_special(path) else mapio.detect_format(path)
 
 
 @contextlib.contextmanager

@@ -37,18 +37,15 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
       mapjoin convert ../shared/data/8240_data_50_local_maps -o sim-txt/ --to linearslam
       mapjoin convert 'maps/*.yaml' -o maps.csv
     """
-    paths = mapio.resolve_inputs(inputs)
     is_directory = output.endswith(os.sep) or os.path.isdir(output)
+    outputs = mapio.Outputs(**{"folders" if is_directory else "files": {"-o": output}})
     if to_format is None:
         with common.options_for(format="--to"):
             to_format = LOCAL_MAPS.default if is_directory else common.output_format(output, None, LOCAL_MAPS)
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
-    if is_directory:
-        planned = [os.path.join(output, mapio.map_file_name(m.end_id, to_format)) for m in maps]
-    else:
-        planned = [output] if output != "-" else []
-    mapio.check_not_overwriting(paths, planned)
-    written = mapio.write_maps(maps, output, to_format)
+    with outputs:
+        written = mapio.write_maps(maps, output, to_format)
     say(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
              if output != "-" else f"converted {len(maps)} maps to {to_format}")

@@ -50,11 +50,8 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     """
     if jobs > 1 and strategy != "tree":
         raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
-    paths = mapio.resolve_inputs(inputs)
-    outputs = [p for p in (output, report_path) if p and p != "-"]
-    mapio.check_not_overwriting(paths, outputs)
-    if report_path == "-" and output == "-":
-        raise click.UsageError("--report - and -o - would both write to stdout; give one of them a file")
+    outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
     start = time.perf_counter()
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
@@ -73,10 +70,10 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
         say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
                  f"{refined.iterations} iterations ({refined.reason})")
     elapsed = time.perf_counter() - start
-    with common.options_for(format="--format"):
+    with outputs, common.options_for(format="--format"):
         mapio.write_global_map(global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
-    if report_path:
-        mapio.write_table(result.report, report_path, common.output_format(report_path, None, TABLE))
+        if report_path:
+            mapio.write_table(result.report, report_path, common.output_format(report_path, None, TABLE))
     if ctx.obj["verbose"]:
         for r in result.report:
             second = f", other minimum at {r.phi2:+.4f} rad" if r.minima == 2 else ""

@@ -53,11 +53,13 @@ def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str
         raise click.UsageError(f"give one --label per map: {len(maps)} maps, {len(labels)} labels")
     if list(maps).count("-") + (truth_path == "-") > 1:
         raise click.UsageError("stdin (-) can be read only once")
-    mapio.check_not_overwriting([*maps, *([truth_path] if truth_path else [])], [output])
+    outputs = mapio.Outputs(files={"-o": output})
+    outputs.guard([*maps, *([truth_path] if truth_path else [])])
     global_maps = [mapio.read_global_map(path) for path in maps]
     truth = mapio.read_truth(truth_path) if truth_path else None
     names = labels or [global_map.name for global_map in global_maps]
-    figures.save(figures.map_figure(global_maps, names, truth, ellipses), output)
+    with outputs:
+        figures.save(figures.map_figure(global_maps, names, truth, ellipses), output)
     say(ctx, f"plotted {len(global_maps)} map{'s' if len(global_maps) > 1 else ''}"
              f"{' and the ground truth' if truth else ''} -> {output}")
 
@@ -82,9 +84,11 @@ def plot_minima(ctx: click.Context, report: str, output: str) -> None:
       mapjoin join examples/sim20 --report - -o global.csv | mapjoin plot-minima - -o minima.svg
     """
     figures.figure_format(output)
-    mapio.check_not_overwriting([report], [output])
+    outputs = mapio.Outputs(files={"-o": output})
+    outputs.guard([report])
     table = mapio.read_minima_table(report)
-    figures.save(figures.minima_figure(table), output)
+    with outputs:
+        figures.save(figures.minima_figure(table), output)
     what = "join" if table.join is not None else "problem"
     say(ctx, f"plotted {len(table.a)} {what}{'s' if len(table.a) != 1 else ''} -> {output}")
 
@@ -118,8 +122,8 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
       mapjoin plot-join examples/sim20 --join 3 --covariance identity -o join3.svg
     """
     figures.figure_format(output)
-    paths = mapio.resolve_inputs(inputs)
-    mapio.check_not_overwriting(paths, [output])
+    outputs = mapio.Outputs(files={"-o": output})
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
     if join_number is None:
@@ -134,7 +138,8 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
     title = (f"join {join_number}: {_short(incoming.name)} onto "
              f"{_short(maps[0].name) if join_number == 1 else f'maps 1..{join_number}'} "
              f"({len(problem.z0)} common features, covariance {covariance})")
-    figures.save(figures.join_figure(curve, title), output)
+    with outputs:
+        figures.save(figures.join_figure(curve, title), output)
     say(ctx, f"plotted join {join_number} ({len(curve.minima)} minim{'a' if len(curve.minima) > 1 else 'um'}, "
              f"phi* = {curve.minima[0][0]:+.6f} rad) -> {output}")
 

@@ -62,8 +62,8 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     """
     from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
-    paths = mapio.resolve_inputs(inputs)
-    mapio.check_not_overwriting(paths, [output] if output != "-" else [])
+    outputs = mapio.Outputs(files={"-o": output})
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
     start = time.perf_counter()
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
@@ -76,7 +76,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
                                  tolerance=tolerance, covariances=not no_covariances,
                                  progress=report if ctx.obj["verbose"] else None)
     elapsed = time.perf_counter() - start
-    with common.options_for(format="--format"):
+    with outputs, common.options_for(format="--format"):
         mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
     common.warn_if_doubtful(result)
     g, joins = result.global_map, result.fast_join.report

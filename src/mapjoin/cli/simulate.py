@@ -44,16 +44,18 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
       mapjoin simulate -o - --maps 20 | mapjoin join - > global.csv
       mapjoin simulate -o maps.csv --maps 1000 --truth truth.csv
     """
-    stream = output == "-" or (os.path.splitext(output)[1].lower() in _STREAM_EXTENSIONS
-                               and not os.path.isdir(output))
+    stream = mapio.is_special(output) or (os.path.splitext(output)[1].lower() in _STREAM_EXTENSIONS
+                                          and not os.path.isdir(output))
     output_format = output_format or (common.output_format(output, None, LOCAL_MAPS) if stream
                                       else LOCAL_MAPS.default)
-    simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
     if not stream:
-        os.makedirs(output, exist_ok=True)
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
-    mapio.write_maps(simulation.maps, output, output_format)
-    if truth_path:
-        mapio.write_truth(simulation.truth, truth_path)
+    outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--truth": truth_path},
+                            folders={} if stream else {"-o": output})
+    simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
+    with outputs:
+        mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format)
+        if truth_path:
+            mapio.write_truth(simulation.truth, truth_path)
     say(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
              + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))

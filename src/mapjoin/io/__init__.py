@@ -1,9 +1,10 @@
 """Every file mapjoin reads or writes: local maps, global maps, ground truth, tables.
 
 Sources are paths, open text streams (e.g. ``io.StringIO``) or ``"-"`` for stdin; targets
-are paths, text streams or ``"-"`` for stdout. Files are written atomically and inputs are
-never modified. Bad input raises :class:`~mapjoin.errors.InputError` naming the file (or
-``<stdin>``), the line or field, and what was expected. Floats are written with ``repr``
+are paths, text streams or ``"-"`` for stdout. Files are written atomically, never over an
+input, and a symbolic link is written through (:mod:`.outputs`). Bad input raises
+:class:`~mapjoin.errors.InputError` naming the file (or ``<stdin>``), the line or field, and
+what was expected. Floats are written with ``repr``
 precision, so every text format round-trips exactly. CSV is standard CSV (quoted where
 needed, LF line ends); CRLF line ends and a UTF-8 byte-order mark are accepted on reading.
 
@@ -12,8 +13,8 @@ them); a stream without a format is recognised by its start (YAML, CSV with a ``
 column, Linear SLAM text). The formats, one module each: :mod:`.yaml_maps`,
 :mod:`.csv_maps`, :mod:`.mat_maps` (I-SLSJF), :mod:`.linearslam` (local maps);
 :mod:`.global_maps` (global maps and ground truth, YAML and CSV), :mod:`.g2o` (global map
-export); :mod:`.tables` (reports, minima tables). Beside them: :mod:`.paths` (files,
-streams, the overwrite guard), :mod:`.inputs` (input arguments to files), :mod:`.yamldoc`
+export); :mod:`.tables` (reports, minima tables). Beside them: :mod:`.paths` (reading
+files and streams), :mod:`.outputs` (writing: checked up front, all or nothing), :mod:`.inputs` (input arguments to files), :mod:`.yamldoc`
 and :mod:`.csvtable` (the YAML and CSV layers), :mod:`.matfile` (MAT v5), :mod:`.truth`
 (I-SLSJF simulation folders).
 
@@ -44,8 +45,8 @@ from . import registry
 from .g2o import g2o_feature_offset
 from .inputs import resolve_inputs
 from .mat_maps import STAB_NOISE
-from .paths import (STDIN, Source, atomic_write, check_not_overwriting, is_path, read_file, read_text, source_name,
-                    write_output)
+from .outputs import Outputs, check_not_overwriting, is_special, transaction, write_output
+from .paths import STDIN, Source, is_path, read_file, read_text, source_name
 from .registry import MAP_FORMATS, TABLE_FORMATS, Codec, Format, Kind, detect_format, map_file_name
 from .tables import MinimaTable, read_minima_csv, read_minima_records
 from .truth import read_truth_folder
@@ -55,9 +56,10 @@ __all__ = [
     "STAB_NOISE",
     "TABLE_FORMATS",
     "MinimaTable",
-    "atomic_write",
+    "Outputs",
     "check_not_overwriting",
     "detect_format",
+    "is_special",
     "g2o_feature_offset",
     "map_file_name",
     "read_global_map",
@@ -71,6 +73,7 @@ __all__ = [
     "write_global_map",
     "write_maps",
     "write_table",
+    "write_output",
     "write_truth",
 ]
 
@@ -139,7 +142,7 @@ def read_map_file(source: Source, format: str | None = None, name: str | None = 
 def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[str]:
     """Write ``maps`` as ``format`` and return the paths written (none for a stream).
 
-    A folder target (an existing folder, or a path ending in ``/``, created if needed) gets
+    A folder target (an existing folder, or a path ending in ``/``, created if its parent exists) gets
     one file per map, :func:`map_file_name`; a file path or stream gets one stream, which
     for a format of one map per file (``mat``, ``linearslam``) must hold one map (a .mat
     file's name must end in its end id).
@@ -244,19 +247,18 @@ def _write(fmt: Format, content: str | bytes, target: Source) -> list[str]:
 
 
 def _write_map_folder(maps: Sequence[LocalMap], folder: str, fmt: Format, codec: Codec) -> list[str]:
-    """One file per map; every map is encoded first, so a map the format cannot hold writes nothing."""
+    """One file per map, written all together or not at all (:mod:`.outputs`); every map is encoded first, so a
+    map the format cannot hold writes nothing."""
     paths = [os.path.join(folder, map_file_name(local_map.end_id, fmt.name)) for local_map in maps]
     duplicate = first_duplicate(np.array([local_map.end_id for local_map in maps], dtype=np.int64))
     if duplicate is not None:
         raise InputError(f"two maps end at pose {maps[duplicate].end_id}, so both would be "
                          f"{os.path.basename(paths[duplicate])}; write them to one file instead", folder)
     contents = [codec.dump([local_map]) for local_map in maps]
-    try:
-        os.makedirs(folder, exist_ok=True)
-    except OSError as error:
-        raise InputError(f"cannot create the folder ({error.strerror or error})", folder) from error
-    for content, path in zip(contents, paths):
-        atomic_write(path, content)
+    with transaction() as outputs:
+        outputs.folder(folder)
+        for content, path in zip(contents, paths):
+            outputs.write(content, path)
     return paths
 
 

@@ -1,27 +1,19 @@
-"""Files and streams: reading a path, ``-`` (stdin) or a stream; writing atomically; the overwrite guard.
+"""Files and streams to read: a path, ``-`` (stdin) or a stream; how messages name them.
 
-Nothing here knows a format: the readers get text or bytes, the writers write what they are
-given. Sources are paths, open streams (e.g. ``io.StringIO``) or ``"-"`` for stdin; targets
-are paths, text streams or ``"-"`` for stdout. Files are written atomically (a temporary
-file in the same folder, then ``os.replace``), so readers never see half a file.
+Nothing here knows a format: the readers return text or bytes. Sources are paths, open
+streams (e.g. ``io.StringIO``) or ``"-"`` for stdin. Writing is :mod:`.outputs`.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
 import stat
 import sys
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, TextIO
+from typing import TextIO
 
 from ..errors import InputError
 
-if TYPE_CHECKING:  # pathlib only names a path type here
-    from pathlib import Path
-
-__all__ = ["STDIN", "Source", "atomic_write", "check_not_overwriting", "is_path", "map_name", "not_utf8", "read_file",
-           "read_text", "source_name", "write_output"]
+__all__ = ["STDIN", "Source", "is_path", "map_name", "not_utf8", "read_file", "read_text", "source_name"]
 
 STDIN = "-"
 
@@ -86,81 +78,6 @@ def _read_bytes(path: str) -> bytes:
 def not_utf8(error: UnicodeDecodeError, name: str) -> InputError:
     """The error for text of ``name`` that is not UTF-8."""
     return InputError(f"expected UTF-8 text ({error.reason} at byte {error.start})", name)
-
-
-def write_output(content: str | bytes, target: Source) -> list[str]:
-    """Write ``content`` to a path (atomically), ``-`` (stdout) or a text stream; the paths written.
-
-    Bytes (a binary format) go to paths only; the caller refuses other targets first.
-    """
-    if is_path(target):
-        atomic_write(target, content)
-        return [os.fspath(target)]
-    (sys.stdout if isinstance(target, (str, os.PathLike)) else target).write(content)
-    return []
-
-
-def atomic_write(path: str | Path, text: str | bytes) -> None:
-    """Write ``text`` (UTF-8; bytes as they are) to ``path`` via a temporary file in the same folder and ``os.replace``.
-
-    Readers never see a half-written file, and a failed write leaves an existing file as it was.
-    """
-    path = os.fspath(path)
-    folder, base = os.path.split(path)
-    temporary = os.path.join(folder, f".{base}.{os.urandom(4).hex()}.tmp")
-    try:
-        with open(temporary, "xb") if isinstance(text, bytes) else open(
-                temporary, "x", encoding="utf-8", newline="") as file:
-            file.write(text)
-        os.replace(temporary, path)
-    except BaseException as error:
-        with contextlib.suppress(OSError):
-            os.unlink(temporary)
-        if isinstance(error, OSError):
-            raise InputError(f"cannot write ({error.strerror or error})", path) from error
-        raise
-
-
-def check_not_overwriting(inputs: Sequence[str], outputs: Sequence[str]) -> None:
-    """Refuse an output that is an input file: the same file (device and inode, so also a hard or symbolic
-    link to it) or the same path after resolving links.
-
-    Pass the input files (:func:`mapjoin.io.resolve_inputs`); outputs need not exist yet. Each
-    input costs one ``stat``; its path is resolved only when that fails or an output cannot be
-    examined for another reason than not existing (an existing file is found by its inode).
-    """
-    targets = [os.fspath(output) for output in outputs if os.fspath(output) != STDIN]
-    if not targets:
-        return
-    resolved = {os.path.realpath(output): output for output in targets}
-    identities: dict[tuple[int, int], str] = {}
-    resolve_every_input = False
-    for output in targets:
-        try:
-            status = os.stat(output)
-        except (FileNotFoundError, NotADirectoryError):
-            continue  # no file there yet: only an input that does not exist either can resolve to its path
-        except OSError:
-            resolve_every_input = True
-        else:
-            identities[(status.st_dev, status.st_ino)] = output
-    clashes: dict[str, str] = {}  # output -> the (last) input it is
-    for path in map(os.fspath, inputs):
-        if path == STDIN:
-            continue
-        try:
-            status = os.stat(path)
-        except OSError:
-            status = None
-        output = None if status is None else identities.get((status.st_dev, status.st_ino))
-        if output is None and (status is None or resolve_every_input):
-            output = resolved.get(os.path.realpath(path))
-        if output is not None:
-            clashes[output] = path
-    for output in targets:
-        if output in clashes:
-            which = "an input file" if clashes[output] == output else f"the input file {clashes[output]}"
-            raise InputError(f"is {which}; choose another output so the input is kept", output)
 
 
 def map_name(source: str, label: str | None, number: int | None) -> str:
