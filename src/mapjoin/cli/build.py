@@ -79,7 +79,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     reading = time.perf_counter() - start
     if map_count is None and poses_per_map is None:
         map_count = min(DEFAULT_MAPS, raw.steps)
-    bounds = builder.cut(raw.steps, map_count, poses_per_map)
+    bounds = builder.cut(raw.steps, map_count, poses_per_map, raw.name)
     planned = ([output] if output != "-" else []) if stream else _planned_folder(output, fmt, len(bounds) - 1)
     mapio.check_not_overwriting([raw_path], planned + ([global_path] if global_path else []))
 
