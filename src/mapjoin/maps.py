@@ -185,6 +185,11 @@ class LocalMap:
     when present it must be symmetric positive definite (rounding-level asymmetry, within
     ``SYMMETRY_TOLERANCE``, is averaged away, in a copy).
 
+    Every value must lie in its accepted range (README, "Accepted values"): coordinates in
+    :data:`COORDINATE` (|x| <= 1e9 m), the heading in :data:`ANGLE` (|phi| <= 1e6 rad),
+    variances in :data:`VARIANCE` ([1e-30, 1e30]), covariance entries in :data:`COVARIANCE_ENTRY`;
+    then no arithmetic of a join overflows or divides by a subnormal.
+
     ``checked`` is for :meth:`StackedMaps.local_maps` only: its values were checked for the
     whole stack at once and are stored as they are (read-only arrays of the right dtypes and
     shapes); otherwise the constructor copies and checks them.
@@ -422,6 +427,10 @@ class Provenance:
 class GlobalMap:
     """Features and end poses in the global frame (the start pose of the first map).
 
+    Values are checked against the wider global ranges (:data:`GLOBAL_COORDINATE`, |x| <= 1e16 m;
+    :data:`GLOBAL_VARIANCE`, [1e-40, 1e40]; :data:`ANGLE`), which joining maps within the local
+    ranges cannot leave and within which compare and evaluate cannot overflow.
+
     Pose ``k`` is the end pose of the k-th joined local map. Variances are spherical
     (``sigma^2`` per feature; ``(sigma_xy^2, p_phi)`` per pose). ``feature_covariances``
     (n x 2 x 2) and ``pose_covariances`` (p x 3 x 3) are full marginal blocks when a
@@ -464,7 +473,8 @@ class GlobalMap:
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """True feature positions and poses in the global frame (simulations); pose 0 is the origin."""
+    """True feature positions and poses in the global frame (simulations); pose 0 is the origin. Checked
+    against the global ranges, as :class:`GlobalMap`."""
 
     feature_ids: np.ndarray
     features: np.ndarray

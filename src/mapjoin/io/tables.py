@@ -52,7 +52,8 @@ def read_minima_csv(text: str, source: str) -> MinimaTable:
     table = csvtable.Table(text, source, None)
     if not set(_MINIMA_COLUMNS) <= set(table.header):
         raise InputError(f"expected a header with the columns a and c_phi (as `mapjoin join --report` writes "
-                         f"them), got {','.join(table.header) or 'nothing'}", source, f"line {table.header_line}")
+                         f"them), got {shown(','.join(table.header)) if table.header else 'nothing'}", source,
+                         f"line {table.header_line}")
     a, c_phi = (table.values((column,), None, kind)[:, 0] for column, kind in _MINIMA_COLUMNS.items())
     join = table.values(("join",), None, "id")[:, 0] if "join" in table.header else None
     return MinimaTable(source, a, c_phi, join)
