@@ -276,3 +276,57 @@ def test_an_unknown_token_is_echoed_cut(tmp_path):
 def test_a_long_bad_csv_header_is_echoed_cut(maps, tmp_path):
     (tmp_path / "maps.csv").write_text("x" * 5000 + (maps / "maps.csv").read_text())
     assert "..." in refused(tmp_path, "join", "maps.csv", "-o", "out.csv", naming="maps.csv")
+
+
+# ---------------------------------------------------------------------------------------
+# YAML and Linear SLAM text
+
+
+@pytest.mark.parametrize("name", ["maps.yaml", "minima.yaml"])
+def test_a_yaml_key_given_twice_is_refused(maps, tmp_path, name):
+    if name == "maps.yaml":
+        text = (maps / "maps.yaml").read_text().replace("start_id: 0\n", "start_id: 0\nstart_id: 7\n", 1)
+        args = ["join", name, "-o", "out.csv"]
+    else:
+        text = "- {a: 1, c_phi: 0.5, a: 2}\n"
+        args = ["check-minima", "--batch", name]
+    (tmp_path / name).write_text(text)
+    assert "appears twice" in refused(tmp_path, *args, naming=name)
+
+
+@pytest.mark.parametrize("character", ["\x00", "\x1b", "\x07"])
+def test_a_yaml_control_character_gives_one_line_naming_its_line(maps, tmp_path, character):
+    lines = (maps / "maps.yaml").read_text().splitlines(keepends=True)
+    lines[2] = character + lines[2]
+    (tmp_path / "maps.yaml").write_text("".join(lines))
+    assert "line 3" in refused(tmp_path, "join", "maps.yaml", "-o", "out.csv", naming="maps.yaml")
+
+
+@pytest.mark.parametrize("field", [0, 1])
+def test_linearslam_numbers_must_use_ascii_digits(maps, tmp_path, field):
+    assert mapjoin(tmp_path, "convert", str(maps / "maps.yaml"), "-o", "txt/", "--to", "linearslam")[0] == 0
+    path = tmp_path / "txt" / "localmap_1.txt"
+    lines = path.read_text().splitlines()
+    cells = lines[3].split()
+    cells[field] = cells[field].replace("1", "１").replace("2", "２").replace("4", "４")
+    lines[3] = " ".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    assert "line 4" in refused(tmp_path, "join", "txt/localmap_1.txt", "-o", "out.csv", naming="localmap_1.txt")
+
+
+def test_a_long_bad_minima_header_is_echoed_cut(tmp_path):
+    (tmp_path / "t.csv").write_text("x" * 5000 + "a,c_phi\n1,0.5\n")
+    assert "..." in refused(tmp_path, "check-minima", "--batch", "t.csv", naming="t.csv")
+
+
+def test_linearslam_information_entries_out_of_range_are_refused(maps, tmp_path):
+    assert mapjoin(tmp_path, "convert", str(maps / "maps.yaml"), "-o", "txt/", "--to", "linearslam")[0] == 0
+    path = tmp_path / "txt" / "localmap_1.txt"
+    lines = path.read_text().splitlines()
+    first = 2 + int(lines[1])  # the information matrix's first row
+    cells = lines[first].split()
+    cells[0] = "1e308"
+    lines[first] = " ".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    line = refused(tmp_path, "join", "txt/localmap_1.txt", "-o", "out.csv", naming="localmap_1.txt")
+    assert f"line {first + 1}" in line and "information" in line
