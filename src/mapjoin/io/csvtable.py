@@ -36,6 +36,7 @@ class Table:
 
     def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]] | None):
         self.source = source
+        self.plain = text.isascii() and "_" not in text  # then every number is plain (no cell to check)
         reader = csv.reader(io.StringIO(text, newline=""))
         rows: list[list[str]] = []
         lines: list[int] = []
@@ -94,7 +95,7 @@ class Table:
         rows = np.arange(len(self.cells)) if rows is None else rows
         cells = self.cells[np.ix_(rows, [self.columns[column] for column in columns])]
         dtype = np.int64 if kind == "id" else float
-        unplain = first_unplain(cells.ravel().tolist())
+        unplain = None if self.plain else first_unplain(cells.ravel().tolist())
         try:
             if unplain is not None:
                 raise ValueError("not ASCII")
