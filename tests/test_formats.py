@@ -29,12 +29,13 @@ from mapjoin.maps import GlobalMap, GroundTruth, LocalMap, Provenance
 # Strategies and helpers
 
 FLOATS = st.floats(allow_nan=False, allow_infinity=False)
-VARIANCES = st.floats(min_value=0.0, exclude_min=True, allow_infinity=False)
+VALUES = st.floats(-1e6, 1e6)  # coordinates and angles within every accepted range (README, "Accepted values")
+VARIANCES = st.floats(1e-30, 1e30)
 IDS = st.integers(0, 2**63 - 1)
 NAMES = st.text(st.characters(blacklist_categories=("Cs",)), max_size=8)
 
 
-def floats(shape: tuple[int, ...], elements=FLOATS):
+def floats(shape: tuple[int, ...], elements=VALUES):
     return hnp.arrays(np.float64, shape, elements=elements)
 
 
@@ -390,7 +391,7 @@ def test_maps_are_named_after_their_file(tmp_path):
 
 
 def test_yaml_writes_floats_exactly_and_quotes_number_like_names():
-    local_map = LocalMap("1e-6", 0, 1, [1e-6, 1e16, -0.0], [7], [[5e-324, 0.1 + 0.2]], [1e-300], [1e-6, 3.0])
+    local_map = LocalMap("1e-6", 0, 1, [1e-6, 1e9, -0.0], [7], [[5e-324, 0.1 + 0.2]], [1e-30], [1e-6, 3.0])
     text = written(mapio.write_maps, [local_map], "yaml")
     assert "'1e-6'" in text and "0.30000000000000004" in text
     [back] = mapio.read_map_file(io.StringIO(text), "yaml")

@@ -101,16 +101,17 @@ class BuildResult:
         return self.residuals - self.unknowns
 
 
-def cut(steps: int, maps: int | None = None, poses_per_map: int | None = None) -> np.ndarray:
+def cut(steps: int, maps: int | None = None, poses_per_map: int | None = None, source: str | None = None
+        ) -> np.ndarray:
     """Chain indices ``0 = b_0 < b_1 < ... < b_N = steps`` of N consecutive local maps:
     ``maps`` of (nearly) equal length, or ``poses_per_map`` steps each (the last map takes
-    what is left). Exactly one of the two."""
+    what is left). Exactly one of the two. ``source`` (the raw data's file) is named in errors."""
     if (maps is None) == (poses_per_map is None):
         raise ValueError("give exactly one of maps and poses_per_map")
     if maps is not None:
         if not 1 <= maps <= steps:
             raise InputError(f"cannot cut {steps} odometry steps into {maps} local maps: expected 1 to {steps} maps "
-                             "(each map needs at least one step)")
+                             "(each map needs at least one step)", source)
         return np.round(np.linspace(0, steps, maps + 1)).astype(np.int64)
     if poses_per_map < 1:
         raise InputError(f"expected at least 1 pose per map, got {poses_per_map}")

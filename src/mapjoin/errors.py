@@ -2,7 +2,19 @@
 
 from __future__ import annotations
 
-__all__ = ["MapjoinError", "InputError", "JoinError"]
+__all__ = ["ECHO_LIMIT", "MapjoinError", "InputError", "JoinError", "shown"]
+
+#: the most characters of an input value an error message shows (:func:`shown`)
+ECHO_LIMIT = 40
+
+
+def shown(value: object, limit: int = ECHO_LIMIT, *, quoted: bool = True) -> str:
+    """How an error message shows a value taken from the input: text as its ``repr`` (``quoted``; else as
+    it is), anything else as ``str``, control characters escaped so that the message stays one line; cut
+    to ``limit`` characters with ``...`` so that a 3 MB token does not become a 3 MB message."""
+    text = repr(value) if isinstance(value, str) and quoted else str(value)
+    text = text if text.isprintable() else repr(text)[1:-1]
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 class MapjoinError(Exception):

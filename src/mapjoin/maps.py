@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, shown
 
 __all__ = [
     "LocalMap",
@@ -32,6 +32,7 @@ __all__ = [
     "Provenance",
     "StackedMaps",
     "asymmetry",
+    "outside",
 ]
 
 SYMMETRY_TOLERANCE = 1e-6  # |P_ij - P_ji| allowed, relative to sqrt(P_ii P_jj); rounding in stored files
@@ -42,33 +43,80 @@ def _coerced(value, name: str, source: str, shape: tuple[int | None, ...], dtype
     try:
         array = np.array(value, dtype=dtype)
     except (TypeError, ValueError) as error:
-        raise InputError(f"expected numbers, got {value!r:.80}", source, name) from error
+        raise InputError(f"expected numbers, got {shown(value)}", source, name) from error
     if array.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, array.shape)):
         expected = "x".join("n" if s is None else str(s) for s in shape) or "a scalar"
         raise InputError(f"expected shape {expected}, got {array.shape}", source, name)
     return array
 
 
-def _outside(array: np.ndarray, positive: bool) -> np.ndarray:
-    """Where ``array`` is not finite, or for variances (``positive``) not > 0; NaN fails both comparisons."""
-    return ~((array > 0.0) & (array < math.inf)) if positive else ~np.isfinite(array)
+class Range(NamedTuple):
+    """The values an input field accepts: ``low <= value <= high`` (NaN is outside every range)."""
+
+    what: str
+    low: float
+    high: float
+
+    def outside(self, array: np.ndarray) -> np.ndarray:
+        """Where ``array`` (or a number) is outside the range."""
+        return np.logical_not((array >= self.low) & (array <= self.high))
+
+    def expected(self) -> str:
+        """How errors name the range, e.g. ``finite coordinates (m) in [-1e+09, 1e+09]``."""
+        return f"finite {self.what} in [{self.low:g}, {self.high:g}]"
 
 
-def _value_error(array: np.ndarray, name: str, source: str, positive: bool) -> InputError:
-    """The error for an array :func:`_outside` flags: its first non-finite entry, else its first one <= 0."""
-    bad, expected = ~np.isfinite(array), "finite numbers"
-    if not bad.any():
-        bad, expected = ~(array > 0), "positive variances"
-    index = tuple(int(i) for i in np.argwhere(bad)[0])
-    return InputError(f"expected {expected}, got {array[index]} at index {index}", source, name)
+# The accepted ranges (README, "Accepted values"). Local maps and raw data: the one-step constants square
+# coordinate differences (< 4e18 m^2) and divide them by sums of variances (>= 2e-30), then sum over up to
+# 10^7 features: < 1e56, far from overflow, and a = a0 * p_phi stays below 1e86. Global maps and ground truth
+# chain up to 10^7 maps of such size, so they allow coordinates to 1e16 m and variances in [1e-40, 1e40]:
+# their squares, ratios and sums over 10^7 features (compare, evaluate) stay below 1e90. An angle beyond
+# 1e6 rad has an ulp above 1e-10 rad, and is reduced exactly (se2.wrap) within it.
+MAX_ANGLE = 1e6
+COORDINATE = Range("coordinates (m)", -1e9, 1e9)
+ANGLE = Range("angles (rad)", -MAX_ANGLE, MAX_ANGLE)
+VARIANCE = Range("variances", 1e-30, 1e30)
+COVARIANCE_ENTRY = Range("covariance entries", -1e30, 1e30)
+GLOBAL_COORDINATE = Range("coordinates (m)", -1e16, 1e16)
+GLOBAL_VARIANCE = Range("variances", 1e-40, 1e40)
+GLOBAL_COVARIANCE_ENTRY = Range("covariance entries", -1e40, 1e40)
+#: Theorem 2's a = a0 * p_phi (check-minima, minima tables): within the ranges above a stays below 1e86
+MINIMA_A = Range("a", 0.0, 1e100)
+#: per column of a pose (x, y, phi)
+POSE = (COORDINATE, COORDINATE, ANGLE)
+GLOBAL_POSE = (GLOBAL_COORDINATE, GLOBAL_COORDINATE, ANGLE)
+
+Ranges = Range | tuple[Range, ...]  # one range, or one per entry of the last axis
+
+
+def outside(array: np.ndarray, ranges: Ranges) -> np.ndarray:
+    """Where ``array`` is outside ``ranges`` (NaN always is)."""
+    if isinstance(ranges, Range):
+        return ranges.outside(array)
+    low, high = (np.array([getattr(r, bound) for r in ranges]) for bound in ("low", "high"))
+    return ~((array >= low) & (array <= high))
+
+
+def _value_error(array: np.ndarray, name: str, source: str, ranges: Ranges) -> InputError:
+    """The error for the first entry of ``array`` that :func:`_outside` flags."""
+    index = tuple(int(i) for i in np.argwhere(outside(array, ranges))[0])
+    limits = ranges if isinstance(ranges, Range) else ranges[index[-1]]
+    if not np.isfinite(array).all():  # NaN and inf first, as what they are
+        index = tuple(int(i) for i in np.argwhere(~np.isfinite(array))[0])
+        expected = "finite numbers"
+    elif limits.low > 0 >= array[index]:
+        expected = f"positive {limits.what}"
+    else:
+        expected = limits.expected()
+    return InputError(f"expected {expected}, got {shown(array[index])} at index {index}", source, name)
 
 
 def _checked(value, name: str, source: str, shape: tuple[int | None, ...], *,
-             dtype=float, positive: bool = False) -> np.ndarray:
-    """A read-only :func:`_coerced` copy; floats must also be finite and, if ``positive``, > 0."""
+             dtype=float, ranges: Ranges | None = None) -> np.ndarray:
+    """A read-only :func:`_coerced` copy; floats must also be within ``ranges``."""
     array = _coerced(value, name, source, shape, dtype)
-    if dtype is float and _outside(array, positive).any():
-        raise _value_error(array, name, source, positive)
+    if ranges is not None and outside(array, ranges).any():
+        raise _value_error(array, name, source, ranges)
     array.flags.writeable = False
     return array
 
@@ -137,6 +185,11 @@ class LocalMap:
     when present it must be symmetric positive definite (rounding-level asymmetry, within
     ``SYMMETRY_TOLERANCE``, is averaged away, in a copy).
 
+    Every value must lie in its accepted range (README, "Accepted values"): coordinates in
+    :data:`COORDINATE` (|x| <= 1e9 m), the heading in :data:`ANGLE` (|phi| <= 1e6 rad),
+    variances in :data:`VARIANCE` ([1e-30, 1e30]), covariance entries in :data:`COVARIANCE_ENTRY`;
+    then no arithmetic of a join overflows or divides by a subnormal.
+
     ``checked`` is for :meth:`StackedMaps.local_maps` only: its values were checked for the
     whole stack at once and are stored as they are (read-only arrays of the right dtypes and
     shapes); otherwise the constructor copies and checks them.
@@ -161,7 +214,7 @@ class LocalMap:
         for key in ("start_id", "end_id"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-                raise InputError(f"expected a non-negative integer, got {value!r}", source, key)
+                raise InputError(f"expected a non-negative integer, got {shown(value)}", source, key)
             object.__setattr__(self, key, int(value))
         if self.end_id == self.start_id:
             raise InputError(f"end pose id equals start pose id ({self.end_id})", source, "end_id")
@@ -171,7 +224,7 @@ class LocalMap:
         ids = np.asarray(self.feature_ids)
         if ids.shape != (m,) or (m and not np.issubdtype(ids.dtype, np.integer)
                                  and not np.array_equal(ids, np.round(ids))):
-            raise InputError(f"expected {m} integer ids, got {ids!r:.80}", source, "feature_ids")
+            raise InputError(f"expected {m} integer ids, got {shown(ids)}", source, "feature_ids")
         stack = StackedMaps(
             [source], end_pose[np.newaxis], _coerced(ids, "feature_ids", source, (m,), np.int64)[np.newaxis],
             features[np.newaxis], _coerced(self.feature_variances, "feature_variances", source, (m,))[np.newaxis],
@@ -234,23 +287,23 @@ class StackedMaps(NamedTuple):
             flagged = bad.reshape(count, -1).any(axis=1)
             return int(flagged.argmax()) if flagged.any() else count
 
-        def values(key: str, positive: bool = False) -> tuple[int, Callable[[int], InputError]]:
+        def values(key: str, ranges: Ranges) -> tuple[int, Callable[[int], InputError]]:
             array = getattr(self, key)
-            return first(_outside(array, positive)), lambda r: _value_error(array[r], key, self.name[r], positive)
+            return first(outside(array, ranges)), lambda r: _value_error(array[r], key, self.name[r], ranges)
 
         ids = self.feature_ids
         increasing = (ids[:, 1:] > ids[:, :-1]).all(axis=1)  # sorted ids (the common case) need no sort
         repeats = np.zeros(count, dtype=bool)
         repeats[~increasing] = (np.diff(np.sort(ids[~increasing], axis=1), axis=1) == 0).any(axis=1)
         failures = [  # (first map failing a check, its error), in the order LocalMap(...) checks one
-            values("end_pose"),
-            values("features"),
+            values("end_pose", POSE),
+            values("features", COORDINATE),
             (first(ids < 0), lambda r: InputError(f"expected non-negative ids, got {int(ids[r].min())}",
                                                   self.name[r], "feature_ids")),
             (first(repeats), lambda r: InputError(f"duplicate id {_duplicate_id(ids[r])}", self.name[r],
                                                   "feature_ids")),
-            values("feature_variances", positive=True),
-            values("pose_variances", positive=True),
+            values("feature_variances", VARIANCE),
+            values("pose_variances", VARIANCE),
         ]
         if self.covariance is not None:
             failures += self._covariance_failures(first)
@@ -262,12 +315,12 @@ class StackedMaps(NamedTuple):
         """The checks of the covariances: finite, symmetric up to rounding, positive definite (of the
         symmetrised matrices, as the maps will hold them)."""
         covariance, name = self.covariance, self.name
-        finite = ~_outside(covariance, False).any(axis=(1, 2))
+        finite = ~outside(covariance, COVARIANCE_ENTRY).any(axis=(1, 2))
         rounded = finite & ~_exactly_symmetric(covariance)  # the rest pass, or fail first
         asymmetric = np.zeros(len(covariance), dtype=bool)
         if rounded.any():
             asymmetric[rounded] = (asymmetry(covariance[rounded]) > 0).any(axis=(1, 2))
-        return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], False)),
+        return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], COVARIANCE_ENTRY)),
                 (first(asymmetric), lambda r: _asymmetry_error(covariance[r], name[r])),
                 (first(_indefinite(_symmetrised(covariance, rounded & ~asymmetric))),
                  lambda r: InputError("expected a positive definite matrix", name[r], "covariance"))]
@@ -341,7 +394,7 @@ def _asymmetry_error(covariance: np.ndarray, source: str) -> InputError:
     excess = asymmetry(covariance)
     i, j = (int(v) for v in np.unravel_index(np.argmax(excess), excess.shape))
     return InputError(f"expected a symmetric matrix, but entries ({i}, {j}) and ({j}, {i}) differ: "
-                      f"{covariance[i, j]!r} vs {covariance[j, i]!r}", source, "covariance")
+                      f"{shown(covariance[i, j])} vs {shown(covariance[j, i])}", source, "covariance")
 
 
 def _has_cholesky_factor(matrices: np.ndarray) -> bool:
@@ -374,6 +427,10 @@ class Provenance:
 class GlobalMap:
     """Features and end poses in the global frame (the start pose of the first map).
 
+    Values are checked against the wider global ranges (:data:`GLOBAL_COORDINATE`, |x| <= 1e16 m;
+    :data:`GLOBAL_VARIANCE`, [1e-40, 1e40]; :data:`ANGLE`), which joining maps within the local
+    ranges cannot leave and within which compare and evaluate cannot overflow.
+
     Pose ``k`` is the end pose of the k-th joined local map. Variances are spherical
     (``sigma^2`` per feature; ``(sigma_xy^2, p_phi)`` per pose). ``feature_covariances``
     (n x 2 x 2) and ``pose_covariances`` (p x 3 x 3) are full marginal blocks when a
@@ -394,27 +451,30 @@ class GlobalMap:
     def __post_init__(self) -> None:
         source = self.name
         set_ = lambda key, array: object.__setattr__(self, key, array)  # noqa: E731
-        set_("features", _checked(self.features, "features", source, (None, 2)))
+        set_("features", _checked(self.features, "features", source, (None, 2), ranges=GLOBAL_COORDINATE))
         n = len(self.features)
         set_("feature_ids", _checked(self.feature_ids, "feature_ids", source, (n,), dtype=np.int64))
         _unique_ids(self.feature_ids, "feature_ids", source)
         set_("feature_variances",
-             _checked(self.feature_variances, "feature_variances", source, (n,), positive=True))
-        set_("poses", _checked(self.poses, "poses", source, (None, 3)))
+             _checked(self.feature_variances, "feature_variances", source, (n,), ranges=GLOBAL_VARIANCE))
+        set_("poses", _checked(self.poses, "poses", source, (None, 3), ranges=GLOBAL_POSE))
         p = len(self.poses)
         set_("pose_ids", _checked(self.pose_ids, "pose_ids", source, (p,), dtype=np.int64))
         _unique_ids(self.pose_ids, "pose_ids", source)
-        set_("pose_variances", _checked(self.pose_variances, "pose_variances", source, (p, 2), positive=True))
+        set_("pose_variances", _checked(self.pose_variances, "pose_variances", source, (p, 2), ranges=GLOBAL_VARIANCE))
         if self.feature_covariances is not None:
             set_("feature_covariances",
-                 _checked(self.feature_covariances, "feature_covariances", source, (n, 2, 2)))
+                 _checked(self.feature_covariances, "feature_covariances", source, (n, 2, 2),
+                          ranges=GLOBAL_COVARIANCE_ENTRY))
         if self.pose_covariances is not None:
-            set_("pose_covariances", _checked(self.pose_covariances, "pose_covariances", source, (p, 3, 3)))
+            set_("pose_covariances", _checked(self.pose_covariances, "pose_covariances", source, (p, 3, 3),
+                                          ranges=GLOBAL_COVARIANCE_ENTRY))
 
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """True feature positions and poses in the global frame (simulations); pose 0 is the origin."""
+    """True feature positions and poses in the global frame (simulations); pose 0 is the origin. Checked
+    against the global ranges, as :class:`GlobalMap`."""
 
     feature_ids: np.ndarray
     features: np.ndarray
@@ -425,10 +485,10 @@ class GroundTruth:
     def __post_init__(self) -> None:
         source = self.name
         set_ = lambda key, array: object.__setattr__(self, key, array)  # noqa: E731
-        set_("features", _checked(self.features, "features", source, (None, 2)))
+        set_("features", _checked(self.features, "features", source, (None, 2), ranges=GLOBAL_COORDINATE))
         set_("feature_ids", _checked(self.feature_ids, "feature_ids", source, (len(self.features),),
                                      dtype=np.int64))
         _unique_ids(self.feature_ids, "feature_ids", source)
-        set_("poses", _checked(self.poses, "poses", source, (None, 3)))
+        set_("poses", _checked(self.poses, "poses", source, (None, 3), ranges=GLOBAL_POSE))
         set_("pose_ids", _checked(self.pose_ids, "pose_ids", source, (len(self.poses),), dtype=np.int64))
         _unique_ids(self.pose_ids, "pose_ids", source)

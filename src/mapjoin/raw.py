@@ -31,15 +31,15 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, shown
 from .io import STAB_NOISE, matfile
-from .io.paths import not_utf8, read_file
-from .maps import locate
+from .io.numbers import first_unplain
+from .io.paths import read_file, read_text
+from .maps import COORDINATE, COVARIANCE_ENTRY, POSE, VARIANCE, Range, Ranges, locate, outside
 
 __all__ = ["RAW_FORMATS", "RawData", "read_raw"]
 
@@ -48,7 +48,7 @@ log = logging.getLogger("mapjoin")
 RAW_FORMATS: tuple[str, ...] = ("vicpark", "isam", "g2o")
 _VICPARK_VARIABLE = "VicPark_clean_data"
 _ISAM_TAGS = {"ODOMETRY": 12, "LANDMARK": 8}          # tag -> tokens on the line, tag included
-_G2O_TAGS = {"VERTEX_SE2": 5, "VERTEX_XY": 4, "EDGE_SE2": 12, "EDGE_SE2_XY": 8, "FIX": None}
+_G2O_TAGS = {"VERTEX_SE2": 5, "VERTEX_XY": 4, "EDGE_SE2": 12, "EDGE_SE2_XY": 8, "FIX": 2}
 _UPPER3 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _UPPER2 = ((0, 0), (0, 1), (1, 1))
 _MAX_ID = 2**53  # ids are read as floats first: beyond this they are not exact
@@ -94,16 +94,13 @@ def read_raw(path: str, format: str | None = None) -> RawData:
     the first tag of the text tells."""
     name = "<stdin>" if path == "-" else path
     if format is not None and format not in RAW_FORMATS:
-        raise InputError(f"unknown raw format {format!r}; expected one of {', '.join(RAW_FORMATS)}", name)
+        raise InputError(f"unknown raw format {shown(format)}; expected one of {', '.join(RAW_FORMATS)}", name)
     extension = os.path.splitext(path)[1].lower()
     if format == "vicpark" or (format is None and extension == ".mat"):
         if path == "-":
             raise InputError("a .mat file cannot be read from stdin; give its path", name)
         return _read_vicpark(read_file(path, name, True), name)
-    try:
-        text = sys.stdin.read() if path == "-" else read_file(path, name, False)
-    except UnicodeDecodeError as error:  # stdin's (a file's is reported by _read_file)
-        raise not_utf8(error, name) from None
+    text = read_text(path, name)
     fields = [line.split() for line in text.splitlines()]
     if format is None:
         format = "g2o" if extension == ".g2o" else _sniff(fields, name)
@@ -249,19 +246,34 @@ def _assemble(name: str, unit: str, *, odometry_ids: np.ndarray, odometry: np.nd
                           f"feature {feature_ids[repeated]} is observed from pose {observer_ids[repeated]} twice "
                           f"(also {where.at(observation_lines[first])}); expected one observation per pose and "
                           "feature")
-    for values, lines, what in ((odometry, odometry_lines, "odometry"), (observations, observation_lines,
-                                                                            "observation")):
-        bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
-        if bad.size:
-            raise where.error(lines[bad[0]], f"expected a finite {what}, got {values[bad[0]].tolist()}")
+    for values, lines, what, ranges in ((odometry, odometry_lines, "odometry", POSE),
+                                        (observations, observation_lines, "observation", COORDINATE),
+                                        (odometry_covariances, odometry_lines, "odometry covariance", COVARIANCE_ENTRY),
+                                        (observation_covariances, observation_lines, "observation covariance",
+                                         COVARIANCE_ENTRY)):
+        _require_within(values, lines, where, what, ranges)
     odometry_covariances = _stabilised(odometry_covariances, odometry_lines, where)
-    _require_positive_definite(odometry_covariances, odometry_lines, where, "odometry covariance")
-    _require_positive_definite(observation_covariances, observation_lines, where, "observation covariance")
+    for values, lines, what in ((odometry_covariances, odometry_lines, "odometry covariance"),
+                                (observation_covariances, observation_lines, "observation covariance")):
+        _require_positive_definite(values, lines, where, what)
+        _require_within(np.diagonal(values, axis1=1, axis2=2), lines, where, f"{what} diagonal", VARIANCE)
     return RawData(name=name, pose_ids=pose_ids, odometry=np.asarray(odometry, dtype=float),
                    odometry_covariances=odometry_covariances, observers=observers.astype(np.int64),
                    feature_ids=feature_ids, observations=np.asarray(observations, dtype=float),
                    observation_covariances=observation_covariances, odometry_lines=odometry_lines,
                    observation_lines=observation_lines, unit=unit)
+
+
+def _require_within(values: np.ndarray, lines: np.ndarray, where: _Where, what: str, ranges: Ranges) -> None:
+    """InputError naming the first line with a value outside ``ranges`` (README, "Accepted values")."""
+    bad = outside(values, ranges)
+    if bad.any():
+        i, *index = (int(k) for k in np.argwhere(bad)[0])
+        if not np.isfinite(values[i]).all():
+            raise where.error(lines[i], f"expected a finite {what}, got {shown(values[i].tolist())}")
+        flagged = tuple(index)
+        limits = ranges if isinstance(ranges, Range) else ranges[flagged[-1]]
+        raise where.error(lines[i], f"expected {what} {limits.expected()}, got {shown(values[i][flagged])}")
 
 
 def _stabilised(covariances: np.ndarray, lines: np.ndarray, where: _Where) -> np.ndarray:
@@ -307,6 +319,7 @@ def _positive_definite(matrices: np.ndarray) -> np.ndarray:
 
 def _covariance_of(information: np.ndarray, lines: np.ndarray, where: _Where, tag: str) -> np.ndarray:
     """Covariances from g2o information matrices, which must be positive definite."""
+    _require_within(information, lines, where, f"{tag} information matrix entries", COVARIANCE_ENTRY)
     _require_positive_definite(information, lines, where, f"{tag} information matrix")
     return np.linalg.inv(information)
 
@@ -365,7 +378,7 @@ def _sniff(fields: list[list[str]], name: str) -> str:
                      "starting with VERTEX_SE2, VERTEX_XY, EDGE_SE2 or EDGE_SE2_XY); ", name, argument="format")
 
 
-def _records(fields: list[list[str]], name: str, tags: dict[str, int | None],
+def _records(fields: list[list[str]], name: str, tags: dict[str, int],
              what: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per tag, ``(values (n, tokens - 1) without the tag, 1-based line numbers)``; blank lines and
     ``#`` comments are skipped, anything else is an error naming the line."""
@@ -376,12 +389,10 @@ def _records(fields: list[list[str]], name: str, tags: dict[str, int | None],
     known = np.isin(first, list(tags)) | comment
     if not known.all():
         i = int(np.flatnonzero(~known)[0])
-        raise where.error(i + 1, f"unknown tag {str(first[i])!r}; expected one of {', '.join(tags)} ({what})")
+        raise where.error(i + 1, f"unknown tag {shown(str(first[i]))}; expected one of {', '.join(tags)} ({what})")
     result = {}
     for tag, tokens in tags.items():
         rows = np.flatnonzero(first == tag)
-        if tokens is None:             # accepted, not used
-            continue
         wrong = np.flatnonzero(count[rows] != tokens)
         if wrong.size:
             i = rows[wrong[0]]
@@ -392,13 +403,16 @@ def _records(fields: list[list[str]], name: str, tags: dict[str, int | None],
 
 def _numbers(fields: list[list[str]], rows: np.ndarray, width: int, where: _Where) -> np.ndarray:
     """The numbers after the tag on ``rows``, as an (n, width) float array."""
+    tokens = [token for i in rows.tolist() for token in fields[i][1:]]
+    unplain = first_unplain(tokens)
     try:
-        return np.array([fields[i][1:] for i in rows], dtype=float).reshape(len(rows), width)
+        if unplain is not None:
+            raise ValueError("not ASCII")
+        return np.array(tokens, dtype=float).reshape(len(rows), width)
     except ValueError:
-        for i in rows:                                     # only to name the culprit
-            for token in fields[i][1:]:
-                if not _is_float(token):
-                    raise where.error(i + 1, f"expected a number, got {token!r}") from None
+        for k, token in enumerate(tokens):                # only to name the culprit
+            if k == unplain or not _is_float(token):
+                raise where.error(rows[k // width] + 1, f"expected a number, got {shown(token)}") from None
         raise
 
 

@@ -82,7 +82,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     reading = time.perf_counter() - start
     if map_count is None and poses_per_map is None:
         map_count = min(DEFAULT_MAPS, raw.steps)
-    bounds = builder.cut(raw.steps, map_count, poses_per_map)
+    bounds = builder.cut(raw.steps, map_count, poses_per_map, raw.name)
     if not stream:
         _refuse_stale_maps(output, fmt, len(bounds) - 1)
 

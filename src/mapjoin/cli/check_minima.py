@@ -11,6 +11,7 @@ import click
 from .. import io as mapio
 from ..io.registry import TABLE
 from ..joining import certify_pair
+from ..maps import ANGLE, MINIMA_A
 from ..onestep import analyse_minima, summarise_minima
 from . import EXIT_TWO_MINIMA, common, main
 from .common import TABLE_EXTENSIONS, covariance_option, input_format_option, output_option, solver_option
@@ -18,10 +19,9 @@ from .common import TABLE_EXTENSIONS, covariance_option, input_format_option, ou
 
 @main.command("check-minima")
 @click.argument("maps", nargs=-1, metavar="[MAP_A MAP_B]")
-@click.option("--a", "a", type=float, callback=lambda c, p, v: _finite_option(p, v, minimum=0.0),
-              help="a = a0 * p_phi of Theorem 2 (>= 0).")
-@click.option("--c-phi", "c_phi", type=float, callback=lambda c, p, v: _finite_option(p, v),
-              help="C_phi = wrap(z_phi - phi0), radians.")
+@click.option("--a", "a", type=common.FiniteFloat(MINIMA_A), help=f"a = a0 * p_phi of Theorem 2 (in [0, {MINIMA_A.high:g}]).")
+@click.option("--c-phi", "c_phi", type=common.FiniteFloat(ANGLE),
+              help=f"C_phi = wrap(z_phi - phi0), radians (|C_phi| <= {ANGLE.high:g}).")
 @click.option("--batch", metavar="FILE", help=f"A table ({TABLE_EXTENSIONS}) with columns a and c_phi, e.g. "
                                              "a report of `mapjoin join --report`; - for stdin.")
 @output_option(f"Batch result ({TABLE_EXTENSIONS}); - for stdout.")
@@ -90,14 +90,6 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     else:
         click.echo("\n".join(preamble + _human(analysis, summary)))
     ctx.exit(EXIT_TWO_MINIMA if summary.minima == 2 else 0)
-
-
-def _finite_option(param: click.Parameter, value: float | None, minimum: float = -math.inf) -> float | None:
-    """Reject NaN, inf and values below ``minimum`` as a usage error."""
-    if value is not None and not (math.isfinite(value) and value >= minimum):
-        bound = f" >= {minimum:g}" if math.isfinite(minimum) else ""
-        raise click.BadParameter(f"expected a finite number{bound}, got {value}", param=param)
-    return value
 
 
 def _finite(values: dict) -> dict:

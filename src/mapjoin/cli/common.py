@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import sys
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
@@ -12,14 +13,38 @@ import click
 
 from .. import io as mapio
 from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
-from ..errors import InputError
+from ..errors import InputError, shown
+from ..io.numbers import first_unplain
 from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, Kind, by_name, extensions_text, names
+from ..maps import Range
 from ..onestep import SOLVERS
 
 if TYPE_CHECKING:
     from ..refine import RefineResult
 
 log = logging.getLogger("mapjoin")
+
+class FiniteFloat(click.FloatRange):
+    """A float option's type: a finite number (click's ``float`` takes ``nan`` and ``inf``, which no
+    command can use) in ASCII digits, within ``limits`` when given (shown in the help as a range);
+    else a usage error naming the option."""
+
+    def __init__(self, limits: Range | None = None):
+        super().__init__(*((limits.low, limits.high) if limits else (None, None)))
+        self.limits = limits
+
+    def convert(self, value: object, param: click.Parameter | None, ctx: click.Context | None) -> float:
+        try:
+            number = float(value)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            number = math.nan
+        if isinstance(value, str) and first_unplain([value]) is not None:
+            number = math.nan
+        if not math.isfinite(number) or (self.limits is not None and self.limits.outside(number)):
+            expected = self.limits.expected() if self.limits else "a finite number"
+            self.fail(f"expected {expected}, got {shown(value)}", param, ctx)
+        return number
+
 
 inputs_argument = click.argument("inputs", nargs=-1, required=True, metavar="INPUTS...")
 input_format_option = click.option(

@@ -9,6 +9,7 @@ import click
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP
 from ..joining import STRATEGIES
+from ..maps import Range
 from . import common, main
 from .common import (global_map_format_option, global_map_output_option, input_format_option, inputs_argument,
                      progress_bar, say)
@@ -21,13 +22,16 @@ def _default_tolerance() -> float:
     return TOLERANCE
 
 
+TOLERANCE_RANGE = Range("tolerance", 0.0, 1.0)  # relative: beyond 1, every step would stop the solve
+
+
 @main.command()
 @inputs_argument
 @global_map_output_option
 @global_map_format_option
 @click.option("--max-iterations", type=click.IntRange(min=0), default=100, show_default=True,
               help="At most this many (accepted) Gauss-Newton/Newton steps.")
-@click.option("--tolerance", type=click.FloatRange(min=0.0), default=lambda: _default_tolerance(), show_default="1e-12",
+@click.option("--tolerance", type=common.FiniteFloat(TOLERANCE_RANGE), default=lambda: _default_tolerance(), show_default="1e-12",
               help="Stop when a step changes chi^2 by at most this (relative) or moves no unknown by more "
                    "than this times (1 + largest |unknown|); 0 runs to chi^2's rounding.")
 @click.option("--start", "strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,

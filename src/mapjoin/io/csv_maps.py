@@ -15,13 +15,12 @@ covariances drops them (the registry says so, and the writer warns once).
 
 from __future__ import annotations
 
-import reprlib
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, shown
 from ..maps import LocalMap, StackedMaps, first_duplicate, first_invalid_map, size_groups, unstack
 from . import csvtable
 from .paths import map_name
@@ -50,17 +49,17 @@ def read(text: str, source: str) -> list[LocalMap]:
     changed = np.flatnonzero((ids != ids[first[group]]).any(axis=1))
     if changed.size:
         row = int(changed[0])
-        raise table.error(row, "start_id", f"map {reprlib.repr(names[row])} has start_id,end_id "
+        raise table.error(row, "start_id", f"map {shown(names[row])} has start_id,end_id "
                           f"{ids[first[group[row]]].tolist()} on line {table.lines[first[group[row]]]}")
     pose_counts = np.bincount(group[poses], minlength=len(first))
     if (pose_counts == 0).any():
         row = int(first[np.flatnonzero(pose_counts == 0)[0]])
         raise table.error(row, "kind",
-                          f"map {reprlib.repr(names[row])} has no pose row; expected one (its end pose)")
+                          f"map {shown(names[row])} has no pose row; expected one (its end pose)")
     second = first_duplicate(group[poses])
     if second is not None:
         raise table.error(int(poses[second]), "kind",
-                          f"map {reprlib.repr(names[poses[second]])} has a second pose row; expected one")
+                          f"map {shown(names[poses[second]])} has a second pose row; expected one")
     wrong = np.flatnonzero(pose_ids != ids[poses, 1])
     if wrong.size:
         raise table.error(int(poses[wrong[0]]), "id", f"expected the end_id {ids[poses[wrong[0]], 1]} on the pose "
@@ -95,7 +94,7 @@ def read(text: str, source: str) -> list[LocalMap]:
         place, error = invalid
         field = f", field {error.where}" if error.where else ""
         raise InputError(error.detail, source, f"line {table.lines[first[in_order[place]]]}, map "
-                                               f"{reprlib.repr(names[pose_rows[place]])}{field}")
+                                               f"{shown(names[pose_rows[place]])}{field}")
     return unstack(stacks, start_ids, end_ids)
 
 

@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import csv
 import io
-import reprlib
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, shown
 from ..maps import first_duplicate
+from .numbers import first_unplain
 from .yamldoc import FIELD_KINDS
 
 __all__ = ["COV_ENTRIES", "Table", "kind_rows", "names_kind_column", "to_text"]
@@ -36,6 +36,7 @@ class Table:
 
     def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]] | None):
         self.source = source
+        self.plain = text.isascii() and "_" not in text  # then every number is plain (no cell to check)
         reader = csv.reader(io.StringIO(text, newline=""))
         rows: list[list[str]] = []
         lines: list[int] = []
@@ -50,7 +51,11 @@ class Table:
         self.header_line = lines[0] if lines else 1
         if headers is not None and header not in headers:
             expected = " or ".join(",".join(header) for header in headers)
-            raise InputError(f"expected the header {expected}, got {','.join(header) or 'nothing'}", source,
+            raise InputError(f"expected the header {expected}, got {shown(','.join(header)) if header else 'nothing'}",
+                             source, f"line {self.header_line}")
+        repeated = first_duplicate(np.array(header)) if len(header) > 1 else None
+        if repeated is not None:
+            raise InputError(f"the column {shown(header[repeated])} appears twice; expected each column once", source,
                              f"line {self.header_line}")
         self.header = header
         self.columns = {name: index for index, name in enumerate(header)}
@@ -78,7 +83,7 @@ class Table:
         features, poses = kinds == "feature", kinds == "pose"
         bad = np.flatnonzero(~(features | poses))
         if bad.size:
-            raise self.error(int(bad[0]), "kind", f"expected feature or pose, got {reprlib.repr(kinds[bad[0]])}")
+            raise self.error(int(bad[0]), "kind", f"expected feature or pose, got {shown(kinds[bad[0]])}")
         return np.flatnonzero(features), np.flatnonzero(poses)
 
     def values(self, columns: Sequence[str], rows: np.ndarray | None, kind: str) -> np.ndarray:
@@ -90,16 +95,21 @@ class Table:
         rows = np.arange(len(self.cells)) if rows is None else rows
         cells = self.cells[np.ix_(rows, [self.columns[column] for column in columns])]
         dtype = np.int64 if kind == "id" else float
+        unplain = None if self.plain else first_unplain(cells.ravel().tolist())
         try:
+            if unplain is not None:
+                raise ValueError("not ASCII")
             values = cells.astype(dtype)
         except (ValueError, OverflowError):
             valid = np.array([_parses(cell, dtype) for cell in cells.ravel()], dtype=bool).reshape(cells.shape)
+            if unplain is not None:
+                valid.ravel()[unplain] = False
         else:
             valid = _VALID[kind](values)
         if not valid.all():
             i, j = (int(index) for index in np.argwhere(~valid)[0])
             raise self.error(int(rows[i]), columns[j],
-                             f"expected {FIELD_KINDS[kind][1]}, got {reprlib.repr(cells[i, j])}")
+                             f"expected {FIELD_KINDS[kind][1]}, got {shown(cells[i, j])}")
         return values
 
     def ids(self, rows: np.ndarray, groups: np.ndarray | None = None, what: str = "") -> np.ndarray:
@@ -117,7 +127,7 @@ class Table:
         if bad.size:
             i, j = (int(index) for index in bad[0])
             raise self.error(int(rows[i]), columns[j],
-                             f"expected an empty cell ({why}), got {reprlib.repr(cells[i, j])}")
+                             f"expected an empty cell ({why}), got {shown(cells[i, j])}")
 
     def covariances(self, rows: np.ndarray, size: int, what: str) -> np.ndarray | None:
         """Symmetric ``size`` x ``size`` blocks from the ``cov_*`` columns, or None when those are empty."""

@@ -17,15 +17,15 @@ from __future__ import annotations
 import logging
 import math
 import re
-import reprlib
 from collections.abc import Sequence
 from itertools import chain
 
 import numpy as np
 
 from ..covariance import state_variances
-from ..errors import InputError
-from ..maps import LocalMap, asymmetry, first_duplicate
+from ..errors import InputError, shown
+from ..maps import COVARIANCE_ENTRY, LocalMap, asymmetry, first_duplicate, outside
+from .numbers import first_unplain
 
 __all__ = ["dump", "looks_like_linearslam", "read"]
 
@@ -53,7 +53,7 @@ def read(text: str, source: str) -> list[LocalMap]:
     trailing = next((i for i in range(2 + 2 * size, len(lines)) if lines[i].strip()), None)
     if trailing is not None:
         raise InputError(f"expected nothing after the {size} rows of the information matrix, got "
-                         f"{reprlib.repr(lines[trailing].strip())}", source, f"line {trailing + 1}")
+                         f"{shown(lines[trailing].strip())}", source, f"line {trailing + 1}")
     pose, features, end_id = _linearslam_layout(ids, start_id, source)
     order = np.concatenate([pose, features])
     covariance = _covariance_of_information(information, 2 + size, source)[np.ix_(order, order)]
@@ -65,7 +65,7 @@ def _text_integer(lines: Sequence[str], index: int, expected: str, source: str) 
     """Line ``index`` (0-based) as one non-negative integer."""
     text = lines[index].strip() if index < len(lines) else ""
     if not text.isdigit() or not text.isascii():
-        raise InputError(f"expected {expected}, got {reprlib.repr(text) if text else 'nothing'}", source,
+        raise InputError(f"expected {expected}, got {shown(text) if text else 'nothing'}", source,
                          f"line {index + 1}")
     return int(text)
 
@@ -77,7 +77,7 @@ def _text_rows(lines: Sequence[str], first: int, count: int, width: int, expecte
     if bad is None and len(cells) < count:
         bad = len(cells)
     if bad is not None:
-        got = (f"{len(cells[bad])} fields: {reprlib.repr(lines[first + bad].strip())}" if bad < len(cells)
+        got = (f"{len(cells[bad])} fields: {shown(lines[first + bad].strip())}" if bad < len(cells)
                else "the end of the file")
         raise InputError(f"expected {expected} ({width} fields), got {got}", source, f"line {first + bad + 1}")
     return np.array(list(chain.from_iterable(cells)), dtype=str).reshape(count, width)
@@ -85,14 +85,17 @@ def _text_rows(lines: Sequence[str], first: int, count: int, width: int, expecte
 
 def _text_numbers(cells: np.ndarray, first: int, source: str, first_field: int = 1) -> np.ndarray:
     """Text fields (rows from line ``first`` + 1, columns from field ``first_field``) as finite floats."""
+    unplain = first_unplain(cells.ravel().tolist())
     try:
-        values = cells.astype(float)
+        values = None if unplain is not None else cells.astype(float)
     except ValueError:
         values = None
     if values is None or not np.isfinite(values).all():
         bad = np.array([not _is_finite_text(cell) for cell in cells.ravel()]).reshape(cells.shape)
+        if unplain is not None:
+            bad.ravel()[unplain] = True
         i, j = (int(index) for index in np.argwhere(bad)[0])
-        raise InputError(f"expected a finite number in field {j + first_field}, got {reprlib.repr(str(cells[i, j]))}",
+        raise InputError(f"expected a finite number in field {j + first_field}, got {shown(str(cells[i, j]))}",
                          source, f"line {first + i + 1}")
     return values
 
@@ -107,11 +110,13 @@ def _is_finite_text(text: str) -> bool:
 def _text_ids(cells: np.ndarray, first: int, source: str) -> np.ndarray:
     """Text fields (one per row, from line ``first`` + 1) as 64-bit integers."""
     try:
+        if first_unplain(cells.tolist()) is not None:
+            raise ValueError("not ASCII")
         return cells.astype(np.int64)
     except (ValueError, OverflowError):
         bad = next(i for i, cell in enumerate(cells.tolist())
                    if not re.fullmatch(r"[-+]?[0-9]+", cell) or abs(int(cell)) >= 2**63)
-        raise InputError(f"expected an integer id in field 1, got {reprlib.repr(str(cells[bad]))}", source,
+        raise InputError(f"expected an integer id in field 1, got {shown(str(cells[bad]))}", source,
                          f"line {first + bad + 1}") from None
 
 
@@ -142,7 +147,13 @@ def _linearslam_layout(ids: np.ndarray, start_id: int, source: str) -> tuple[np.
 
 
 def _covariance_of_information(information: np.ndarray, first: int, source: str) -> np.ndarray:
-    """The inverse of an information matrix stored from line ``first`` + 1, checked symmetric positive definite."""
+    """The inverse of an information matrix stored from line ``first`` + 1, checked within the accepted range
+    (its sums would overflow beyond), symmetric and positive definite."""
+    bad = outside(information, COVARIANCE_ENTRY)
+    if bad.any():
+        i, j = (int(index) for index in np.argwhere(bad)[0])
+        raise InputError(f"expected {COVARIANCE_ENTRY.expected()} in the information matrix (field {j + 1}), got "
+                         f"{shown(information[i, j])}", source, f"line {first + i + 1}")
     excess = asymmetry(information)
     if (excess > 0).any():
         i, j = (int(index) for index in np.unravel_index(np.argmax(excess), excess.shape))

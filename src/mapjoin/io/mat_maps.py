@@ -69,9 +69,10 @@ def _local_maps(files: Sequence[bytes], sources: Sequence[str]) -> list[LocalMap
     failure: tuple[int, Callable[[int], InputError] | InputError | None] = (len(files), None)
     for i, source in enumerate(sources):
         try:
-            numbers.append(_checked_number(source))
-            if i in errors:
+            number = _checked_number(source)
+            if i in errors:  # before its sizes are used: a corrupt file's may say 2^31 rows
                 raise errors[i]
+            numbers.append(number)
         except InputError as error:
             failure = (i, error)
             break

@@ -17,7 +17,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, shown
+from .paths import MAX_STREAM_BYTES
 
 __all__ = ["Array", "Variables", "dump", "parse", "variables"]
 
@@ -31,6 +32,9 @@ _DTYPES = {(big, kind): np.dtype((">" if big else "<") + code) for kind, code in
                for big in (False, True)}
 _ITEMSIZES = np.array([_DTYPES.get((False, kind), np.dtype("u1")).itemsize for kind in range(16)])
 _MI_DOUBLE, _MX_DOUBLE = 9, 6  # element type double, array class double
+#: the most bytes a compressed variable may inflate to: as much as a stream may hold (a zip bomb of a few MB
+#: would otherwise inflate to many GB)
+MAX_DECOMPRESSED = MAX_STREAM_BYTES
 _HEADER = (b"MATLAB 5.0 MAT-file, written by mapjoin".ljust(116) + bytes(8)  # text, no subsystem data
            + struct.pack("<H", 0x0100) + b"IM")                             # version 1, little-endian
 
@@ -151,11 +155,17 @@ def _top_level(files: Sequence[bytes], big: np.ndarray, errors: dict[int, str]
         if file in errors:
             continue
         if kind == _MI_COMPRESSED:
+            decompressor = zlib.decompressobj()
             try:
-                elements.append(zlib.decompress(view[start:start + size]))
+                elements.append(decompressor.decompress(view[start:start + size], MAX_DECOMPRESSED + 1))
             except zlib.error as error:
                 element_errors[len(elements)] = f"corrupt compressed data in the .mat file ({error})"
                 elements.append(b"")
+            else:
+                if len(elements[-1]) > MAX_DECOMPRESSED:
+                    element_errors[len(elements) - 1] = (f"a compressed variable of the .mat file holds more than "
+                                                         f"{MAX_DECOMPRESSED} bytes, the most mapjoin reads")
+                    elements[-1] = b""
         else:
             elements.append(view[tag:max(start + size, tag + 8)])
         owner.append(file)
@@ -217,11 +227,11 @@ def _variables(elements: Sequence[bytes | memoryview], owner: Sequence[int], big
                       np.where(real, content.kind, -1), rank, dimensions.start,
                       np.column_stack([content.start, content.start + content.size]))
     for e in np.flatnonzero(malformed).tolist():
-        errors[e] = f"corrupt .mat file: numeric array {table.name_of(e)!r} is malformed"
+        errors[e] = f"corrupt .mat file: numeric array {shown(table.name_of(e))} is malformed"
     for e in np.flatnonzero(negative | wrong_size).tolist():
         shape = table.array(e).shape
-        errors[e] = (f"corrupt .mat file: {table.name_of(e)!r} has dimensions {shape}" if negative[e] else
-                     f"corrupt .mat file: {table.name_of(e)!r} holds {content.size[e]} bytes for shape {shape}")
+        errors[e] = (f"corrupt .mat file: {shown(table.name_of(e))} has dimensions {shape}" if negative[e] else
+                     f"corrupt .mat file: {shown(table.name_of(e))} holds {content.size[e]} bytes for shape {shape}")
     return table
 
 

@@ -6,7 +6,7 @@ Numpy scalars and arrays become plain numbers/lists.
 
 Minima tables (``check-minima --batch``, and any table holding the columns): CSV with a
 header naming ``a`` and ``c_phi`` (and optionally ``join``), one row per problem of
-Theorem 2 (``a`` >= 0, ``c_phi`` finite), or a YAML/JSON list of mappings with them.
+Theorem 2 (``a`` in [0, 1e100], ``|c_phi|`` <= 1e6), or a YAML/JSON list of mappings with them.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, shown
+from ..maps import ANGLE, MINIMA_A
 from . import csvtable, yamldoc
 
 __all__ = ["MinimaTable", "dump_csv", "dump_json", "dump_yaml", "read_minima_csv", "read_minima_records"]
@@ -32,6 +33,16 @@ class MinimaTable:
     c_phi: np.ndarray
     join: np.ndarray | None = None
 
+    def __post_init__(self) -> None:
+        """Refuse a row outside the accepted ranges (README, "Accepted values"): ``a`` in [0, 1e100],
+        ``|c_phi|`` <= 1e6 rad (beyond, its reduction modulo 2 pi loses the digits the minima depend on)."""
+        for column, limits in (("a", MINIMA_A), ("c_phi", ANGLE)):
+            values = getattr(self, column)
+            bad = np.flatnonzero(limits.outside(values))
+            if bad.size:
+                raise InputError(f"expected {limits.expected()}, got {shown(values[bad[0]])}", self.source,
+                                 f"row {bad[0] + 1}, column {column}")
+
 
 _MINIMA_COLUMNS = {"a": "nonnegative", "c_phi": "number"}  # column -> kind of its values; "join" ("id") optional
 
@@ -41,7 +52,8 @@ def read_minima_csv(text: str, source: str) -> MinimaTable:
     table = csvtable.Table(text, source, None)
     if not set(_MINIMA_COLUMNS) <= set(table.header):
         raise InputError(f"expected a header with the columns a and c_phi (as `mapjoin join --report` writes "
-                         f"them), got {','.join(table.header) or 'nothing'}", source, f"line {table.header_line}")
+                         f"them), got {shown(','.join(table.header)) if table.header else 'nothing'}", source,
+                         f"line {table.header_line}")
     a, c_phi = (table.values((column,), None, kind)[:, 0] for column, kind in _MINIMA_COLUMNS.items())
     join = table.values(("join",), None, "id")[:, 0] if "join" in table.header else None
     return MinimaTable(source, a, c_phi, join)

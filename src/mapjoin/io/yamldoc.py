@@ -13,14 +13,13 @@ import contextlib
 import functools
 import math
 import re
-import reprlib
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, shown
 from ..maps import first_duplicate
 
 if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written
@@ -46,6 +45,17 @@ def _yaml_classes() -> tuple[type, type]:
             if kind is yaml.ScalarNode and implicit[0] and _PLAIN_FLOAT.fullmatch(value):
                 return "tag:yaml.org,2002:float"  # what PyYAML's resolver says too, without its slow search
             return super().resolve(kind, value, implicit)
+
+        def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+            """A mapping whose keys are distinct (PyYAML keeps the last of a repeated key without a word)."""
+            keys = [key.value for key, _ in node.value if isinstance(key, yaml.ScalarNode)]
+            if len(set(keys)) != len(keys):
+                seen: set[str] = set()
+                key = next(key for key, _ in node.value if isinstance(key, yaml.ScalarNode)
+                           and (key.value in seen or seen.add(key.value)))
+                raise yaml.constructor.ConstructorError(None, None, f"the key {shown(key.value)} appears twice",
+                                                        key.start_mark)
+            return super().construct_mapping(node, deep)
 
         def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
             try:  # the common decimal forms; .inf, .nan and base 60 take PyYAML's slower path
@@ -110,14 +120,14 @@ class Document:
         else:
             value = self.data
         if not check(value):
-            raise self.error(path, f"expected {expected}, got {reprlib.repr(value)}")
+            raise self.error(path, f"expected {expected}, got {shown(value)}")
         return value
 
     def only(self, path: _FieldPath, allowed: Sequence[str]) -> None:
         """Reject keys of the mapping at ``path`` other than ``allowed`` (catches typos)."""
         unknown = next((key for key in self._value(path) if key not in allowed), None)
         if unknown is not None:
-            raise self.error(path, f"unknown field {reprlib.repr(unknown)}; expected only {', '.join(allowed)}")
+            raise self.error(path, f"unknown field {shown(unknown)}; expected only {', '.join(allowed)}")
 
     def matrix(self, path: _FieldPath, shape: tuple[int, int], *, optional: bool = False) -> np.ndarray | None:
         """The list of number lists at ``path`` as an array of ``shape``."""
@@ -128,7 +138,7 @@ class Document:
             raise self.error(path, f"expected {shape[0]} rows of {shape[1]} numbers, got {len(rows)} rows")
         for i, row in enumerate(rows):
             if type(row) is not list or len(row) != shape[1]:
-                raise self.error((*path, i), f"expected a list of {shape[1]} numbers, got {reprlib.repr(row)}")
+                raise self.error((*path, i), f"expected a list of {shape[1]} numbers, got {shown(row)}")
         values = None
         if all(_NUMBER_TYPES.issuperset(map(type, row)) for row in rows):  # no bools, strings, ...
             with contextlib.suppress(OverflowError):  # an int beyond the float range
@@ -136,7 +146,7 @@ class Document:
         if values is None or not np.isfinite(values).all():
             i, j = next((i, j) for i, row in enumerate(rows)
                         for j, value in enumerate(row) if not _is_number(value))
-            raise self.error((*path, i, j), f"expected a finite number, got {reprlib.repr(rows[i][j])}")
+            raise self.error((*path, i, j), f"expected a finite number, got {shown(rows[i][j])}")
         return values
 
     def record(self, path: _FieldPath, fields: Mapping[str, str],
@@ -177,7 +187,7 @@ class Document:
         self.get((), "mapping")
         found = self.get(("format",), "text")
         if found != kind:
-            raise self.error(("format",), f"expected {kind}, got {reprlib.repr(found)}")
+            raise self.error(("format",), f"expected {kind}, got {shown(found)}")
         version = self.get(("version",), "id")
         if version != 1:
             raise self.error(("version",), f"unsupported version {version}; this mapjoin reads version 1")
@@ -233,13 +243,21 @@ def documents(text: str, source: str) -> list[Document]:
             parsed.append(Document(loader.construct_document(node), node, source))
     except yaml.MarkedYAMLError as error:
         mark = error.problem_mark or error.context_mark
-        raise InputError(f"malformed YAML: {error.problem or error.context}", source,
+        raise InputError(f"malformed YAML: {_one_line(error.problem or error.context)}", source,
                          f"line {mark.line + 1}" if mark else None) from None
+    except yaml.reader.ReaderError as error:  # a control character; its message runs over two lines
+        raise InputError(f"malformed YAML: {_one_line(error.reason)} (character #x{error.character:04x})", source,
+                         f"line {text.count(chr(10), 0, error.position) + 1}") from None
     except (yaml.YAMLError, ValueError, OverflowError, RecursionError) as error:
-        raise InputError(f"malformed YAML: {error}", source) from None
+        raise InputError(f"malformed YAML: {_one_line(error)}", source) from None
     finally:
         loader.dispose()
     return parsed
+
+
+def _one_line(message: object) -> str:
+    """A parser's message on one line (PyYAML's may span several), cut to a readable length."""
+    return shown(" ".join(str(message).split()), 200, quoted=False)
 
 
 def document(text: str, source: str) -> Document:
