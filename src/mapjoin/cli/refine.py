@@ -69,6 +69,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
         maps = mapio.read_map_paths(paths, format=input_format)
 
     joined = time.perf_counter()
+    read = joined - start
     with progress_bar(ctx, len(maps), "fast join") as progress:
         initial = join(maps, strategy=strategy, progress=progress)
     joined = time.perf_counter() - joined
@@ -86,7 +87,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     two = sum(r.minima == 2 for r in initial.report)
     say(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
              f"{len(initial.report)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
-             f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (fast join "
-             f"{joined:.3f} s, solve {result.seconds:.3f} s, covariances {result.covariance_seconds:.3f} s) -> "
-             f"{'stdout' if output == '-' else output}")
+             f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, "
+             f"fast join {joined:.3f} s, solve {result.seconds:.3f} s, covariances {result.covariance_seconds:.3f} s)"
+             f" -> {'stdout' if output == '-' else output}")
 

@@ -22,6 +22,10 @@ a binary format; ``source`` names the file in errors) and/or ``dump(data) -> str
 optionally a ``read_files(paths)`` reading many files at once, and ``looks_like_...(text)``
 when a stream can be recognised; :data:`.registry.FORMATS` gets one line naming them.
 
+Local maps are read one at a time by :func:`iter_maps` (which :func:`read_maps` lists): a YAML
+file or stream is read line by line (:mod:`.lines`), document by document, so its length costs
+no memory beyond the maps kept.
+
 Map names: a local map read from a file is named after the file, so that messages and
 provenance point to it: the path when the file holds one map, else ``path#name`` with the
 map's own name (``name``, ``map``), or ``path#n`` (its position) when it has none; maps

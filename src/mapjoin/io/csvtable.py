@@ -12,14 +12,14 @@ from __future__ import annotations
 import csv
 import io
 import reprlib
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from ..errors import InputError
 from ..maps import first_duplicate
-from .yamldoc import FIELD_KINDS
+from .yamldoc import COLUMN_CHECKS, FIELD_KINDS
 
 __all__ = ["COV_ENTRIES", "Table", "kind_rows", "names_kind_column", "to_text"]
 
@@ -84,7 +84,7 @@ class Table:
     def values(self, columns: Sequence[str], rows: np.ndarray | None, kind: str) -> np.ndarray:
         """Cells of ``columns`` at ``rows`` (None: all) as a (rows x columns) array of ``kind``.
 
-        ``kind`` is one of ``_VALID``: ``id`` (non-negative integers), ``number`` (finite),
+        ``kind`` is one of :data:`~.yamldoc.COLUMN_CHECKS`: ``id`` (non-negative integers), ``number`` (finite),
         ``nonnegative`` or ``variance`` (positive).
         """
         rows = np.arange(len(self.cells)) if rows is None else rows
@@ -95,7 +95,7 @@ class Table:
         except (ValueError, OverflowError):
             valid = np.array([_parses(cell, dtype) for cell in cells.ravel()], dtype=bool).reshape(cells.shape)
         else:
-            valid = _VALID[kind](values)
+            valid = COLUMN_CHECKS[kind](values)
         if not valid.all():
             i, j = (int(index) for index in np.argwhere(~valid)[0])
             raise self.error(int(rows[i]), columns[j],
@@ -133,14 +133,6 @@ class Table:
             i, j = COV_ENTRIES[column]
             blocks[:, i, j] = blocks[:, j, i] = values[:, k]
         return blocks
-
-
-_VALID: dict[str, Callable[[np.ndarray], np.ndarray]] = {
-    "id": lambda values: values >= 0,
-    "number": np.isfinite,
-    "nonnegative": lambda values: np.isfinite(values) & (values >= 0),
-    "variance": lambda values: np.isfinite(values) & (values > 0),
-}
 
 
 def _parses(cell: Any, dtype: type) -> bool:

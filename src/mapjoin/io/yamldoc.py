@@ -300,8 +300,8 @@ def split_documents(lines: Iterable[str]) -> Iterator[tuple[int, str]]:
     ``lines`` are the stream's lines with their line ends. A document starts at a ``---`` line
     (column 0, then a space, a tab or the line end: YAML's document start, which no scalar
     can hold), or at the directives (``%`` at column 0) before it; comments and blank lines
-    before it go with it. So each text holds one document and is read as the stream would
-    be, and a stream of any length is read with the memory of one document.
+    between two documents go with the first. So each text holds one document and is read as
+    the stream would be, and a stream of any length is read with the memory of one document.
     """
     chunk: list[str] = []
     has_document = False  # whether ``chunk`` holds a document start or content yet
