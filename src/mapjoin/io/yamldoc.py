@@ -150,7 +150,7 @@ class Document:
         """The list of number lists at ``path`` as an array of ``shape``."""
         if self.node is None and isinstance(parsed := self._value(path[:-1]).get(path[-1]), np.ndarray):
             if parsed.shape != shape or not np.isfinite(parsed).all():
-                raise self.error(path, "")
+                raise NeedsLines  # the line-tracking path says which entry and where
             return parsed
         rows = self.get(path, "list", optional=optional)
         if rows is None:
@@ -207,7 +207,7 @@ class Document:
         """:meth:`records` of columns a fast path parsed: the same checks, column by column."""
         if set(columns) != set(fields) or not all(COLUMN_CHECKS[kind](columns[key]).all()
                                                   for key, kind in fields.items()):
-            raise self.error(path, "")
+            raise NeedsLines  # the line-tracking path says which entry and where
         self._check_unique(path, columns, fields)
         return {**columns, **dict.fromkeys(matrices)}
 
