@@ -7,8 +7,10 @@ import compileall
 import logging
 import os
 import statistics
+import subprocess
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,6 +48,47 @@ def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, obje
         result = run()
         times.append(time.perf_counter() - start)
     return statistics.median(times), result
+
+
+# the command in a fresh interpreter that reports its own peak resident set on exit: VmHWM
+# belongs to the process's new address space, while rusage's maxrss would carry over the
+# high-water mark of this (large) benchmark process through fork and exec (Linux only)
+_RUN_AND_REPORT_PEAK = """
+import runpy, sys
+sys.argv = ["mapjoin", *sys.argv[1:]]
+try:
+    runpy.run_module("mapjoin", run_name="__main__", alter_sys=True)
+finally:
+    status = open("/proc/self/status").read()
+    print("VmHWM", status.split("VmHWM:")[1].split()[0], file=sys.stderr)
+"""
+
+
+def whole_command(arguments: list[str], repeat: int, stdin: Path | Sequence[str] | None = None
+                  ) -> tuple[float, float]:
+    """Median wall time (s) and largest peak RSS (MB) of ``mapjoin ARGUMENTS`` in a fresh interpreter.
+
+    ``stdin``: a file to read standard input from, or a command whose output is piped into it
+    (started with it and timed with it, as a shell pipe is).
+    """
+    times, peaks = [], []
+    command = [sys.executable, "-c", _RUN_AND_REPORT_PEAK, *arguments]
+    for _ in range(repeat):
+        start = time.perf_counter()
+        if stdin is None or isinstance(stdin, Path):
+            with open(stdin or os.devnull, "rb") as file:
+                process = subprocess.run(command, stdin=file, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                         text=True)
+        else:
+            with subprocess.Popen(stdin, stdout=subprocess.PIPE) as producer:
+                process = subprocess.run(command, stdin=producer.stdout, stdout=subprocess.DEVNULL,
+                                         stderr=subprocess.PIPE, text=True)
+                producer.stdout.close()
+        times.append(time.perf_counter() - start)
+        if process.returncode:
+            raise SystemExit(f"mapjoin {' '.join(arguments)} exited with {process.returncode}: {process.stderr}")
+        peaks.append(int(process.stderr.split("VmHWM")[-1].split()[0]) / 1024)
+    return statistics.median(times), max(peaks)
 
 
 def write_section(name: str, text: str) -> None:

@@ -21,7 +21,7 @@ import sys
 import tempfile
 import time
 
-from common import compile_mapjoin, dataset_arguments, median_seconds, write_section
+from common import compile_mapjoin, dataset_arguments, median_seconds, whole_command, write_section
 
 from mapjoin import io as mapio
 from mapjoin.evaluation import compare
@@ -35,34 +35,6 @@ COMMANDS = {
     "join --strategy tree --jobs 2": ["join", "--strategy", "tree", "--jobs", "2"],
     "refine": ["refine"],
 }
-
-
-# the command in a fresh interpreter that reports its own peak resident set on exit: VmHWM
-# belongs to the process's new address space, while rusage's maxrss would carry over the
-# high-water mark of this (large) benchmark process through fork and exec (Linux only)
-_RUN_AND_REPORT_PEAK = """
-import runpy, sys
-sys.argv = ["mapjoin", *sys.argv[1:]]
-try:
-    runpy.run_module("mapjoin", run_name="__main__", alter_sys=True)
-finally:
-    status = open("/proc/self/status").read()
-    print("VmHWM", status.split("VmHWM:")[1].split()[0], file=sys.stderr)
-"""
-
-
-def whole_command(arguments: list[str], repeat: int) -> tuple[float, float]:
-    """Median wall time (s) and largest peak RSS (MB) of ``mapjoin ARGUMENTS`` in a fresh interpreter."""
-    times, peaks = [], []
-    command = [sys.executable, "-c", _RUN_AND_REPORT_PEAK, *arguments]
-    for _ in range(repeat):
-        start = time.perf_counter()
-        process = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        times.append(time.perf_counter() - start)
-        if process.returncode:
-            raise SystemExit(f"mapjoin {' '.join(arguments)} exited with {process.returncode}: {process.stderr}")
-        peaks.append(int(process.stderr.split("VmHWM")[-1].split()[0]) / 1024)
-    return statistics.median(times), max(peaks)
 
 
 def import_floor(repeat: int) -> tuple[float, float]:

@@ -55,6 +55,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     start = time.perf_counter()
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
+    read = time.perf_counter() - start
     with progress_bar(ctx, len(maps), "joining") as progress:
         if exact:
             from ..refine import join_and_refine  # scipy.sparse: imported only when refining
@@ -83,4 +84,4 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     g = global_map
     say(ctx, f"joined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
              f"{len(result.report)} joins ({two} with two minima), covariance {covariance}, {strategy}, "
-             f"{elapsed:.3f} s -> {'stdout' if output == '-' else output}")
+             f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}")

@@ -72,6 +72,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
 
+    read = time.perf_counter() - start
     def report(iteration: int, cost: float) -> None:
         say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
 
@@ -87,6 +88,6 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     two = sum(r.minima == 2 for r in joins)
     say(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
              f"{len(joins)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
-             f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (fast join "
+             f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")

@@ -23,6 +23,10 @@ a binary format; ``source`` names the file in errors) and/or ``dump(data) -> str
 optionally a ``read_files(paths)`` reading many files at once, and ``looks_like_...(text)``
 when a stream can be recognised; :data:`.registry.FORMATS` gets one line naming them.
 
+Local maps are read one at a time by :func:`iter_maps` (which :func:`read_maps` lists): a YAML
+file or stream is read line by line (:mod:`.lines`), document by document, so its length costs
+no memory beyond the maps kept.
+
 Map names: a local map read from a file is named after the file, so that messages and
 provenance point to it: the path when the file holds one map, else ``path#name`` with the
 map's own name (``name``, ``map``), or ``path#n`` (its position) when it has none; maps
@@ -34,7 +38,8 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from itertools import chain
 from typing import Any, TextIO
 
 import numpy as np
@@ -44,6 +49,7 @@ from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate
 from . import registry
 from .g2o import g2o_feature_offset
 from .inputs import resolve_inputs
+from .lines import text_lines
 from .mat_maps import STAB_NOISE
 from .outputs import Outputs, check_not_overwriting, is_special, transaction, write_output
 from .paths import STDIN, Source, is_path, read_file, read_text, source_name
@@ -61,6 +67,8 @@ __all__ = [
     "detect_format",
     "is_special",
     "g2o_feature_offset",
+    "iter_map_paths",
+    "iter_maps",
     "map_file_name",
     "read_global_map",
     "read_map_file",
@@ -92,15 +100,28 @@ def read_maps(inputs: str | os.PathLike | Sequence[str | os.PathLike], *, stdin:
     format that reads many files at once (an I-SLSJF folder of thousands of .mat files) are
     parsed and checked together, with the errors and warnings of reading them one by one.
     """
+    return list(iter_maps(inputs, stdin=stdin, format=format))
+
+
+def iter_maps(inputs: str | os.PathLike | Sequence[str | os.PathLike], *, stdin: TextIO | None = None,
+              format: str | None = None) -> Iterator[LocalMap]:
+    """:func:`read_maps` one map at a time: a YAML stream (a file or stdin) is read document by document, so
+    reading it takes the memory of one document beside the maps the caller keeps."""
     if isinstance(inputs, (str, os.PathLike)):
         inputs = [inputs]
-    return read_map_paths(resolve_inputs([os.fspath(path) for path in inputs]), stdin=stdin, format=format)
+    return iter_map_paths(resolve_inputs([os.fspath(path) for path in inputs]), stdin=stdin, format=format)
 
 
 def read_map_paths(paths: Sequence[str], *, stdin: TextIO | None = None, format: str | None = None
                    ) -> list[LocalMap]:
     """:func:`read_maps` of inputs that :func:`resolve_inputs` has already resolved (commands resolve
     them first to check their outputs against them; resolving again would stat every file twice)."""
+    return list(iter_map_paths(paths, stdin=stdin, format=format))
+
+
+def iter_map_paths(paths: Sequence[str], *, stdin: TextIO | None = None, format: str | None = None
+                   ) -> Iterator[LocalMap]:
+    """:func:`read_map_paths` one map at a time (:func:`iter_maps`)."""
     if paths.count(STDIN) > 1:
         raise InputError("stdin (-) is given more than once; it can be read only once", "<stdin>")
     runs: list[tuple[Codec | None, list[str]]] = []  # (codec, consecutive files it reads at once) or (None, [file])
@@ -110,15 +131,13 @@ def read_map_paths(paths: Sequence[str], *, stdin: TextIO | None = None, format:
             runs[-1][1].append(path)
         else:
             runs.append((codec, [path]))
-    maps: list[LocalMap] = []
     for codec, run in runs:
         if codec is not None:
-            maps.extend(codec.read_files(run))
+            yield from codec.read_files(run)
         elif run[0] == STDIN:
-            maps.extend(read_map_file(stdin or sys.stdin, format, name="<stdin>"))
+            yield from iter_map_file(stdin or sys.stdin, format, name="<stdin>")
         else:
-            maps.extend(read_map_file(run[0], None if registry.extension_format(run[0]) else format))
-    return maps
+            yield from iter_map_file(run[0], None if registry.extension_format(run[0]) else format)
 
 
 def _batch_codec(path: str, format: str | None) -> Codec | None:
@@ -132,11 +151,46 @@ def _batch_codec(path: str, format: str | None) -> Codec | None:
 
 def read_map_file(source: Source, format: str | None = None, name: str | None = None) -> list[LocalMap]:
     """The local maps of one file or stream (a YAML or CSV file may hold several)."""
+    return list(iter_map_file(source, format, name))
+
+
+def iter_map_file(source: Source, format: str | None = None, name: str | None = None) -> Iterator[LocalMap]:
+    """:func:`read_map_file` one map at a time: a format that reads lines (YAML) reads the file or stream
+    line by line, yielding each map as soon as it is read."""
     name = name or source_name(source)
-    maps = _read(source, format, name, registry.LOCAL_MAPS)
-    if not maps:
+    if is_path(source):
+        fmt, codec = registry.codec(detect_format(os.fspath(source), format), registry.LOCAL_MAPS, name)
+        lines = None if fmt.binary or codec.read_lines is None else text_lines(source, name)
+    else:
+        lines = text_lines(source, name)
+        head = _head_lines(lines)
+        fmt, codec = registry.codec(detect_format(name, format) if format else registry.sniff("".join(head), name),
+                                    registry.LOCAL_MAPS, name)
+        if fmt.binary:
+            raise InputError(f"a {fmt.extensions[0]} file cannot be read from a text stream; give its path", name)
+        lines = chain(head, lines)
+    if lines is None:
+        maps = iter(codec.read(read_file(os.fspath(source), name, fmt.binary), name))
+    elif codec.read_lines is not None:
+        maps = codec.read_lines(lines, name)
+    else:
+        maps = iter(codec.read("".join(lines), name))
+    first = next(maps, None)
+    if first is None:
         raise InputError("expected at least one local map, found none", name)
-    return maps
+    yield first
+    yield from maps
+
+
+def _head_lines(lines: Iterator[str]) -> list[str]:
+    """The first lines of a stream, enough to tell its format (:func:`registry.sniff`): up to its third
+    line that is not blank."""
+    head: list[str] = []
+    for line in lines:
+        head.append(line)
+        if sum(not text.isspace() for text in head) >= 3:
+            break
+    return head
 
 
 def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[str]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
+import reprlib
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -19,7 +20,7 @@ import numpy as np
 from ..errors import InputError, shown
 from ..maps import first_duplicate
 from .numbers import first_unplain
-from .yamldoc import FIELD_KINDS
+from .yamldoc import COLUMN_CHECKS, FIELD_KINDS
 
 __all__ = ["COV_ENTRIES", "Table", "kind_rows", "names_kind_column", "to_text"]
 
@@ -89,7 +90,7 @@ class Table:
     def values(self, columns: Sequence[str], rows: np.ndarray | None, kind: str) -> np.ndarray:
         """Cells of ``columns`` at ``rows`` (None: all) as a (rows x columns) array of ``kind``.
 
-        ``kind`` is one of ``_VALID``: ``id`` (non-negative integers), ``number`` (finite),
+        ``kind`` is one of :data:`~.yamldoc.COLUMN_CHECKS`: ``id`` (non-negative integers), ``number`` (finite),
         ``nonnegative`` or ``variance`` (positive).
         """
         rows = np.arange(len(self.cells)) if rows is None else rows
@@ -105,7 +106,7 @@ class Table:
             if unplain is not None:
                 valid.ravel()[unplain] = False
         else:
-            valid = _VALID[kind](values)
+            valid = COLUMN_CHECKS[kind](values)
         if not valid.all():
             i, j = (int(index) for index in np.argwhere(~valid)[0])
             raise self.error(int(rows[i]), columns[j],
@@ -143,14 +144,6 @@ class Table:
             i, j = COV_ENTRIES[column]
             blocks[:, i, j] = blocks[:, j, i] = values[:, k]
         return blocks
-
-
-_VALID: dict[str, Callable[[np.ndarray], np.ndarray]] = {
-    "id": lambda values: values >= 0,
-    "number": np.isfinite,
-    "nonnegative": lambda values: np.isfinite(values) & (values >= 0),
-    "variance": lambda values: np.isfinite(values) & (values > 0),
-}
 
 
 def _parses(cell: Any, dtype: type) -> bool:

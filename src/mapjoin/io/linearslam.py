@@ -14,6 +14,7 @@ a warning on writing, as Linear SLAM's own code expects positive feature ids.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import re
@@ -44,12 +45,16 @@ def read(text: str, source: str) -> list[LocalMap]:
     size = _text_integer(lines, 1, "the state dimension d = 3 + 2m (m features)", source)
     if size < 3 or (size - 3) % 2:
         raise InputError(f"expected the state dimension d = 3 + 2m (m features), got {size}", source, "line 2")
-    state_rows = _text_rows(lines, 2, size, 2, f"`id value`, one of d = {size} state rows", source)
-    ids = _text_ids(state_rows[:, 0], 2, source)
-    state = _text_numbers(state_rows[:, 1:], 2, source, first_field=2)[:, 0]
-    information = _text_numbers(
-        _text_rows(lines, 2 + size, size, size, f"a row of the {size}x{size} information matrix", source),
-        2 + size, source)
+    parsed = _plain_rows(lines, size)
+    if parsed is None:  # read line by line, to name the line of the error
+        state_rows = _text_rows(lines, 2, size, 2, f"`id value`, one of d = {size} state rows", source)
+        ids = _text_ids(state_rows[:, 0], 2, source)
+        state = _text_numbers(state_rows[:, 1:], 2, source, first_field=2)[:, 0]
+        information = _text_numbers(
+            _text_rows(lines, 2 + size, size, size, f"a row of the {size}x{size} information matrix", source),
+            2 + size, source)
+    else:
+        ids, state, information = parsed
     trailing = next((i for i in range(2 + 2 * size, len(lines)) if lines[i].strip()), None)
     if trailing is not None:
         raise InputError(f"expected nothing after the {size} rows of the information matrix, got "
@@ -59,6 +64,36 @@ def read(text: str, source: str) -> list[LocalMap]:
     covariance = _covariance_of_information(information, 2 + size, source)[np.ix_(order, order)]
     return [LocalMap.from_covariance(source, start_id, end_id, state[pose], ids[features[0::2]],
                                      state[features].reshape(-1, 2), covariance)]
+
+
+_DECIMAL = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?"
+_STATE_ROW = re.compile(rf"[ \t]*(-?[0-9]+)[ \t]+({_DECIMAL})[ \t]*")
+
+
+@functools.lru_cache(maxsize=256)
+def _matrix_row(size: int) -> re.Pattern[str]:
+    """A row of ``size`` decimal numbers."""
+    return re.compile(rf"[ \t]*{_DECIMAL}(?:[ \t]+{_DECIMAL}){{{size - 1}}}[ \t]*")
+
+
+def _plain_rows(lines: Sequence[str], size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The ids, state and information of a file whose rows are plain decimal numbers, as mapjoin and Linear
+    SLAM write them, read in bulk with ``float`` (the values the line-by-line path gives); None when any row is
+    otherwise (that path then reads them, naming the line of the error)."""
+    rows = lines[2:2 + 2 * size]
+    state = [_STATE_ROW.fullmatch(line) for line in rows[:size]]
+    matrix_row = _matrix_row(size)
+    if len(rows) < 2 * size or not all(state) or not all(map(matrix_row.fullmatch, rows[size:])):
+        return None
+    try:
+        ids = np.array([int(match[1]) for match in state], dtype=np.int64)
+    except OverflowError:
+        return None
+    values = np.fromiter(map(float, " ".join(rows[size:]).split()), dtype=float, count=size * size)
+    state_values = np.array([float(match[2]) for match in state])
+    if not (np.isfinite(values).all() and np.isfinite(state_values).all()):
+        return None
+    return ids, state_values, values.reshape(size, size)
 
 
 def _text_integer(lines: Sequence[str], index: int, expected: str, source: str) -> int:

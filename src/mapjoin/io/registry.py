@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -32,6 +32,7 @@ class Codec(NamedTuple):
     read: Callable[[Any, str], Any] | None = None  # (text, or bytes when binary; source name) -> data
     dump: Callable[[Any], str | bytes] | None = None  # data -> text, or bytes when binary
     read_files: Callable[[Sequence[str]], list[Any]] | None = None  # many files at once, as one by one, faster
+    read_lines: Callable[[Iterable[str], str], Iterator[Any]] | None = None  # as read, from lines, yielding as it goes
 
 
 class Kind(NamedTuple):
@@ -76,7 +77,7 @@ class Format:
 FORMATS: tuple[Format, ...] = (
     Format("yaml", "YAML", (".yaml", ".yml"), sniff=yamldoc.looks_like_yaml,
            sniff_text="YAML starting with format:, ---, %YAML or #",
-           local_maps=Codec(yaml_maps.read, yaml_maps.dump),
+           local_maps=Codec(yaml_maps.read, yaml_maps.dump, read_lines=yaml_maps.read_lines),
            global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_yaml),
            truth=Codec(global_maps.read_truth_yaml, global_maps.dump_truth_yaml), table=Codec(None, tables.dump_yaml)),
     Format("csv", "CSV", (".csv",), sniff=csvtable.names_kind_column, sniff_text="a CSV header naming a kind column",

@@ -13,19 +13,28 @@
     covariance: [[...], ...]       # optional: full (3+2m)x(3+2m), order x y phi f1x f1y f2x ...
 
 Unknown fields are errors. Numbers like ``1e-6`` (no dot) are read as numbers.
+
+Documents laid out exactly as :func:`dump` writes them are parsed without PyYAML (regular
+expressions check the layout, ``float`` reads the numbers: the values PyYAML gives) and then
+checked by the same :class:`~mapjoin.io.yamldoc.Document` getters; any other document, and
+any document with an error to report, is parsed by PyYAML with lines, so errors name them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import io
+import re
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
+
+import numpy as np
 
 from ..errors import InputError
 from ..maps import LocalMap
 from . import yamldoc
 from .paths import map_name
 
-__all__ = ["dump", "read"]
+__all__ = ["dump", "read", "read_lines"]
 
 _FORMAT = "mapjoin/local-map"
 _KEYS = ("format", "version", "name", "start_id", "end_id", "end_pose", "features", "covariance")
@@ -33,11 +42,98 @@ _END_POSE_FIELDS = {"x": "number", "y": "number", "phi": "number", "var_xy": "va
 _FEATURE_FIELDS = {"id": "id", "x": "number", "y": "number", "var": "variance"}
 
 
+_ID = r"(?:0|[1-9][0-9]*)"  # YAML 1.1 reads 012 as octal: not here
+_FLOAT = yamldoc.PLAIN_FLOAT
+_NAME = r"[A-Za-z/<_][A-Za-z0-9_./<>#+-]*"  # a plain scalar YAML reads as this string, unless _RESOLVED
+_RESOLVED = frozenset({"yes", "no", "true", "false", "on", "off", "null", "<<"})  # lower case
+_FAST_HEAD = re.compile(
+    rf"(?:---\n)?format: {_FORMAT}\nversion: 1\n(?:name: ({_NAME})\n)?start_id: ({_ID})\nend_id: ({_ID})\n"
+    rf"end_pose: \{{x: ({_FLOAT}), y: ({_FLOAT}), phi: ({_FLOAT}), var_xy: ({_FLOAT}), var_phi: ({_FLOAT})\}}\n"
+    r"features:(?: (\[\])\n|\n)")
+_FAST_FEATURES = re.compile(rf"(?:- \{{id: {_ID}, x: {_FLOAT}, y: {_FLOAT}, var: {_FLOAT}\}}\n)+")
+_FEATURE_SEPARATORS = re.compile(r"\}\n- \{id: |, x: |, y: |, var: ")
+_FAST_COVARIANCE = re.compile(rf"covariance:\n- \[((?:{_FLOAT}(?:, {_FLOAT})*\]\n- \[)*{_FLOAT}(?:, {_FLOAT})*)\]\n")
+
+
 def read(text: str, source: str) -> list[LocalMap]:
     """The local maps of a YAML stream, one per document."""
-    documents = yamldoc.documents(text, source)
-    return [_local_map_from_yaml(document, number if len(documents) > 1 else None)
-            for number, document in enumerate(documents, 1)]
+    return list(read_lines(io.StringIO(text, newline=""), source))
+
+
+def read_lines(lines: Iterable[str], source: str) -> Iterator[LocalMap]:
+    """The local maps of a YAML stream given line by line, one per document, each as soon as it is read
+    (and the next document's start, which says whether the first map is numbered: "Map names" in mapjoin.io)."""
+    pending: tuple[yamldoc.Document, str] | None = None  # read, not yet made a map
+    number = 0
+    for first_line, text in yamldoc.split_documents(lines):
+        for document in _documents(text, source, first_line):
+            number += 1
+            if pending is not None:
+                yield _local_map(*pending, number - 1)
+            pending = document, text
+    if pending is not None:
+        yield _local_map(*pending, None if number == 1 else number)
+
+
+def _documents(text: str, source: str, first_line: int) -> list[yamldoc.Document]:
+    """The document(s) of one text of :func:`yamldoc.split_documents`: parsed by :func:`_fast_document` if it can."""
+    data = _fast_document(text)
+    if data is None:
+        return yamldoc.documents(text, source, first_line)
+    return [yamldoc.Document(data, None, source, first_line)]
+
+
+def _local_map(document: yamldoc.Document, text: str, number: int | None) -> LocalMap:
+    """The local map of ``document`` (parsed from ``text``); when a fast-parsed one has an error to report,
+    it is parsed again with lines, to report it naming its line."""
+    try:
+        return _local_map_from_yaml(document, number)
+    except yamldoc.NeedsLines:
+        [document] = yamldoc.documents(text, document.source, document.first_line)
+        return _local_map_from_yaml(document, number)
+
+
+def _fast_document(text: str) -> dict[str, Any] | None:
+    """The data of a document laid out exactly as :func:`dump` writes it, read without PyYAML, with the
+    features as :class:`yamldoc.Columns` and the covariance as an array; None for any other text."""
+    head = _FAST_HEAD.match(text)
+    if head is None:
+        return None
+    name, start_id, end_id, *pose, no_features = head.groups()
+    if name is not None and name.lower() in _RESOLVED:
+        return None
+    end = head.end()
+    if no_features:
+        tokens: list[str] = []
+    else:
+        block = _FAST_FEATURES.match(text, end)
+        if block is None:
+            return None
+        end = block.end()
+        tokens = _FEATURE_SEPARATORS.split(text[head.end() + len("- {id: "):end - len("}\n")])
+    try:
+        ids = np.array(list(map(int, tokens[0::4])), dtype=np.int64)
+    except OverflowError:
+        return None
+    data: dict[str, Any] = {
+        "format": _FORMAT, "version": 1, **({"name": name} if name is not None else {}),
+        "start_id": int(start_id), "end_id": int(end_id), "end_pose": dict(zip(_END_POSE_FIELDS, map(float, pose))),
+        "features": yamldoc.Columns(id=ids, x=_floats(tokens[1::4]), y=_floats(tokens[2::4]),
+                                    var=_floats(tokens[3::4]))}
+    covariance = _FAST_COVARIANCE.match(text, end)
+    if covariance is not None:
+        end = covariance.end()
+        size = 3 + 2 * len(ids)
+        rows = covariance[1].split("]\n- [")
+        if len(rows) != size or any(row.count(",") != size - 1 for row in rows):
+            return None
+        data["covariance"] = _floats(covariance[1].replace("]\n- [", ", ").split(", ")).reshape(size, size)
+    return data if end == len(text) else None
+
+
+def _floats(tokens: Sequence[str]) -> np.ndarray:
+    """Number tokens as PyYAML's loader reads them here (:data:`yamldoc.PLAIN_FLOAT`: ``float``)."""
+    return np.fromiter(map(float, tokens), dtype=float, count=len(tokens))
 
 
 def _local_map_from_yaml(document: yamldoc.Document, number: int | None) -> LocalMap:

@@ -14,7 +14,7 @@ import functools
 import math
 import re
 import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -25,11 +25,14 @@ from ..maps import first_duplicate
 if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written
     import yaml
 
-__all__ = ["FIELD_KINDS", "Document", "document", "documents", "dump", "looks_like_yaml", "records", "stack"]
+__all__ = ["COLUMN_CHECKS", "FIELD_KINDS", "PLAIN_FLOAT", "Columns", "Document", "NeedsLines", "document", "documents",
+           "dump", "looks_like_yaml", "records", "split_documents", "stack"]
 
 
 _YAML_FLOAT = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$")
-_PLAIN_FLOAT = re.compile(r"[-+]?[0-9]+\.[0-9]*(?:[eE][-+][0-9]+)?")  # as repr writes them; YAML 1.1 floats
+#: a float as repr writes it (and a YAML 1.1 float): the loader reads these with ``float``, and so may a fast path
+PLAIN_FLOAT = r"[-+]?[0-9]+\.[0-9]*(?:[eE][-+][0-9]+)?"
+_PLAIN_FLOAT = re.compile(PLAIN_FLOAT)
 
 
 @functools.cache
@@ -93,17 +96,41 @@ FIELD_KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "mapping": (lambda value: type(value) is dict, "a mapping"),
 }
 
+#: kind of a field -> the check of FIELD_KINDS on a whole column of values at once (the same verdicts)
+COLUMN_CHECKS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    "id": lambda values: values >= 0,
+    "number": np.isfinite,
+    "nonnegative": lambda values: np.isfinite(values) & (values >= 0),
+    "variance": lambda values: np.isfinite(values) & (values > 0),
+}
+
 _FieldPath = tuple[str | int, ...]
 
 
-class Document:
-    """One parsed YAML document; its getters check types, and errors name the field and its line."""
+class NeedsLines(Exception):  # noqa: N818 -- a signal to the reader, not an error shown to anyone
+    """Raised where a :class:`Document` without lines (parsed by a fast path) would report an error: the
+    reader parses that document again with lines, so that the error names the line as always."""
 
-    def __init__(self, data: Any, node: yaml.Node, source: str):
-        self.data, self.node, self.source = data, node, source
+
+class Columns(dict):
+    """A list of records that a fast path parsed straight into columns (field -> array), in place of the list."""
+
+
+class Document:
+    """One parsed YAML document; its getters check types, and errors name the field and its line.
+
+    A document a fast path parsed (``node`` None) has no lines: its errors raise :class:`NeedsLines`
+    instead, and it may hold :class:`Columns` for a list of records and arrays for matrices.
+    ``first_line`` is the line (0-based) the parsed text starts at in its file.
+    """
+
+    def __init__(self, data: Any, node: yaml.Node | None, source: str, first_line: int = 0):
+        self.data, self.node, self.source, self.first_line = data, node, source, first_line
 
     def error(self, path: _FieldPath, message: str) -> InputError:
-        """The error of the field at ``path``, naming it and its line."""
+        """The error of the field at ``path``, naming it and its line (:class:`NeedsLines` if it has none)."""
+        if self.node is None:
+            raise NeedsLines
         where = f"line {self._line(path)}" + (f", field {_render(path)}" if path else "")
         return InputError(message, self.source, where)
 
@@ -131,6 +158,10 @@ class Document:
 
     def matrix(self, path: _FieldPath, shape: tuple[int, int], *, optional: bool = False) -> np.ndarray | None:
         """The list of number lists at ``path`` as an array of ``shape``."""
+        if self.node is None and isinstance(parsed := self._value(path[:-1]).get(path[-1]), np.ndarray):
+            if parsed.shape != shape or not np.isfinite(parsed).all():
+                raise NeedsLines  # the line-tracking path says which entry and where
+            return parsed
         rows = self.get(path, "list", optional=optional)
         if rows is None:
             return None
@@ -163,6 +194,8 @@ class Document:
                 matrices: Mapping[str, tuple[int, int]] | None = None) -> dict[str, np.ndarray | None]:
         """The list of records at ``path`` as columns; ids must be unique, matrices on all records or none."""
         matrices = matrices or {}
+        if self.node is None and isinstance(parsed := self._value(path), Columns):
+            return self._checked_columns(path, parsed, fields, matrices)
         count = len(self.get(path, "list"))
         items = [self.record((*path, index), fields, matrices) for index in range(count)]
         columns: dict[str, np.ndarray | None] = {
@@ -176,11 +209,25 @@ class Document:
                                  f"as on {_render((*path, present.index(True)))}")
             columns[key] = (np.array([item[key] for item in items]).reshape(-1, *shape)
                             if items and all(present) else None)
+        self._check_unique(path, columns, fields)
+        return columns
+
+    def _checked_columns(self, path: _FieldPath, columns: Columns, fields: Mapping[str, str],
+                         matrices: Mapping[str, tuple[int, int]]) -> dict[str, np.ndarray | None]:
+        """:meth:`records` of columns a fast path parsed: the same checks, column by column."""
+        if set(columns) != set(fields) or not all(COLUMN_CHECKS[kind](columns[key]).all()
+                                                  for key, kind in fields.items()):
+            raise NeedsLines  # the line-tracking path says which entry and where
+        self._check_unique(path, columns, fields)
+        return {**columns, **dict.fromkeys(matrices)}
+
+    def _check_unique(self, path: _FieldPath, columns: Mapping[str, np.ndarray | None], fields: Mapping[str, str]
+                      ) -> None:
+        """Ids (when the records have them) must be unique."""
         if "id" in fields:
             duplicate = first_duplicate(columns["id"])
             if duplicate is not None:
                 raise self.error((*path, duplicate, "id"), f"duplicate id {columns['id'][duplicate]}")
-        return columns
 
     def header(self, kind: str, keys: Sequence[str]) -> None:
         """Check the document is a mapping of ``format: kind``, version 1, with no keys beyond ``keys``."""
@@ -220,7 +267,7 @@ class Document:
                 node = node.value[key]
             else:
                 break
-        return node.start_mark.line + 1
+        return self.first_line + node.start_mark.line + 1
 
 
 def _render(path: _FieldPath) -> str:
@@ -231,8 +278,9 @@ def _render(path: _FieldPath) -> str:
     return text
 
 
-def documents(text: str, source: str) -> list[Document]:
-    """The documents of a YAML stream (malformed YAML raises, naming the line)."""
+def documents(text: str, source: str, first_line: int = 0) -> list[Document]:
+    """The documents of a YAML stream (malformed YAML raises, naming the line); ``text`` starts at line
+    ``first_line`` (0-based) of the file (:func:`split_documents`)."""
     import yaml
 
     loader = _yaml_classes()[0](text)
@@ -240,14 +288,14 @@ def documents(text: str, source: str) -> list[Document]:
     try:
         while loader.check_node():
             node = loader.get_node()
-            parsed.append(Document(loader.construct_document(node), node, source))
+            parsed.append(Document(loader.construct_document(node), node, source, first_line))
     except yaml.MarkedYAMLError as error:
         mark = error.problem_mark or error.context_mark
         raise InputError(f"malformed YAML: {_one_line(error.problem or error.context)}", source,
-                         f"line {mark.line + 1}" if mark else None) from None
+                         f"line {first_line + mark.line + 1}" if mark else None) from None
     except yaml.reader.ReaderError as error:  # a control character; its message runs over two lines
         raise InputError(f"malformed YAML: {_one_line(error.reason)} (character #x{error.character:04x})", source,
-                         f"line {text.count(chr(10), 0, error.position) + 1}") from None
+                         f"line {first_line + text.count(chr(10), 0, error.position) + 1}") from None
     except (yaml.YAMLError, ValueError, OverflowError, RecursionError) as error:
         raise InputError(f"malformed YAML: {_one_line(error)}", source) from None
     finally:
@@ -258,6 +306,42 @@ def documents(text: str, source: str) -> list[Document]:
 def _one_line(message: object) -> str:
     """A parser's message on one line (PyYAML's may span several), cut to a readable length."""
     return shown(" ".join(str(message).split()), 200, quoted=False)
+
+
+_DOCUMENT_START = re.compile(r"---(?:[ \t\r\n]|$)")
+_YAML_BREAKS = re.compile("\r\n|[\n\r\x85\u2028\u2029]")
+
+
+def split_documents(lines: Iterable[str]) -> Iterator[tuple[int, str]]:
+    """The texts of a YAML stream's documents, one at a time, each with the line (0-based) it starts at.
+
+    ``lines`` are the stream's lines with their line ends. A document starts at a ``---`` line
+    (column 0, then a space, a tab or the line end: YAML's document start, which no scalar
+    can hold), or at the directives (``%`` at column 0) before it; comments and blank lines
+    between two documents go with the first. So each text holds one document and is read as
+    the stream would be, and a stream of any length is read with the memory of one document.
+    """
+    chunk: list[str] = []
+    has_document = False  # whether ``chunk`` holds a document start or content yet
+    line = 0
+    for text in lines:
+        starts = text.startswith("%") or text.startswith("---") and _DOCUMENT_START.match(text) is not None
+        if starts and has_document:
+            content = "".join(chunk)
+            yield line, content
+            line += _line_breaks(content)
+            chunk, has_document = [], False
+        chunk.append(text)
+        has_document = has_document or not (text.startswith("%") or text.lstrip().startswith("#") or text.isspace())
+    if chunk:
+        yield line, "".join(chunk)
+
+
+def _line_breaks(text: str) -> int:
+    """How many line breaks YAML counts in ``text``."""
+    if text.isascii() and "\r" not in text:
+        return text.count("\n")
+    return len(_YAML_BREAKS.findall(text))
 
 
 def document(text: str, source: str) -> Document:

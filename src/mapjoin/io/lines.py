@@ -1,0 +1,58 @@
+"""Text sources read line by line: a stream of any length is read with the memory of a block.
+
+The lines are those :func:`.paths.read_text` would give joined (UTF-8, a byte-order mark
+dropped, line ends kept as they are), so a reader gets the same text either way.
+"""
+
+from __future__ import annotations
+
+import codecs
+import io
+import os
+import sys
+from collections.abc import Iterator
+from typing import IO
+
+from ..errors import InputError
+from .paths import Source, is_path, not_utf8
+
+__all__ = ["text_lines"]
+
+_BLOCK = 1 << 16  # characters read at a time
+
+
+def text_lines(source: Source, name: str) -> Iterator[str]:
+    """The lines of a path, ``-`` (stdin) or a stream (text or bytes), with their line ends, read a block at a time;
+    errors name ``name``."""
+    if not is_path(source):
+        yield from _lines(sys.stdin if isinstance(source, (str, os.PathLike)) else source, name)
+        return
+    try:
+        file = open(os.fspath(source), encoding="utf-8-sig", newline="")  # noqa: SIM115 -- closed below
+    except OSError as error:
+        raise InputError(f"cannot read ({error.strerror or error})", name) from None
+    with file:
+        yield from _lines(file, name)
+
+
+def _lines(stream: IO, name: str) -> Iterator[str]:
+    """The lines of an open stream; a block is split after its last ``\\n``, so a ``\\r\\n`` stays whole."""
+    decoder = codecs.getincrementaldecoder("utf-8")()
+    rest, first = "", True
+    while True:
+        try:
+            raw = stream.read(_BLOCK)
+            block = decoder.decode(raw, final=not raw) if isinstance(raw, bytes) else raw
+        except UnicodeDecodeError as error:
+            raise not_utf8(error, name) from None
+        except OSError as error:
+            raise InputError(f"cannot read ({error.strerror or error})", name) from None
+        if not raw:
+            break
+        if first and block:
+            block, first = block.removeprefix("\ufeff"), False
+        text = rest + block
+        cut = text.rfind("\n") + 1
+        rest = text[cut:]
+        yield from io.StringIO(text[:cut], newline="")
+    yield from io.StringIO(rest, newline="")
