@@ -1,6 +1,6 @@
 """Spherical covariances: the summaries of a local map's covariance, and their propagation through joins.
 
-The one-step solver needs spherical covariances (method.md, Definition 2): ``sigma^2 I_2`` per
+The one-step solver needs spherical covariances (docs/method.md#definition-2): ``sigma^2 I_2`` per
 feature, ``diag(sigma_xy^2, sigma_xy^2, p_phi)`` per pose. Real local maps carry full
 covariances, so each 2x2 (or pose) block is summarised in one of the ``COVARIANCE_MODES``
 (:func:`spherical_variances`).

@@ -2,8 +2,8 @@
 
 A join takes two consecutive pieces of the chain, ``left`` (a map or a joined run of maps,
 in the frame of its start pose) and ``right`` (the same, starting at left's end pose),
-and treats left as map 0 and right as map 1 of the one-step problem (method.md,
-"Sequential joining"): only the common features enter it, with left's end pose as the
+and treats left as map 0 and right as map 1 of the one-step problem
+(docs/method.md#sequential-joining): only the common features enter it, with left's end pose as the
 odometry. The features seen only by right, and right's poses, are placed afterwards,
 ``x = t* + R(phi*) z``. Two strategies order the joins:
 

@@ -5,7 +5,7 @@ A local map holds, in the frame of its start pose, the estimate of its end pose
 ``sigma^2`` per feature, ``(sigma_xy^2, p_phi)`` for the end pose) and optionally the
 full covariance of its state vector ``[x, y, phi, f1x, f1y, f2x, ...]``.
 
-The joiner needs spherical covariances (method.md, Definition 2); :mod:`mapjoin.covariance`
+The joiner needs spherical covariances (docs/method.md#definition-2); :mod:`mapjoin.covariance`
 derives them from a map.
 
 The values of local maps are checked on stacks of maps of one size (:class:`StackedMaps`):

@@ -1,6 +1,6 @@
 """The one-step problem with spherical covariances: Theorem 1, Theorem 2 and Algorithm 1.
 
-Notation follows ``method.md``. Pose r0 is the origin, the unknowns are the pose
+Notation follows docs/method.md (#one-step-problem, #theorem-1, #theorem-2, #algorithm-1). Pose r0 is the origin, the unknowns are the pose
 ``r1 = (t, phi)`` and the common features ``f_j``; the data are ``Z0_j`` (features in r0,
 variance ``var0_j``), the odometry ``O = (O_xy, z_phi)`` (variances ``var_o``, ``p_phi``)
 and ``Z1_j`` (features in r1, variance ``var1_j``).

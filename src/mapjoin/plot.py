@@ -54,7 +54,7 @@ INSTALL_HINT = "pip install 'mapjoin[plot]'"
 #: chi-square quantile is -2 ln(1 - p) in closed form (5.991 for 95%)
 ELLIPSE_PROBABILITY = 0.95
 DPI = 150
-#: |C_phi| below which one minimum is certain for every a (method.md): atan(pi), 72.3 degrees
+#: |C_phi| below which one minimum is certain for every a (docs/method.md#the-arcsin-bound): atan(pi), 72.3 degrees
 ONE_MINIMUM_C_PHI = math.atan(math.pi)
 
 # map styles in overlay order: colour, feature marker, trajectory line style (truth is grey)

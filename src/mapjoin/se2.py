@@ -1,7 +1,7 @@
 """SE(2) arithmetic: poses ``(x, y, phi)`` of a robot in the plane, and points seen from them.
 
 A pose ``r = (t, phi)`` maps a point ``z`` of its own frame to ``t + R(phi) z`` in its parent
-frame (method.md, "Notation"); the one-step problem's r1 is such a pose in the frame of r0.
+frame (docs/method.md#notation); the one-step problem's r1 is such a pose in the frame of r0.
 Every function works on one pose or on arrays of them: the last axis holds ``(x, y, phi)``
 (poses) or ``(x, y)`` (points) and the leading axes broadcast.
 

@@ -1,6 +1,6 @@
 """Exact least-squares map joining (the problem I-SLSJF solves): sparse Gauss-Newton.
 
-The problem (method.md, "Exact joining"): the global end poses of all maps and the
+The problem (docs/method.md#exact-joining): the global end poses of all maps and the
 global positions of all features minimising ``sum_k e_k^T P_k^-1 e_k`` over the local
 maps k, each weighted by its full covariance (:mod:`.problem`). It is solved by
 Gauss-Newton with Levenberg-Marquardt and Newton safeguards (:mod:`.solver`) from a fast

@@ -1,6 +1,6 @@
 """Groups of local maps evaluated together, and the per-map algebra of the exact join.
 
-The derivatives of the exact joining problem (method.md, "Exact joining") are evaluated for
+The derivatives of the exact joining problem (docs/method.md#exact-joining) are evaluated for
 a group of maps at once, with no Python loop over maps or features: maps of nearby sizes,
 padded with features of zero weight to the largest (:func:`size_classes` chooses the runs of
 sizes, balancing the fixed cost of a group against the padding). Each map's residual is

@@ -1,7 +1,7 @@
 """The exact least-squares joining problem (the problem I-SLSJF solves): residuals, Jacobian
 and normal equations.
 
-Problem (method.md, "Exact joining")::
+Problem (docs/method.md#exact-joining)::
 
     min_X  sum_k  e_k^T P_k^-1 e_k,    e_k = s_k - H_k(X)   (angle entry wrapped to [-pi, pi))
 

@@ -1,6 +1,6 @@
 """Sparse symmetric factorisation of the normal equations and selected inversion.
 
-The normal matrix ``J^T J`` of the exact join (method.md, "Exact joining") is a matrix of
+The normal matrix ``J^T J`` of the exact join (docs/method.md#exact-joining) is a matrix of
 node blocks: a node is a pose (3 unknowns) or a feature (2), and two nodes are coupled
 when one local map sees both. Its pattern is fixed, so the work that depends only on it
 is done once:
