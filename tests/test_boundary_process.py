@@ -147,3 +147,12 @@ def test_an_output_through_a_symlink_replaces_the_file_it_points_to(maps, tmp_pa
     assert result.returncode == 0, result.stderr
     assert os.path.islink(tmp_path / "link.csv")
     assert (tmp_path / "real.csv").read_text().startswith("kind,id,x,y,phi")
+
+
+@pytest.mark.parametrize("args", [["check-minima", "--a", "2", "--c-phi", "nan"], ["join", "--bogus"], ["nosuch"],
+                                  ["refine", "x.yaml", "--tolerance", "inf"]])
+def test_a_usage_error_is_one_line_and_exit_2(tmp_path, args):
+    result = mapjoin(*args, cwd=tmp_path)
+    assert result.returncode == 2
+    assert_one_line_error(result.stderr)
+    assert result.stderr.startswith("Error: ") and "--help" in result.stderr

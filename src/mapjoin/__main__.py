@@ -6,7 +6,8 @@ documented exit code, never a traceback or an "Exception ignored" at exit:
 - Ctrl-C at any moment, start-up included: ``mapjoin: interrupted``, exit 130 (the
   writers clean up their temporary files on the way out);
 - stdout closed, full or failing when the data is flushed: one line, exit 1;
-- a reader that stops early (``mapjoin join ... | head``): quiet, exit 0.
+- a reader that stops early (``mapjoin join ... | head``): quiet, exit 0;
+- a usage error (an unknown option, a value out of range): one line, exit 2.
 
 This module imports only the standard library before the guard is in place.
 """
@@ -82,6 +83,11 @@ def _exit_code(error: BaseException) -> int:
 
     if isinstance(error, click.exceptions.Abort):
         return _interrupted() if isinstance(error.__cause__, KeyboardInterrupt) else 1
+    if isinstance(error, click.UsageError) and not isinstance(error, click.exceptions.NoArgsIsHelpError):
+        # one line, as every other error: no usage block
+        command = error.ctx.command_path if error.ctx else "mapjoin"
+        print(f"Error: {' '.join(error.format_message().split())} (see '{command} --help')", file=sys.stderr)
+        return error.exit_code
     if isinstance(error, click.ClickException):
         error.show()
         return error.exit_code
