@@ -47,7 +47,9 @@ def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(maps, tmp_path, delay):
     if process.returncode == 0:  # finished before the signal arrived
         assert (tmp_path / "out.csv").is_file()
     else:
-        assert process.returncode == 130, (process.returncode, stderr)
+        # 130 from mapjoin's guard; -SIGINT when the signal came while the interpreter itself was still
+        # starting, before any of mapjoin's code ran (Python then ends by the signal, silently)
+        assert process.returncode in (130, -signal.SIGINT), (process.returncode, stderr)
         assert len(stderr.strip().splitlines()) <= 1, stderr
         assert sorted(p.name for p in tmp_path.iterdir()) == [], "an interrupted run left files behind"
 
