@@ -9,7 +9,7 @@ link, another case). Each run must keep the boundary's contract:
 - nothing on stderr reads "Traceback" or "Exception ignored", and no Python warning
   (e.g. numpy's RuntimeWarning) is raised;
 - an error (exit 1) is exactly one line and names the file (or option) at fault;
-- on a non-zero exit no file is created, changed or left behind;
+- on an error (exit 1, 2, 130) no file is created, changed or left behind;
 - the inputs' bytes never change.
 
 The runs are in-process (click's runner) to stay fast; what needs a real process
@@ -87,7 +87,7 @@ def invoke(folder: Path, args: list[str], *, stdin: str | bytes | None = None, i
     assert not [str(w.message) for w in caught], (where, [str(w.message) for w in caught])
     for name in inputs:
         assert after.get(name) == before.get(name), f"{where}: input {name} changed"
-    if result.exit_code != 0:
+    if result.exit_code not in (0, 3):  # 3: written, but to look at (two minima, refine not converged)
         assert after == before, f"{where}: exit {result.exit_code} but files changed: " \
                                 f"{sorted(set(after.items()) ^ set(before.items()))}"
     if result.exit_code == 1:

@@ -562,7 +562,7 @@ def test_join_refine_warns_as_refine_does_and_quiet_runs_skip_the_chi2_interval(
 
 def test_cli_reports_non_convergence_refuses_to_overwrite_and_has_examples(simulated_folder, tmp_path):
     result = run("refine", simulated_folder, "--max-iterations", "0", "-o", str(tmp_path / "g.csv"))
-    assert result.exit_code == 0 and "did not converge (max iterations reached after 0 iterations)" in result.stderr
+    assert result.exit_code == 3 and "did not converge (max iterations reached after 0 iterations, chi^2" in result.stderr
     target = Path(simulated_folder) / "localmap_1.yaml"
     before = target.read_text()
     result = CliRunner().invoke(main, ["refine", simulated_folder, "-o", str(target)])
@@ -602,3 +602,19 @@ def test_tolerance_zero_means_to_rounding_and_converges(simulated_folder, data_d
         assert zero.cost <= default.cost * (1 + 1e-12)
         assert np.max(np.abs(zero.global_map.features - default.global_map.features)) < 1e-8
         assert np.max(np.abs(zero.global_map.poses - default.global_map.poses)) < 1e-8
+
+
+def test_a_refine_that_does_not_converge_exits_3_and_says_so_in_one_line(tmp_path):
+    """Not converging must not look like success, under -q too; the last iterate is still written."""
+    from cli_runner import run as cli
+
+    example = str(Path(__file__).resolve().parents[1] / "examples" / "sim20")
+    for args in (["refine", example, "-o", str(tmp_path / "r.csv"), "--max-iterations", "1"],
+                 ["refine", example, "-o", str(tmp_path / "c.csv")]):
+        result = cli("-q", *args)
+        converged = "--max-iterations" not in args
+        assert result.exit_code == (0 if converged else 3), result.stderr
+        assert (tmp_path / args[3].rsplit("/", 1)[-1]).is_file()
+        if not converged:
+            assert result.stderr.count("\n") == 1 and "did not converge" in result.stderr
+            assert "holds the last iterate" in result.stderr

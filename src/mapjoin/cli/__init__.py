@@ -1,8 +1,9 @@
 """The ``mapjoin`` command line: a thin layer that parses, calls the library, writes.
 
 Exit codes: 0 success; 1 bad input or a join that cannot be done (one line on stderr,
-naming the file and field); 2 a usage error; 3 ``check-minima`` found two minima;
-130 interrupted (Ctrl-C).
+naming the file and field); 2 a usage error; 3 the result needs attention: ``check-minima``
+found two minima, or ``refine`` / ``join --refine`` stopped without converging (the last
+iterate is written, and one line on stderr says so); 130 interrupted (Ctrl-C).
 Data goes to stdout (or ``-o``); messages, warnings and progress go to stderr. Each
 command declares its outputs to :class:`mapjoin.io.Outputs`, which checks them before any
 input is read and writes them all or none.
@@ -19,6 +20,7 @@ from ..__main__ import EXIT_INTERRUPTED
 from ..errors import MapjoinError
 
 EXIT_TWO_MINIMA = 3
+EXIT_NOT_CONVERGED = 3  # the same code: a result written, but one to look at
 
 
 class _StderrHandler(logging.Handler):

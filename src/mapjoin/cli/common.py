@@ -136,13 +136,23 @@ def options_for(**options: str) -> Iterator[None]:
         raise
 
 
+def exit_if_not_converged(ctx: click.Context, result: RefineResult, output: str) -> None:
+    """A refine that stopped without converging must not look like success: one line on stderr (under -q
+    too) and exit code 3; the output written holds the last iterate."""
+    if result.converged:
+        return
+    from . import EXIT_NOT_CONVERGED
+
+    where = "stdout" if output == "-" else output
+    click.echo(f"mapjoin: error: the exact join did not converge ({result.reason} after {result.iterations} "
+               f"iterations, chi^2 = {result.cost:.10g}): {where} holds the last iterate, not the optimum", err=True)
+    ctx.exit(EXIT_NOT_CONVERGED)
+
+
 def warn_if_doubtful(result: RefineResult) -> None:
-    """Warn when the exact join did not converge, or when its chi^2 is outside the 99.9% interval
+    """Warn when the exact join's chi^2 is outside the 99.9% interval
     of its chi-square distribution (skipped under -q, which silences warnings: the interval
     costs scipy.special's import, ~0.08 s)."""
-    if not result.converged:
-        log.warning("the exact join did not converge (%s after %d iterations): the map written is the "
-                    "last iterate, chi^2 = %.10g", result.reason, result.iterations, result.cost)
     dof = result.degrees_of_freedom
     if dof <= 0 or not log.isEnabledFor(logging.WARNING):
         return

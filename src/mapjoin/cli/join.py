@@ -85,3 +85,5 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     say(ctx, f"joined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
              f"{len(result.report)} joins ({two} with two minima), covariance {covariance}, {strategy}, "
              f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}")
+    if exact:
+        common.exit_if_not_converged(ctx, refined, output)

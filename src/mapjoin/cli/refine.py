@@ -91,3 +91,4 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")
+    common.exit_if_not_converged(ctx, result, output)
