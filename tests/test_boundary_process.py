@@ -158,3 +158,12 @@ def test_a_usage_error_is_one_line_and_exit_2(tmp_path, args):
     assert result.returncode == 2
     assert_one_line_error(result.stderr)
     assert result.stderr.startswith("Error: ") and "--help" in result.stderr
+
+
+@pytest.mark.parametrize("input_format", ["yaml", "csv", "linearslam"])
+def test_an_endless_input_stops_at_the_bound_in_one_line(tmp_path, input_format):
+    """/dev/zero (no line end, no end): an error naming it, not unbounded memory or time."""
+    result = mapjoin("join", "/dev/zero", "--input-format", input_format, "-o", "out.csv", cwd=tmp_path)
+    assert result.returncode == 1
+    assert_one_line_error(result.stderr)
+    assert "/dev/zero" in result.stderr and not (tmp_path / "out.csv").exists()

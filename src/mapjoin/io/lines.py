@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from typing import IO
 
 from ..errors import InputError
+from . import paths
 from .paths import Source, is_path, not_utf8
 
 __all__ = ["text_lines"]
@@ -36,9 +37,12 @@ def text_lines(source: Source, name: str) -> Iterator[str]:
 
 
 def _lines(stream: IO, name: str) -> Iterator[str]:
-    """The lines of an open stream; a block is split after its last ``\\n``, so a ``\\r\\n`` stays whole."""
+    """The lines of an open stream; a block is split after its last ``\n``, so a ``\r\n`` stays whole. A line
+    longer than :data:`.paths.MAX_STREAM_BYTES` (an endless stream without line ends, e.g. /dev/zero) is an error,
+    and a long line is gathered in pieces, so that reading it costs time in proportion to its length."""
     decoder = codecs.getincrementaldecoder("utf-8")()
-    rest, first = "", True
+    pending: list[str] = []  # the start of the line being read
+    pending_size, first = 0, True
     while True:
         try:
             raw = stream.read(_BLOCK)
@@ -51,8 +55,13 @@ def _lines(stream: IO, name: str) -> Iterator[str]:
             break
         if first and block:
             block, first = block.removeprefix("\ufeff"), False
-        text = rest + block
-        cut = text.rfind("\n") + 1
-        rest = text[cut:]
-        yield from io.StringIO(text[:cut], newline="")
-    yield from io.StringIO(rest, newline="")
+        cut = block.rfind("\n") + 1
+        if cut:
+            yield from io.StringIO("".join(pending) + block[:cut], newline="")
+            pending, pending_size = [], 0
+        pending.append(block[cut:])
+        pending_size += len(block) - cut
+        if pending_size > paths.MAX_STREAM_BYTES:
+            raise InputError(f"holds a line of more than {paths.MAX_STREAM_BYTES} characters, the most read at once "
+                             "from a stream (an endless stream?)", name)
+    yield from io.StringIO("".join(pending), newline="")
