@@ -207,6 +207,21 @@ def test_rows_in_another_order_read_to_the_same_map():
     assert np.allclose(a.covariance @ EXAMPLE_INFORMATION, np.eye(5), atol=1e-14)
 
 
+@pytest.mark.parametrize("upper", ["0.1", "0.10000000000000002", "1e-1", ".1"])
+def test_the_matrix_is_read_whole_whether_or_not_its_text_is_symmetric(upper):
+    """The reader parses only the lower triangle when the text mirrors itself; an upper triangle
+    written differently (another digit within the symmetry tolerance, another spelling) is parsed
+    too, and the map is the inverse of the symmetrised matrix (numpy's inverse, not mapjoin's)."""
+    rows = [[repr(value) for value in row] for row in EXAMPLE_INFORMATION.tolist()]
+    rows[1][2] = upper  # entry (2, 3); (3, 2) stays 0.1
+    text = "2\n5\n-3 1.0\n-3 2.0\n-3 0.5\n7 4.0\n7 5.0\n" + "".join(" ".join(row) + "\n" for row in rows)
+    [local_map] = mapio.read_map_file(io.StringIO(text), "linearslam")
+    information = np.array([[float(value) for value in row] for row in rows])
+    expected = np.linalg.inv((information + information.T) / 2)
+    assert np.allclose(local_map.covariance, expected, rtol=1e-14, atol=1e-15)
+    assert np.array_equal(local_map.covariance, local_map.covariance.T)
+
+
 def test_a_map_without_features_reads():
     text = "0\n3\n-1 0.00088\n-1 -0.15647\n-1 0.01153\n" + matrix_text(EXAMPLE_INFORMATION[:3, :3])
     [local_map] = mapio.read_map_file(io.StringIO(text), "linearslam")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import operator
 import re
 from collections.abc import Sequence
 from itertools import chain
@@ -66,34 +67,56 @@ def read(text: str, source: str) -> list[LocalMap]:
                                      state[features].reshape(-1, 2), covariance)]
 
 
-_DECIMAL = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?"
-_STATE_ROW = re.compile(rf"[ \t]*(-?[0-9]+)[ \t]+({_DECIMAL})[ \t]*")
-
-
-@functools.lru_cache(maxsize=256)
-def _matrix_row(size: int) -> re.Pattern[str]:
-    """A row of ``size`` decimal numbers."""
-    return re.compile(rf"[ \t]*{_DECIMAL}(?:[ \t]+{_DECIMAL}){{{size - 1}}}[ \t]*")
+_PLAIN_CHARACTERS = re.compile(r"[-+0-9.eE \t\n]*")
+_PLAIN_IDS = re.compile(r"-?[0-9]+(?: -?[0-9]+)*")
 
 
 def _plain_rows(lines: Sequence[str], size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The ids, state and information of a file whose rows are plain decimal numbers, as mapjoin and Linear
     SLAM write them, read in bulk with ``float`` (the values the line-by-line path gives); None when any row is
-    otherwise (that path then reads them, naming the line of the error)."""
+    otherwise (that path then reads them, naming the line of the error).
+
+    Plain means: only ASCII digits, signs, points, exponents and blanks; ``id value`` state rows
+    and ``size`` numbers per matrix row; every number one ``float`` reads to a finite value (of
+    these characters, ``float`` reads exactly the plain decimals: ``1``, ``-1.5``, ``.5``, ``2e-3``)."""
     rows = lines[2:2 + 2 * size]
-    state = [_STATE_ROW.fullmatch(line) for line in rows[:size]]
-    matrix_row = _matrix_row(size)
-    if len(rows) < 2 * size or not all(state) or not all(map(matrix_row.fullmatch, rows[size:])):
+    block = "\n".join(rows)
+    if len(rows) < 2 * size or not _PLAIN_CHARACTERS.fullmatch(block):
         return None
+    if list(map(len, map(str.split, rows))) != [2] * size + [size] * size:
+        return None
+    tokens = block.split()
+    id_tokens = tokens[0:2 * size:2]
+    if not _PLAIN_IDS.fullmatch(" ".join(id_tokens)):
+        return None
+    matrix = tokens[2 * size:]
+    lower, mirror, triangle = _triangle(size)
+    lower_tokens = lower(matrix)
+    symmetric_text = lower_tokens == mirror(matrix)  # then parse half the matrix: float is the cost here
     try:
-        ids = np.array([int(match[1]) for match in state], dtype=np.int64)
-    except OverflowError:
+        ids = np.array(id_tokens, dtype=np.int64)
+        values = np.fromiter(map(float, tokens[1:2 * size:2] + (list(lower_tokens) if symmetric_text else matrix)),
+                             dtype=float)
+    except (OverflowError, ValueError):
         return None
-    values = np.fromiter(map(float, " ".join(rows[size:]).split()), dtype=float, count=size * size)
-    state_values = np.array([float(match[2]) for match in state])
-    if not (np.isfinite(values).all() and np.isfinite(state_values).all()):
+    if not np.isfinite(values).all():
         return None
-    return ids, state_values, values.reshape(size, size)
+    if not symmetric_text:
+        return ids, values[:size], values[size:].reshape(size, size)
+    information = np.empty((size, size))
+    information[triangle] = values[size:]
+    information.T[triangle] = values[size:]
+    return ids, values[:size], information
+
+
+@functools.lru_cache(maxsize=64)
+def _triangle(size: int) -> tuple[operator.itemgetter, operator.itemgetter, tuple[np.ndarray, np.ndarray]]:
+    """Getters of a row-major ``size`` x ``size`` matrix's lower triangle (row by row) and of the
+    entries mirroring it across the diagonal (their tuples are equal when the text is symmetric;
+    ``size`` >= 3, so each returns a tuple), and the triangle's indices."""
+    rows, columns = np.tril_indices(size)
+    return (operator.itemgetter(*(rows * size + columns).tolist()),
+            operator.itemgetter(*(columns * size + rows).tolist()), (rows, columns))
 
 
 def _text_integer(lines: Sequence[str], index: int, expected: str, source: str) -> int:
@@ -204,17 +227,31 @@ def _covariance_of_information(information: np.ndarray, first: int, source: str)
 
 def _spd_inverse(matrix: np.ndarray) -> tuple[np.ndarray | None, int]:
     """The inverse of a symmetric positive definite matrix by Cholesky (exactly symmetric), or None and the
-    order of the first leading block that is not positive definite."""
-    from scipy.linalg import lapack  # only the formats that store information matrices need it
+    order of the first leading block that is not positive definite.
 
-    factor, failed = lapack.dpotrf(matrix, lower=True)
-    if failed:
-        return None, failed
-    inverse, failed = lapack.dpotri(factor, lower=True)
-    if failed:
-        return None, failed
+    numpy's LAPACK does the work: importing scipy.linalg for it would cost more than reading a
+    few hundred maps (benchmarks/reading.py)."""
+    try:
+        factor_inverse = np.linalg.inv(np.linalg.cholesky(matrix))
+    except np.linalg.LinAlgError:
+        return None, _first_indefinite_block(matrix)
+    inverse = factor_inverse.T @ factor_inverse
     lower = np.tril(inverse)
     return lower + np.tril(lower, -1).T, 0
+
+
+def _first_indefinite_block(matrix: np.ndarray) -> int:
+    """The order of the smallest leading block of a matrix that is not positive definite (bisection: a
+    leading block of a positive definite block is positive definite)."""
+    definite, indefinite = 0, len(matrix)
+    while indefinite - definite > 1:
+        middle = (definite + indefinite) // 2
+        try:
+            np.linalg.cholesky(matrix[:middle, :middle])
+            definite = middle
+        except np.linalg.LinAlgError:
+            indefinite = middle
+    return indefinite
 
 
 def dump(maps: Sequence[LocalMap]) -> str:
