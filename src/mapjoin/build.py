@@ -52,7 +52,7 @@ from .covariance import marginal_variances, spherical_summary
 from .joining import join_sequential
 from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, size_groups, unstack
 from .raw import RawData
-from .se2 import relative
+from .se2 import compose, relative
 from .refine import TOLERANCE, RefineResult
 from .refine.problem import Blocks, ExactProblem
 from .refine.solver import Minimum, minimise
@@ -343,17 +343,6 @@ def _segment_of_blocks(bounds: np.ndarray, blocks: int, steps: int) -> np.ndarra
     return np.searchsorted(bounds, end_step, side="left") - 1
 
 
-def _dead_reckoned(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Pose ``second`` (n, 3), given in the frames ``first`` (n, 3), in the frame of ``first``'s frame.
-
-    :func:`mapjoin.se2.compose` with the sums in another order ((t + c x) - s y): the maps
-    built from dead reckoning are kept bit for bit as they were.
-    """
-    c, s = np.cos(first[:, 2]), np.sin(first[:, 2])
-    return np.stack([first[:, 0] + c * second[:, 0] - s * second[:, 1], first[:, 1] + s * second[:, 0]
-                     + c * second[:, 1], first[:, 2] + second[:, 2]], axis=1)
-
-
 @dataclass
 class _Solved:
     """A solved layout: the problem, where the solver stopped, and how many pieces led there."""
@@ -445,7 +434,7 @@ def _joined(pieces: _Pieces, bounds: np.ndarray, steps: int) -> np.ndarray:
         if len(members) > 1:     # no warnings: they would name pieces the user never sees
             joined = join_sequential([pieces.maps[i] for i in members], warn=False).global_map
             start_of_piece[members[1:]] = joined.poses[np.searchsorted(joined.pose_ids, members[1:])]
-    return _dead_reckoned(start_of_piece[_segment_of_blocks(piece_bounds, len(local), steps)], local)
+    return compose(start_of_piece[_segment_of_blocks(piece_bounds, len(local), steps)], local)
 
 
 def _covariance_blocks(problem: ExactProblem, data: np.ndarray, selected: list[np.ndarray]) -> list[np.ndarray]:

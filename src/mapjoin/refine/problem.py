@@ -34,7 +34,7 @@ import scipy.sparse as sp
 from ..covariance import state_covariance
 from ..errors import JoinError
 from ..maps import GlobalMap, LocalMap, locate
-from ..se2 import wrap
+from ..se2 import to_frame, wrap
 from . import groups as grouping
 from .groups import Group
 from .sparse import BlockPattern, diagonal_blocks, factorise, fill_reducing_order
@@ -208,25 +208,26 @@ class ExactProblem:
     # ---- evaluation ---------------------------------------------------------------------
 
     def _geometry(self, group: Group, x: np.ndarray):
-        """Base pose, its rotation and the points (end pose position, features) in its frame."""
+        """Base pose's rotation (cos, sin: (G, 1)) and the map's measurements predicted at ``x``: the
+        points (end pose position, features) seen from the base pose (``se2.to_frame``), x's and y's,
+        and the end pose's orientation relative to the base's, unwrapped."""
         N = self.n_maps
         poses = x[:3 * N].reshape(N, 3)
         features = x[3 * N:].reshape(-1, 2)
         bp = poses[group.base] * group.has_base[:, None]
-        c, s = np.cos(bp[:, 2:]), np.sin(bp[:, 2:])
-        gx = np.concatenate([poses[group.maps, :1], features[group.features, 0]], axis=1) - bp[:, :1]
-        gy = np.concatenate([poses[group.maps, 1:2], features[group.features, 1]], axis=1) - bp[:, 1:2]
-        return c, s, c * gx + s * gy, c * gy - s * gx, poses[group.maps, 2] - bp[:, 2], gx, gy
+        points = np.concatenate([poses[group.maps, None, :2], features[group.features]], axis=1)
+        local = to_frame(bp[:, None, :], points)
+        return np.cos(bp[:, 2:]), np.sin(bp[:, 2:]), local[..., 0], local[..., 1], poses[group.maps, 2] - bp[:, 2]
 
     def _residual(self, group: Group, geometry) -> np.ndarray:
-        _, _, lx, ly, phi, _, _ = geometry
+        _, _, lx, ly, phi = geometry
         e = group.measurement - np.concatenate([lx, ly, phi[:, None]], axis=1)
         e[:, -1] = wrap(e[:, -1])
         return np.matmul(group.whitening, e[:, :, None])[:, :, 0]
 
     def _jacobian(self, group: Group, geometry) -> np.ndarray:
         """(G, d, w): d r / d (the group's columns) for every map of the group."""
-        c, s, lx, ly, _, _, _ = geometry
+        c, s, lx, ly, _ = geometry
         W = group.whitening
         p = lx.shape[1]                              # points: m + 1
         Wx, Wy, Wphi = W[:, :, :p], W[:, :, p:2 * p], W[:, :, 2 * p]
