@@ -139,3 +139,13 @@ def test_the_global_map_examples_carry_what_the_page_says(tmp_path):
     np.testing.assert_array_equal(from_yaml.feature_covariances, with_cov.feature_covariances)
     np.testing.assert_array_equal(from_yaml.pose_covariances, with_cov.pose_covariances)
     assert from_yaml.provenance.maps == ("first", "second") and from_yaml.provenance.strategy == "sequential"
+
+
+def test_the_readme_local_map_example_is_read_and_joined(tmp_path):
+    blocks = re.findall(r"```yaml\n(.*?)```\n", (SPEC.parent.parent / "README.md").read_text(), re.DOTALL)
+    assert blocks
+    for number, text in enumerate(blocks):
+        path = tmp_path / f"readme-{number}.yaml"
+        path.write_text(text)
+        [local_map] = mapio.read_maps([str(path)])
+        assert join([local_map]).global_map.feature_ids.tolist() == local_map.feature_ids.tolist()
