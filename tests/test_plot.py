@@ -340,7 +340,7 @@ def test_without_matplotlib_the_figures_say_how_to_install_it_and_the_rest_works
     result = subprocess.run([sys.executable, "-c", script, "plot", str(joined["fast"]), "-o", str(target)],
                             capture_output=True, text=True, check=False)
     assert result.returncode == 1 and not target.exists()
-    assert result.stderr == "Error: figures need matplotlib, an optional extra: pip install 'mapjoin[plot]'\n"
+    assert result.stderr == "Error: figures need matplotlib, an optional extra: pip install 'mapjoin-slam[plot]'\n"
     result = subprocess.run([sys.executable, "-c", script, "compare", str(joined["fast"]), str(joined["fast"])],
                             capture_output=True, text=True, check=False)
     assert result.returncode == 0 and "x (m)" in result.stdout

@@ -68,8 +68,10 @@ def __getattr__(name: str) -> Any:
     if name == "__version__":
         from importlib.metadata import PackageNotFoundError, version
 
+        from .distribution import DISTRIBUTION
+
         try:
-            value = version("mapjoin")
+            value = version(DISTRIBUTION)
         except PackageNotFoundError:  # running from a source tree that is not installed
             value = "0.0.0+unknown"
     elif name in _LAZY:

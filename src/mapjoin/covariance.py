@@ -46,7 +46,7 @@ __all__ = [
 
 CovarianceMode = Literal["identity", "marginal", "information"]
 COVARIANCE_MODES: tuple[str, ...] = ("identity", "marginal", "information")
-# Measured against the exact least-squares joins (README, "Covariance modes"): closest on
+# Measured against the exact least-squares joins (docs/joining.md, "Covariance modes"): closest on
 # VicPark 200 and both simulations; "marginal" is closer on DLR 200 only.
 DEFAULT_COVARIANCE: CovarianceMode = "information"
 

@@ -66,7 +66,7 @@ class Range(NamedTuple):
         return f"finite {self.what} in [{self.low:g}, {self.high:g}]"
 
 
-# The accepted ranges (README, "Accepted values"). Local maps and raw data: the one-step constants square
+# The accepted ranges (docs/formats.md, "Accepted values"). Local maps and raw data: the one-step constants square
 # coordinate differences (< 4e18 m^2) and divide them by sums of variances (>= 2e-30), then sum over up to
 # 10^7 features: < 1e56, far from overflow, and a = a0 * p_phi stays below 1e86. Global maps and ground truth
 # chain up to 10^7 maps of such size, so they allow coordinates to 1e16 m and variances in [1e-40, 1e40]:
@@ -185,7 +185,7 @@ class LocalMap:
     when present it must be symmetric positive definite (rounding-level asymmetry, within
     ``SYMMETRY_TOLERANCE``, is averaged away, in a copy).
 
-    Every value must lie in its accepted range (README, "Accepted values"): coordinates in
+    Every value must lie in its accepted range (docs/formats.md, "Accepted values"): coordinates in
     :data:`COORDINATE` (|x| <= 1e9 m), the heading in :data:`ANGLE` (|phi| <= 1e6 rad),
     variances in :data:`VARIANCE` ([1e-30, 1e30]), covariance entries in :data:`COVARIANCE_ENTRY`;
     then no arithmetic of a join overflows or divides by a subnormal.

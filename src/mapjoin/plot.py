@@ -1,6 +1,6 @@
 """Figures: maps and trajectories, Theorem 2's two-minima region, and one join's cost curve.
 
-matplotlib is an optional extra (``pip install 'mapjoin[plot]'``), imported only when a
+matplotlib is an optional extra (``pip install 'mapjoin-slam[plot]'``), imported only when a
 figure is drawn. Figures are ``matplotlib.figure.Figure`` objects drawn by the Agg
 renderer, never pyplot: headless, and without touching the global backend of a program
 that imports mapjoin. :func:`save` writes PNG, SVG or PDF, chosen by the file's extension.
@@ -25,6 +25,7 @@ import numpy as np
 
 from . import io as mapio
 from .errors import InputError, JoinError, MapjoinError
+from .distribution import install_hint
 from .joining import check_chain, join_sequential
 from .covariance import CovarianceMode, spherical_variances
 from .maps import GlobalMap, GroundTruth, LocalMap
@@ -49,7 +50,7 @@ __all__ = [
 ]
 
 FIGURE_FORMATS: tuple[str, ...] = ("png", "svg", "pdf")
-INSTALL_HINT = "pip install 'mapjoin[plot]'"
+INSTALL_HINT = install_hint("plot")
 #: probability inside the drawn uncertainty ellipses; for 2 degrees of freedom the
 #: chi-square quantile is -2 ln(1 - p) in closed form (5.991 for 95%)
 ELLIPSE_PROBABILITY = 0.95

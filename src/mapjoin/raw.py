@@ -6,7 +6,7 @@ The odometry must be one chain: each relative pose starts where the previous one
 before. Observations (a feature's x, y in the frame of the observing pose, with its known
 id) may come anywhere in the file and refer to any pose of the chain.
 
-Noise numbers (README, "Raw data"):
+Noise numbers (docs/build.md, "Raw data formats"):
 
 VicPark preprocessed (``VicPark_clean_data.mat``, variable ``VicPark_clean_data``, I-SLSJF)
     12 columns per row. Odometry ``[1, i, j, dx, dy, dphi, Pxx, Pxy, Pxphi, Pyy, Pyphi,
@@ -265,7 +265,7 @@ def _assemble(name: str, unit: str, *, odometry_ids: np.ndarray, odometry: np.nd
 
 
 def _require_within(values: np.ndarray, lines: np.ndarray, where: _Where, what: str, ranges: Ranges) -> None:
-    """InputError naming the first line with a value outside ``ranges`` (README, "Accepted values")."""
+    """InputError naming the first line with a value outside ``ranges`` (docs/formats.md, "Accepted values")."""
     bad = outside(values, ranges)
     if bad.any():
         i, *index = (int(k) for k in np.argwhere(bad)[0])

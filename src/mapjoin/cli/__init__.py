@@ -75,7 +75,7 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
     stdin; data goes to stdout unless -o is given. Outputs are checked before any input
     is read, never overwrite an input or each other (links and letter case included),
     and are written all or none; a symbolic link is written through (the file it points
-    to is replaced), a device or FIFO is written into (README, "Formats").
+    to is replaced), a device or FIFO is written into (docs/formats.md).
 
     \b
     Examples:

@@ -52,7 +52,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
 
     The feature ids must be known (data association). RAW is I-SLSJF's preprocessed Victoria Park file (VicPark_clean_data.mat), iSAM text
     (ODOMETRY/LANDMARK lines, covariances) or g2o 2D (VERTEX_SE2, VERTEX_XY, EDGE_SE2,
-    EDGE_SE2_XY, information matrices); README, "Raw data", says how each format's noise
+    EDGE_SE2_XY, information matrices); docs/build.md, "Raw data formats", says how each format's noise
     numbers are read. The odometry is cut into consecutive maps; each map's full
     least-squares problem is solved (its start pose fixed as the origin) with refine's
     sparse Gauss-Newton, and written with its end pose, features and full covariance.

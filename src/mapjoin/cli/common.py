@@ -52,7 +52,7 @@ input_format_option = click.option(
     help="Format of the inputs when their names do not tell it (e.g. stdin).")
 covariance_option = click.option(
     "--covariance", type=click.Choice(COVARIANCE_MODES), default=DEFAULT_COVARIANCE, show_default=True,
-    help="How each local map's covariance is made spherical (see README, 'Covariance modes').")
+    help="How each local map's covariance is made spherical (see docs/joining.md, 'Covariance modes').")
 solver_option = click.option(
     "--solver", type=click.Choice(SOLVERS), default="bisection", show_default=True,
     help="1-D global solver of Algorithm 1.")

@@ -24,7 +24,7 @@ from .common import (TABLE_EXTENSIONS, covariance_option, global_map_format_opti
 @solver_option
 @click.option("--strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
               help="Order of the joins: each map onto the global map so far, or neighbours pairwise, "
-                   "level by level (faster, less accurate: README, 'Strategies').")
+                   "level by level (faster, less accurate: docs/joining.md, 'Strategies').")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
               help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
 @click.option("--refine", "exact", is_flag=True,

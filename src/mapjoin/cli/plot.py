@@ -1,6 +1,6 @@
 """``mapjoin plot``, ``plot-minima``, ``plot-join``: figures of maps, of Theorem 2, of one join.
 
-matplotlib is needed only here (``pip install 'mapjoin[plot]'``) and is imported when a
+matplotlib is needed only here (``pip install 'mapjoin-slam[plot]'``) and is imported when a
 figure is drawn, so the other commands start without it.
 """
 

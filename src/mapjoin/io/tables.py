@@ -34,7 +34,7 @@ class MinimaTable:
     join: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        """Refuse a row outside the accepted ranges (README, "Accepted values"): ``a`` in [0, 1e100],
+        """Refuse a row outside the accepted ranges (docs/formats.md, "Accepted values"): ``a`` in [0, 1e100],
         ``|c_phi|`` <= 1e6 rad (beyond, its reduction modulo 2 pi loses the digits the minima depend on)."""
         for column, limits in (("a", MINIMA_A), ("c_phi", ANGLE)):
             values = getattr(self, column)
