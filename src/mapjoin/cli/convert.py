@@ -47,5 +47,5 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
         maps = mapio.read_map_paths(paths, format=input_format)
     with outputs:
         written = mapio.write_maps(maps, output, to_format)
-    say(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
-             if output != "-" else f"converted {len(maps)} maps to {to_format}")
+    converted = f"converted {common.counted(len(maps), 'map')} to {to_format}"
+    say(ctx, f"{converted}: {common.counted(len(written), 'file')} in {output}" if output != "-" else converted)
