@@ -36,7 +36,7 @@ figure_option = click.option("-o", "--output", required=True, metavar="FILE",
 @click.pass_context
 def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str | None, ellipses: bool,
          labels: tuple[str, ...]) -> None:
-    """Draw global maps, or local maps before a join: features, trajectories, uncertainty.
+    """Draw maps: features, trajectories, uncertainty.
 
     Several maps are overlaid in distinct styles with a legend, e.g. the fast join against
     the exact one (the paper's Fig. 5). Axes are in metres with equal scales; the
@@ -157,7 +157,8 @@ def _drawable(argument: str, ellipses: bool) -> GlobalMap:
     if argument == "-":  # read once, tried as both
         source = io.StringIO(mapio.read_text("-", "<stdin>"))
         source.name = "<stdin>"
-    if argument == "-" or os.path.isfile(argument):
+    single = not (os.path.isdir(argument) or any(character in argument for character in "*?["))
+    if single:  # a file, -, or nothing there (the global map's error says so)
         try:
             return mapio.read_global_map(source)
         except MapjoinError as error:
@@ -168,7 +169,7 @@ def _drawable(argument: str, ellipses: bool) -> GlobalMap:
         local_maps = (mapio.read_map_file(source, name="<stdin>") if isinstance(source, io.StringIO)
                       else mapio.read_map_paths(mapio.resolve_inputs([argument])))
     except MapjoinError:
-        if argument == "-" or os.path.isfile(argument):
+        if single:
             raise not_global from None
         raise
     if ellipses:
