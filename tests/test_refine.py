@@ -588,7 +588,7 @@ def test_cli_tolerance_default_is_the_library_default():
     from mapjoin.refine import TOLERANCE
 
     for command in ("refine", "join"):
-        assert f"[default: {TOLERANCE:g}; 0.0<=x<=1.0]" in " ".join(run(command, "--help").output.split())
+        assert f"[default: ({TOLERANCE:g}); 0.0<=x<=1.0]" in " ".join(run(command, "--help").output.split())
 
 
 def test_tolerance_zero_means_to_rounding_and_converges(simulated_folder, data_dir, tmp_path):
