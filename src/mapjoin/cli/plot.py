@@ -129,9 +129,7 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
     """
     figures.figure_format(output)
     outputs = mapio.Outputs(files={"-o": output})
-    paths = outputs.guard(mapio.resolve_inputs(inputs))
-    with common.options_for(format="--input-format"):
-        maps = mapio.read_map_paths(paths, format=input_format)
+    maps = common.read_local_maps(inputs, input_format, outputs)
     if join_number is None:
         if len(maps) != 2:
             raise click.UsageError(f"{len(maps)} maps: choose a join with --join K (1 to {len(maps) - 1}; "
