@@ -132,7 +132,8 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
                    **({"facecolors": "none", "edgecolors": colour} if hollow else {"color": colour}))
         trajectory = np.vstack([np.zeros(2), global_map.poses[:, :2]])
         ax.plot(*trajectory.T, color=colour, linestyle=line, linewidth=1.1, gid="poses")
-        text = f"{label}: {counted(len(global_map.feature_ids), 'feature')}, {counted(len(global_map.pose_ids), 'pose')}"
+        text = (f"{label}: {counted(len(global_map.feature_ids), 'feature')}, "
+                f"{counted(len(global_map.pose_ids), 'pose')}")
         if ellipses:
             text += _draw_ellipses(ax, global_map, colour)
         handles.append(mpl.lines.Line2D([], [], color=colour, marker=marker, linestyle=line,
@@ -153,10 +154,11 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
 
 
 def chained_local_maps(maps: Sequence[LocalMap], name: str) -> GlobalMap:
-    """Local maps placed by their start poses alone, without a join (docs/method.md: each map is in the frame
-    of its start pose, the end pose of the map before): map 1 at the origin, map k at the composition of the
-    end poses of maps 1..k-1, so that a figure shows the drift a join corrects. A feature several maps hold
-    is drawn where the first of them puts it; the variances are the local maps' own, not a global map's."""
+    """Local maps placed by their start poses alone, without a join (docs/method.md#notation: each map
+    is in the frame of its start pose, the end pose of the map before): map 1 at the origin, map k at the
+    composition of the end poses of maps 1..k-1, so that a figure shows the drift a join corrects. A feature
+    several maps hold is drawn where the first of them puts it; the variances are the local maps' own, not a
+    global map's (so no uncertainty is drawn from them: join them first)."""
     check_chain(maps)
     ends = np.array([m.end_pose for m in maps])
     headings = np.cumsum(ends[:, 2])

@@ -54,7 +54,8 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     """
     modes = [bool(maps), a is not None or c_phi is not None, batch is not None]
     if sum(modes) != 1:
-        raise click.UsageError("give exactly one of: --a A --c-phi C; two local maps (MAP_A MAP_B, or a folder of two); --batch FILE")
+        raise click.UsageError("give exactly one of: --a A --c-phi C; two local maps (MAP_A MAP_B, or a folder "
+                               "of two); --batch FILE")
     if batch is not None:
         outputs = mapio.Outputs(files={"-o": output})
         outputs.guard([batch])

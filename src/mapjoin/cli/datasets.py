@@ -90,7 +90,8 @@ def fetch(ctx: click.Context, names: tuple[str, ...], into: Path | None, source:
         else:
             check = ("every SHA-256 verified" if result.verified
                      else "NOT verified: no checksums are known for this set")
-            say(ctx, f"{dataset.name}: fetched {common.counted(result.files, 'file')}, {result.size / 1e6:.1f} MB, {check}")
+            say(ctx, f"{dataset.name}: fetched {common.counted(result.files, 'file')}, {result.size / 1e6:.1f} MB, "
+                     f"{check}")
         if result.skipped:
             say(ctx, f"{dataset.name}: the source does not hold {', '.join(result.skipped)} (optional; skipped)")
         click.echo(result.path)

@@ -81,7 +81,8 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     two = sum(r.minima == 2 for r in result.report)
     g = global_map
     say(ctx, f"joined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
-             f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} ({two} with two minima), covariance {covariance}, {strategy}, "
+             f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
+             f"({two} with two minima), covariance {covariance}, {strategy}, "
              f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}")
     if exact:
         common.exit_if_not_converged(ctx, refined, output)
