@@ -123,7 +123,7 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
         ax.plot(*truth.poses[:, :2].T, color=_TRUTH_COLOUR, linestyle=(0, (4, 2)), linewidth=1.0, gid="truth-poses")
         handles.append(mpl.lines.Line2D([], [], color=_TRUTH_COLOUR, marker="+", linestyle=(0, (4, 2)),
                                         label=f"ground truth ({os.path.basename(truth.name) or truth.name}): "
-                                              f"the {mapped.sum()} mapped of {len(mapped)} features, "
+                                              f"the {mapped.sum()} mapped of {counted(len(mapped), 'feature')}, "
                                               f"{counted(len(truth.pose_ids), 'pose')}"))
     size = float(np.clip(4000 / max(1, max(len(m.feature_ids) for m in maps)), 3, 18))
     for global_map, label, (colour, marker, line) in zip(maps, labels, itertools.cycle(_STYLES)):

@@ -103,7 +103,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     writing = time.perf_counter() - writing
     dof = result.degrees_of_freedom
     pieces = f", from {result.pieces} pieces joined" if result.pieces else ""
-    files = f" ({len(written)} files)" if len(written) > 1 else ""
+    files = f" ({common.counted(len(written), 'file')})" if len(written) > 1 else ""
     say(ctx, f"built {common.counted(len(result.maps), 'local map')} from {raw.name} ({raw.steps} steps, "
              f"{len(raw.observations)} "
              f"observations): chi^2 {result.cost:.6f} for {int(dof.sum())} degrees of freedom (per map "
@@ -115,7 +115,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     if global_path:
         solution = result.batch
         say(ctx, f"batch solution: chi^2 {solution.cost:.6f} (half: {solution.cost / 2:.6f}) for "
-                 f"{solution.degrees_of_freedom} degrees of freedom, {solution.iterations} iterations "
+                 f"{solution.degrees_of_freedom} degrees of freedom, {common.counted(solution.iterations, 'iteration')} "
                  f"({solution.reason}), {solution.seconds + solution.covariance_seconds:.3f} s -> {global_path}")
 
 
