@@ -9,10 +9,10 @@ import math
 import click
 
 from .. import io as mapio
+from ..errors import counted
 from ..evaluation import ALIGNMENTS, Evaluation
 from ..evaluation import evaluate as evaluate_map
 from ..maps import GlobalMap, GroundTruth
-from ..errors import counted
 from . import main
 
 
