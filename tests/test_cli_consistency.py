@@ -67,6 +67,12 @@ def test_a_solve_option_without_refine_is_a_usage_error(simulated_folder, tmp_pa
     assert not (tmp_path / "g.csv").exists()
 
 
+def test_verbose_prints_the_solve_iterations_on_both_commands(simulated_folder, tmp_path):
+    for command in (["join", "--refine"], ["refine"]):
+        result = run("-v", *command, simulated_folder, "-o", str(tmp_path / "g.csv"))
+        assert result.exit_code == 0 and "iteration 0: chi^2 = " in result.stderr, result.stderr
+
+
 def test_join_max_iterations_reaches_the_solve(simulated_folder, tmp_path):
     """--max-iterations 0 on join --refine: the start itself, not converged (exit 3), as refine says."""
     for command in (["join", "--refine"], ["refine"]):
@@ -166,6 +172,9 @@ def test_batch_keeps_the_identifying_columns_and_writes_absent_values_empty(simu
         rows = (list(csv.DictReader(out.open())) if suffix == "csv" else yaml.safe_load(out.read_text()))
         assert [(str(r["join"]), r["map"]) for r in rows] == [(j["join"], j["map"]) for j in joins]
         assert list(rows[0])[:4] == ["join", "map", "a", "c_phi"]
+        table = mapio.read_minima_table(str(out))                 # read back: the identifying columns too
+        assert table.map_names == tuple(j["map"] for j in joins)
+        assert table.join.tolist() == [int(j["join"]) for j in joins]
     # a < 1: no phi1, phi2 (Theorem 2's zeros of fbar'' do not exist), one minimum: no second
     plain = run("check-minima", "--batch", "-", input="a,c_phi\n0.5,1\n")
     assert plain.exit_code == 0
