@@ -24,8 +24,8 @@ from .common import (covariance_option, global_map_format_option, global_map_out
 @common.strategy_option
 @common.jobs_option
 @click.option("--refine", "exact", is_flag=True,
-              help="Then refine to the exact least-squares join (as `mapjoin refine`), with covariances; "
-                   "the exact solve's options below apply only with it.")
+              help="Then refine to the exact least-squares join (as `mapjoin refine`), with marginal "
+                   "covariances unless --no-covariances; the exact solve's options below need it.")
 @common.refine_options
 @input_format_option
 @click.pass_context
