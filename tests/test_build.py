@@ -284,9 +284,9 @@ def test_a_blind_stretch_a_standstill_and_the_last_pose(tmp_path, caplog):
     path = write(tmp_path, "run.txt", isam_text(arrays))
     with caplog.at_level(logging.WARNING, logger="mapjoin"):
         raw = read_raw(path)
-        assert "1 odometry covariance(s) have a variance below 1e-06" in caplog.text and "line 10" in caplog.text
+        assert "1 odometry covariance with a variance below 1e-06" in caplog.text and "line 10" in caplog.text
         result = build(raw, [0, 4, 8, 12])
-    assert "1 local map(s) see no feature" in caplog.text
+    assert "1 local map without a feature" in caplog.text
     assert result.maps[1].size == 0 and result.maps[1].covariance.shape == (3, 3)
     np.testing.assert_allclose(raw.odometry_covariances[9], 1e-6 * np.eye(3))
     stabilised = list(arrays)

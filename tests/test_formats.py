@@ -411,7 +411,7 @@ def test_csv_drops_full_covariances_with_one_warning(mapjoin_log):
     maps = [LocalMap.from_covariance(name, 0, 1, [0, 0, 0], [3], [[1, 2]], np.eye(5)) for name in "ab"]
     text = written(mapio.write_maps, maps, "csv")
     [warning] = warnings_of(mapjoin_log)
-    assert "dropped the full covariances of 2 map(s)" in warning
+    assert "dropped the full covariances of 2 maps" in warning
     assert all(m.covariance is None for m in mapio.read_map_file(io.StringIO(text), "csv"))
     written(mapio.write_maps, maps, "yaml")
     assert len(warnings_of(mapjoin_log)) == 1

@@ -587,7 +587,8 @@ def test_cli_start_from_the_tree_reaches_the_same_optimum(data_dir, tmp_path):
 def test_cli_tolerance_default_is_the_library_default():
     from mapjoin.refine import TOLERANCE
 
-    assert f"[default: ({TOLERANCE:g}); 0.0<=x<=1.0]" in " ".join(run("refine", "--help").output.split())
+    for command in ("refine", "join"):
+        assert f"[default: ({TOLERANCE:g}); 0.0<=x<=1.0]" in " ".join(run(command, "--help").output.split())
 
 
 def test_tolerance_zero_means_to_rounding_and_converges(simulated_folder, data_dir, tmp_path):

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from .errors import InputError
+from .errors import InputError, counted
 from .covariance import marginal_variances, spherical_summary
 from .joining import join_sequential
 from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, size_groups, unstack
@@ -149,8 +149,8 @@ def build(raw: RawData, bounds: Sequence[int], *, jobs: int = 1, piece_steps: in
     maps = [m for part in parts for m in part.maps]
     empty = [m.name for m in maps if not m.size]
     if empty:
-        log.warning("%d local map(s) see no feature (first: %s): written with their end pose only; a join places "
-                    "each by its start pose alone", len(empty), empty[0])
+        log.warning("%s without a feature (first: %s): written with the end pose only; a join places "
+                    "each by its start pose alone", counted(len(empty), "local map"), empty[0])
     result = BuildResult(maps=tuple(maps), costs=np.concatenate([p.costs for p in parts]),
                          residuals=np.concatenate([p.residuals for p in parts]),
                          unknowns=np.concatenate([p.unknowns for p in parts]),

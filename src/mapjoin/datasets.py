@@ -166,7 +166,7 @@ def fetch(name: str, into: str | Path | None = None, source: str | None = None,
     """Download dataset ``name`` into ``into`` (default :func:`default_cache`) and verify every checksum.
 
     ``source`` replaces the default source: a URL or local folder laid out like the cache
-    (``<source>/<folder>/<file>``), e.g. ``file:///work/shared/data``. A set already complete
+    (``<source>/<folder>/<file>``), e.g. ``https://mirror.example/data`` or ``../shared/data``. A set already complete
     in the cache is not downloaded again when its files match their checksums (or none are
     known). ``progress`` is called with the number of files done so far.
     """

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["ECHO_LIMIT", "MapjoinError", "InputError", "JoinError", "shown"]
+__all__ = ["ECHO_LIMIT", "MapjoinError", "InputError", "JoinError", "counted", "shown"]
 
 #: the most characters of an input value an error message shows (:func:`shown`)
 ECHO_LIMIT = 40
@@ -15,6 +15,12 @@ def shown(value: object, limit: int = ECHO_LIMIT, *, quoted: bool = True) -> str
     text = repr(value) if isinstance(value, str) and quoted else str(value)
     text = text if text.isprintable() else repr(text)[1:-1]
     return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def counted(count: int, singular: str, plural: str | None = None) -> str:
+    """How a message shows a count of things, the noun in the number it needs: ``1 map``, ``2 maps``,
+    ``0 maps``, ``1 minimum`` / ``2 minima`` (``plural`` when not ``singular + "s"``)."""
+    return f"{count} {singular if count == 1 else plural or singular + 's'}"
 
 
 class MapjoinError(Exception):
@@ -45,7 +51,11 @@ class InputError(MapjoinError):
 
     def naming(self, option: str) -> InputError:
         """This error with the remedy ``pass <option>`` (a command's option for :attr:`argument`)."""
-        return InputError(f"{self._before_remedy}pass {option}", self.source, self.where)
+        return self.with_remedy(f"pass {option}")
+
+    def with_remedy(self, remedy: str) -> InputError:
+        """This error ending with ``remedy`` instead of ``give its <argument>``."""
+        return InputError(f"{self._before_remedy}{remedy}", self.source, self.where)
 
 
 class JoinError(MapjoinError):

@@ -209,10 +209,16 @@ def _solve_join(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarr
 def _row(name: str, start_id: int, end_id: int, common: int, size: int, *solution, warn: bool = True) -> tuple:
     """A join's report entry (JoinRecord's fields after ``join``); with ``warn``, warns when the join has
     no common feature."""
-    if not common and warn:
+    if warn:
+        _warn_if_unlinked(name, common)
+    return (name, start_id, end_id, common, size - common, *solution)
+
+
+def _warn_if_unlinked(name: str, common: int) -> None:
+    """Warn that the map(s) ``name`` share no feature with what they are joined onto."""
+    if not common:
         log.warning("%s shares no feature with the maps it is joined onto: it is placed by its "
                     "start pose alone (no correction of the map so far)", name)
-    return (name, start_id, end_id, common, size - common, *solution)
 
 
 def _report(rows: Sequence[tuple]) -> tuple[JoinRecord, ...]:
@@ -405,8 +411,10 @@ def _join_levels(pieces: _Pieces, labels: _Labels, solver: Solver, level: int,
 
 
 def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[tuple]]:
-    """A worker process's share: one aligned block of pieces joined into one."""
+    """A worker process's share: one aligned block of pieces joined into one. It does not warn: the parent
+    (:func:`join_tree`) warns for its rows, so that one process's logging says (and counts) everything."""
     pieces, labels, solver = job
+    log.disabled = True
     return _join_levels(pieces, labels, solver, 0)
 
 
@@ -435,6 +443,8 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
             results = list(pool.map(_subtree, [(b, labels, solver) for b in blocks]))
         for _, block_records in results:
             records += block_records
+        for row in records:
+            _warn_if_unlinked(row[0], row[3])
         pieces = _concatenate([(start // size, block) for start, (block, _) in
                                zip(range(0, len(maps), size), results)])
         if progress:

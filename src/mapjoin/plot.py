@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import io as mapio
-from .errors import InputError, JoinError, MapjoinError
+from .errors import InputError, JoinError, MapjoinError, counted
 from .distribution import install_hint
 from .joining import check_chain, join_sequential
 from .covariance import CovarianceMode, spherical_variances
@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 __all__ = [
     "FIGURE_FORMATS",
     "JoinCurve",
+    "chained_local_maps",
     "figure_format",
     "join_curve",
     "join_figure",
@@ -123,8 +124,8 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
         ax.plot(*truth.poses[:, :2].T, color=_TRUTH_COLOUR, linestyle=(0, (4, 2)), linewidth=1.0, gid="truth-poses")
         handles.append(mpl.lines.Line2D([], [], color=_TRUTH_COLOUR, marker="+", linestyle=(0, (4, 2)),
                                         label=f"ground truth ({os.path.basename(truth.name) or truth.name}): "
-                                              f"the {mapped.sum()} mapped of {len(mapped)} features, "
-                                              f"{len(truth.pose_ids)} poses"))
+                                              f"the {mapped.sum()} mapped of {counted(len(mapped), 'feature')}, "
+                                              f"{counted(len(truth.pose_ids), 'pose')}"))
     size = float(np.clip(4000 / max(1, max(len(m.feature_ids) for m in maps)), 3, 18))
     for global_map, label, (colour, marker, line) in zip(maps, labels, itertools.cycle(_STYLES)):
         hollow = marker in "o^sDv"  # filled shapes drawn hollow, so that overlaid maps stay visible
@@ -132,7 +133,8 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
                    **({"facecolors": "none", "edgecolors": colour} if hollow else {"color": colour}))
         trajectory = np.vstack([np.zeros(2), global_map.poses[:, :2]])
         ax.plot(*trajectory.T, color=colour, linestyle=line, linewidth=1.1, gid="poses")
-        text = f"{label}: {len(global_map.feature_ids)} features, {len(global_map.pose_ids)} poses"
+        text = (f"{label}: {counted(len(global_map.feature_ids), 'feature')}, "
+                f"{counted(len(global_map.pose_ids), 'pose')}")
         if ellipses:
             text += _draw_ellipses(ax, global_map, colour)
         handles.append(mpl.lines.Line2D([], [], color=colour, marker=marker, linestyle=line,
@@ -150,6 +152,29 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
     lines = sum(text.get_text().count("\n") + 1 for text in legend.get_texts())
     figure.set_size_inches(8, float(np.clip(7 * shape, 3, 9)) + 0.8 + 0.2 * lines)
     return figure
+
+
+def chained_local_maps(maps: Sequence[LocalMap], name: str) -> GlobalMap:
+    """Local maps placed by their start poses alone, without a join (docs/method.md#notation: each map
+    is in the frame of its start pose, the end pose of the map before): map 1 at the origin, map k at the
+    composition of the end poses of maps 1..k-1, so that a figure shows the drift a join corrects. A feature
+    several maps hold is drawn where the first of them puts it; the variances are the local maps' own, not a
+    global map's (so no uncertainty is drawn from them: join them first)."""
+    check_chain(maps)
+    ends = np.array([m.end_pose for m in maps])
+    headings = np.cumsum(ends[:, 2])
+    turn = np.exp(1j * np.concatenate([[0.0], headings[:-1]]))           # each map's start heading
+    end_xy = np.cumsum(turn * (ends[:, 0] + 1j * ends[:, 1]))
+    start_xy = np.concatenate([[0j], end_xy[:-1]])
+    owner = np.repeat(np.arange(len(maps)), [len(m.feature_ids) for m in maps])
+    local = np.concatenate([m.features for m in maps]).reshape(-1, 2)
+    placed = start_xy[owner] + turn[owner] * (local[:, 0] + 1j * local[:, 1])
+    ids, first = np.unique(np.concatenate([m.feature_ids for m in maps]), return_index=True)
+    return GlobalMap(feature_ids=ids, features=np.column_stack([placed.real, placed.imag])[first],
+                     feature_variances=np.concatenate([m.feature_variances for m in maps])[first],
+                     pose_ids=np.array([m.end_id for m in maps]),
+                     poses=np.column_stack([end_xy.real, end_xy.imag, wrap(headings)]),
+                     pose_variances=np.array([m.pose_variances for m in maps]), name=name)
 
 
 def _draw_ellipses(ax: Axes, global_map: GlobalMap, colour: str) -> str:
@@ -230,7 +255,7 @@ def minima_figure(points: mapio.MinimaTable) -> Figure:
     for count, style in ((1, {"marker": "o", "s": 16, "color": "#2166ac", "alpha": 0.7, "linewidths": 0}),
                          (2, {"marker": "D", "s": 40, "color": "#b2182b", "edgecolors": "k", "linewidths": 0.6})):
         chosen = counts == count
-        label = f"{_plural(int(chosen.sum()), what)} with {'one minimum' if count == 1 else 'two minima'}"
+        label = f"{counted(int(chosen.sum()), what)} with {'one minimum' if count == 1 else 'two minima'}"
         ax.scatter(points.c_phi[chosen], shown[chosen], zorder=3, clip_on=False, gid=f"minima-{count}",
                    label=label, **style)
     for number, c, a in list(zip(numbers[counts == 2], points.c_phi[counts == 2], shown[counts == 2]))[:30]:
@@ -244,15 +269,11 @@ def minima_figure(points: mapio.MinimaTable) -> Figure:
     ax.xaxis.set_major_formatter(mpl.ticker.FixedFormatter(["$-\\pi$", "$-\\pi/2$", "0", "$\\pi/2$", "$\\pi$"]))
     ax.set_xlabel("$C_\\varphi = \\mathrm{wrap}(z_\\varphi - \\varphi_0)$ (rad)")
     ax.set_ylabel("$a = a_0\\, p_\\varphi$ (dimensionless, log scale)")
-    ax.set_title(f"{points.source}: {_plural(len(counts), what)}, {int((counts == 2).sum())} with two "
+    ax.set_title(f"{points.source}: {counted(len(counts), what)}, {int((counts == 2).sum())} with two "
                  "minima", fontsize="medium")
     ax.grid(True, which="major", linewidth=0.4, alpha=0.5)
     figure.legend(loc="outside lower center", fontsize="small", frameon=False, ncols=3)
     return figure
-
-
-def _plural(count: int, noun: str) -> str:
-    return f"{count} {noun}{'' if count == 1 else 's'}"
 
 
 # ---------------------------------------------------------------------------------------

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError, shown
+from .errors import InputError, counted, shown
 from .io import STAB_NOISE, matfile
 from .io.numbers import first_unplain
 from .io.paths import read_file, read_text
@@ -282,8 +282,9 @@ def _stabilised(covariances: np.ndarray, lines: np.ndarray, where: _Where) -> np
     still = np.flatnonzero(((diagonal < STAB_NOISE) & (diagonal >= 0)).any(axis=1)
                            & (diagonal >= 0).all(axis=1))
     if still.size:
-        log.warning("%s: %d odometry covariance(s) have a variance below %g (the robot did not move; first at %s): "
-                    "added %g to their three diagonal entries, as I-SLSJF does", where.name, still.size, STAB_NOISE,
+        log.warning("%s: %s with a variance below %g (the robot did not move; first at %s): "
+                    "added %g to the three diagonal entries of each, as I-SLSJF does", where.name,
+                    counted(still.size, "odometry covariance"), STAB_NOISE,
                     where.at(lines[still[0]]), STAB_NOISE)
         covariances = covariances.copy()
         covariances[still[:, None], np.arange(3), np.arange(3)] += STAB_NOISE

@@ -17,20 +17,13 @@ import sys
 import click
 
 from ..__main__ import EXIT_INTERRUPTED
-from ..errors import MapjoinError
+from ..errors import InputError, MapjoinError
 
 EXIT_TWO_MINIMA = 3
 EXIT_NOT_CONVERGED = 3  # the same code: a result written, but one to look at
 
-
-class _StderrHandler(logging.Handler):
-    """Library log records as ``mapjoin: warning: ...`` lines on stderr."""
-
-    def emit(self, record: logging.LogRecord) -> None:
-        level = record.levelname.lower()
-        prefix = "mapjoin: " if record.levelno < logging.WARNING else f"mapjoin: {level}: "
-        clear = "\r\x1b[K" if sys.stderr.isatty() else ""  # start a clean line under a progress bar
-        click.echo(clear + prefix + record.getMessage(), err=True)
+#: what a command without an option for a library argument (InputError.argument) tells instead
+_REMEDIES = {"format": "save it under a name with its format's extension"}
 
 
 class MapjoinGroup(click.Group):
@@ -40,6 +33,8 @@ class MapjoinGroup(click.Group):
         try:
             return super().invoke(ctx)
         except MapjoinError as error:
+            if isinstance(error, InputError) and error.argument in _REMEDIES:  # no option of the command named it
+                error = error.with_remedy(_REMEDIES[error.argument])
             raise click.ClickException(str(error)) from error
         except KeyboardInterrupt:
             click.echo("mapjoin: interrupted", err=True)
@@ -91,15 +86,18 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
     """
     logger = logging.getLogger("mapjoin")
     saved = logger.handlers[:], logger.propagate, logger.level
-    logger.handlers[:] = [_StderrHandler()]
+    handler = StderrHandler(every_warning=verbose > 0)
+    logger.handlers[:] = [handler]
     logger.propagate = False
     logger.setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.INFO)
 
     def restore() -> None:  # leave the logger as found (the CLI is also called in-process)
+        handler.summarise()
         logger.handlers[:], logger.propagate, logger.level = saved
 
     ctx.call_on_close(restore)
     ctx.obj = {"quiet": quiet, "verbose": verbose}
 
 
+from .messages import StderrHandler  # noqa: E402
 from . import build, check_minima, compare, convert, datasets, evaluate, join, plot, refine, simulate  # noqa: E402,F401  (registers the commands)

@@ -103,17 +103,19 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     writing = time.perf_counter() - writing
     dof = result.degrees_of_freedom
     pieces = f", from {result.pieces} pieces joined" if result.pieces else ""
-    files = f" ({len(written)} files)" if len(written) > 1 else ""
-    say(ctx, f"built {len(result.maps)} local maps from {raw.name} ({raw.steps} steps, {len(raw.observations)} "
+    files = f" ({common.counted(len(written), 'file')})" if len(written) > 1 else ""
+    say(ctx, f"built {common.counted(len(result.maps), 'local map')} from {raw.name} ({raw.steps} steps, "
+             f"{len(raw.observations)} "
              f"observations): chi^2 {result.cost:.6f} for {int(dof.sum())} degrees of freedom (per map "
-             f"{result.costs.min():.4g} to {result.costs.max():.4g}), {result.iterations} iterations{pieces}; "
+             f"{result.costs.min():.4g} to {result.costs.max():.4g}), "
+             f"{common.counted(result.iterations, 'iteration')}{pieces}; "
              f"{time.perf_counter() - start:.3f} s in all (reading {reading:.3f} s, solve {result.seconds:.3f} s, "
              f"covariances {result.covariance_seconds:.3f} s, writing {writing:.3f} s) -> "
              f"{output if output != '-' else 'stdout'}{files}")
     if global_path:
         solution = result.batch
         say(ctx, f"batch solution: chi^2 {solution.cost:.6f} (half: {solution.cost / 2:.6f}) for "
-                 f"{solution.degrees_of_freedom} degrees of freedom, {solution.iterations} iterations "
+                 f"{solution.degrees_of_freedom} degrees of freedom, {common.counted(solution.iterations, 'iteration')} "
                  f"({solution.reason}), {solution.seconds + solution.covariance_seconds:.3f} s -> {global_path}")
 
 

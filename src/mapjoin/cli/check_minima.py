@@ -54,23 +54,25 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     """
     modes = [bool(maps), a is not None or c_phi is not None, batch is not None]
     if sum(modes) != 1:
-        raise click.UsageError("give exactly one of: --a A --c-phi C; two map files; --batch FILE")
+        raise click.UsageError("give exactly one of: --a A --c-phi C; two local maps (MAP_A MAP_B, or a folder "
+                               "of two); --batch FILE")
     if batch is not None:
         outputs = mapio.Outputs(files={"-o": output})
         outputs.guard([batch])
         fmt = common.output_format(output, None, TABLE)
         table = mapio.read_minima_table(batch)
-        rows = [summarise_minima(ra, rc, solver) for ra, rc in zip(table.a.tolist(), table.c_phi.tolist())]
+        rows = _batch_rows(table, solver)
         with outputs:
             mapio.write_table(rows, output, fmt)
-        ctx.exit(EXIT_TWO_MINIMA if any(r.minima == 2 for r in rows) else 0)
+        ctx.exit(EXIT_TWO_MINIMA if any(r["minima"] == 2 for r in rows) else 0)
     preamble: list[str] = []
     record = None
     if maps:
-        if len(maps) != 2:
-            raise click.UsageError(f"expected two map files, got {len(maps)}")
-        with common.options_for(format="--input-format"):
-            first, second = mapio.read_maps(list(maps), format=input_format)[:2]
+        local_maps = common.read_local_maps(maps, input_format, mapio.Outputs(files={}))
+        if len(local_maps) != 2:
+            raise click.UsageError(f"expected two local maps (MAP_A MAP_B, or a folder of two), got "
+                                   f"{len(local_maps)}")
+        first, second = local_maps
         record = certify_pair(first, second, covariance, solver)
         a, c_phi = record.a, record.c_phi
         preamble = [f"joining {second.name} onto {first.name} ({covariance} covariances): "
@@ -92,8 +94,19 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     ctx.exit(EXIT_TWO_MINIMA if summary.minima == 2 else 0)
 
 
+def _batch_rows(table: mapio.MinimaTable, solver: str) -> list[dict]:
+    """The batch result: each input row's identifying columns (join, map: those the input has), then its
+    minima; a value that does not exist (the second minimum of a one-minimum problem, phi1 and phi2 when
+    a < 1) is absent, an empty cell, not ``nan``."""
+    ids = {column: values for column, values in (("join", table.join), ("map", table.map_names))
+           if values is not None}
+    return [{**{column: values[row] for column, values in ids.items()},
+             **_finite(dataclasses.asdict(summarise_minima(a, c_phi, solver)))}
+            for row, (a, c_phi) in enumerate(zip(table.a.tolist(), table.c_phi.tolist()))]
+
+
 def _finite(values: dict) -> dict:
-    """NaN and inf as JSON null."""
+    """NaN and inf as absent values (None: JSON null, an empty CSV cell)."""
     return {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in values.items()}
 
 

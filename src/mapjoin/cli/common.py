@@ -13,10 +13,11 @@ import click
 
 from .. import io as mapio
 from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
-from ..errors import InputError, shown
+from ..errors import InputError, counted, shown
 from ..io.numbers import first_unplain
 from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, Kind, by_name, extensions_text, names
-from ..maps import Range
+from ..joining import STRATEGIES
+from ..maps import LocalMap, Range
 from ..onestep import SOLVERS
 
 if TYPE_CHECKING:
@@ -82,6 +83,84 @@ global_map_format_option = format_option(
     + ".")
 #: what a table the commands write (a report, a batch result) can be
 TABLE_EXTENSIONS = extensions_text(TABLE)
+
+
+#: the order of the fast joins, which is also the start of the exact join: one option, two names
+strategy_option = click.option(
+    "--strategy", "--start", "strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
+    help="Order of the fast joins (and so the start of the exact join, --refine / refine): each map onto the "
+         "global map so far, or neighbours pairwise, level by level (faster, less accurate: README, "
+         "'Strategies'). On long runs with loop closures the sequential start drifts and the exact solve can "
+         "end in a worse local minimum, where the tree's start reaches the optimum.")
+jobs_option = click.option(
+    "-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+    help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
+report_option = click.option(
+    "--report", "report_path", metavar="FILE",
+    help=f"Per-join report of the fast join ({TABLE_EXTENSIONS}): common/new features, a, C_phi, minima, phi*.")
+
+
+def check_jobs(jobs: int, strategy: str) -> None:
+    """--jobs runs only the tree's independent joins: with another strategy it would do nothing."""
+    if jobs > 1 and strategy != "tree":
+        raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
+
+
+TOLERANCE_RANGE = Range("tolerance", 0.0, 1.0)  # relative: beyond 1, every step would stop the solve
+#: the exact solve's own options, by parameter name (join takes them with --refine, refine always)
+REFINE_OPTIONS = {"max_iterations": "--max-iterations", "tolerance": "--tolerance",
+                  "no_covariances": "--no-covariances"}
+
+
+def refine_options(command: Callable) -> Callable:
+    """The options of the exact solve (:func:`mapjoin.refine.refine`), declared once for ``refine`` and
+    ``join --refine``."""
+    for option in reversed((
+            click.option("--max-iterations", type=click.IntRange(min=0), default=100, show_default=True,
+                         help="At most this many (accepted) Gauss-Newton/Newton steps of the exact solve."),
+            click.option("--tolerance", type=FiniteFloat(TOLERANCE_RANGE), show_default="1e-12",
+                         help="Stop the exact solve when a step changes chi^2 by at most this (relative) or moves "
+                              "no unknown by more than this times (1 + largest |unknown|); 0 runs to chi^2's "
+                              "rounding."),
+            click.option("--no-covariances", is_flag=True,
+                         help="Skip the exact join's marginal covariances (faster): no cov columns, the fast "
+                              "join's variances."))):
+        command = option(command)
+    return command
+
+
+def solve_arguments(max_iterations: int, tolerance: float | None, no_covariances: bool) -> dict:
+    """The keyword arguments of :func:`mapjoin.refine.join_and_refine` that :func:`refine_options` give
+    (no --tolerance: the solver's own default, looked up there, so that a command that does not refine never
+    imports scipy.sparse to show or fill it)."""
+    return {"max_iterations": max_iterations, "covariances": not no_covariances,
+            **({"tolerance": tolerance} if tolerance is not None else {})}
+
+
+def given(ctx: click.Context, parameters: dict[str, str]) -> list[str]:
+    """The options among ``parameters`` (parameter name -> option) given on the command line."""
+    return [option for name, option in parameters.items()
+            if ctx.get_parameter_source(name) not in (None, click.core.ParameterSource.DEFAULT)]
+
+
+def iteration_printer(ctx: click.Context) -> Callable[[int, float], None] | None:
+    """With -v, the exact solve's chi^2 after every step on stderr; else None."""
+    if not ctx.obj["verbose"]:
+        return None
+
+    def show(iteration: int, cost: float) -> None:
+        say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
+
+    return show
+
+
+def read_local_maps(inputs: tuple[str, ...], input_format: str | None, outputs: mapio.Outputs) -> list[LocalMap]:
+    """The local maps of ``inputs`` (files, globs, folders, -), checked against the command's ``outputs``
+    first: the one input resolver of every command that reads local maps, so that they all take the same
+    inputs (a folder of two maps for check-minima as for plot-join)."""
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
+    with options_for(format="--input-format"):
+        return mapio.read_map_paths(paths, format=input_format)
 
 
 def say(ctx: click.Context, message: str) -> None:

@@ -9,6 +9,7 @@ import math
 import click
 
 from .. import io as mapio
+from ..errors import counted
 from ..evaluation import compare as compare_maps
 from . import main
 
@@ -43,7 +44,7 @@ def compare(map_a: str, map_b: str, as_json: bool) -> None:
     click.echo("\n".join([
         f"A: {a.name}",
         f"B: {b.name}",
-        f"shared ids: {difference.features} features, {difference.poses} poses "
+        f"shared ids: {counted(difference.features, 'feature')}, {counted(difference.poses, 'pose')} "
         "(no alignment: both maps in the frame of pose 0)",
         "",
         f"{'':<12}{'mean |B-A|':>14}{'RMS':>14}{'max':>14}",

@@ -42,10 +42,8 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
     if to_format is None:
         with common.options_for(format="--to"):
             to_format = LOCAL_MAPS.default if is_directory else common.output_format(output, None, LOCAL_MAPS)
-    paths = outputs.guard(mapio.resolve_inputs(inputs))
-    with common.options_for(format="--input-format"):
-        maps = mapio.read_map_paths(paths, format=input_format)
+    maps = common.read_local_maps(inputs, input_format, outputs)
     with outputs:
         written = mapio.write_maps(maps, output, to_format)
-    say(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
-             if output != "-" else f"converted {len(maps)} maps to {to_format}")
+    converted = f"converted {common.counted(len(maps), 'map')} to {to_format}"
+    say(ctx, f"{converted}: {common.counted(len(written), 'file')} in {output}" if output != "-" else converted)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from . import main
+from . import common, main
 from .common import progress_bar, say
 
 into_option = click.option(
@@ -25,7 +25,7 @@ def datasets() -> None:
       mapjoin datasets list
       mapjoin datasets fetch vicpark-200
       mapjoin join "$(mapjoin datasets fetch sim-8240)" -o sim.csv
-      mapjoin datasets fetch dlr-200 --source file:///work/shared/data --into ./data
+      mapjoin datasets fetch dlr-200 --source ../shared/data --into ./data
     """
 
 
@@ -64,7 +64,7 @@ def list_datasets(ctx: click.Context, into: Path | None) -> None:
 @into_option
 @click.option("--source", metavar="URL",
               help="Fetch from a mirror instead of GitHub: a URL or folder laid out like the cache, "
-                   "<source>/<folder>/<file> (e.g. file:///work/shared/data).")
+                   "<source>/<folder>/<file> (e.g. ../shared/data or https://mirror.example/data).")
 @click.pass_context
 def fetch(ctx: click.Context, names: tuple[str, ...], into: Path | None, source: str | None) -> None:
     """Download datasets into the cache and check each file's SHA-256.
@@ -76,7 +76,7 @@ def fetch(ctx: click.Context, names: tuple[str, ...], into: Path | None, source:
     \b
     Examples:
       mapjoin datasets fetch vicpark-200 dlr-200
-      mapjoin datasets fetch sim-535 --source file:///work/shared/data --into ./data
+      mapjoin datasets fetch sim-535 --source ../shared/data --into ./data
       mapjoin join "$(mapjoin datasets fetch sim-8240)" -o sim.csv
     """
     from .. import datasets as catalogue
@@ -86,11 +86,12 @@ def fetch(ctx: click.Context, names: tuple[str, ...], into: Path | None, source:
             result = catalogue.fetch(dataset.name, into, source, progress)
         if result.already_cached:
             check = "checksums verified" if result.verified else "no checksums known"
-            say(ctx, f"{dataset.name}: already in the cache ({result.files} files, {check})")
+            say(ctx, f"{dataset.name}: already in the cache ({common.counted(result.files, 'file')}, {check})")
         else:
             check = ("every SHA-256 verified" if result.verified
                      else "NOT verified: no checksums are known for this set")
-            say(ctx, f"{dataset.name}: fetched {result.files} files, {result.size / 1e6:.1f} MB, {check}")
+            say(ctx, f"{dataset.name}: fetched {common.counted(result.files, 'file')}, {result.size / 1e6:.1f} MB, "
+                     f"{check}")
         if result.skipped:
             say(ctx, f"{dataset.name}: the source does not hold {', '.join(result.skipped)} (optional; skipped)")
         click.echo(result.path)

@@ -9,6 +9,7 @@ import math
 import click
 
 from .. import io as mapio
+from ..errors import counted
 from ..evaluation import ALIGNMENTS, Evaluation
 from ..evaluation import evaluate as evaluate_map
 from ..maps import GlobalMap, GroundTruth
@@ -83,7 +84,7 @@ def _human(global_map: GlobalMap, truth: GroundTruth, result: Evaluation, covari
         f"map:       {global_map.name}",
         f"truth:     {truth.name}",
         f"alignment: {result.alignment}",
-        f"compared:  {result.features} features, {result.poses} poses (ids in both)",
+        f"compared:  {counted(result.features, 'feature')}, {counted(result.poses, 'pose')} (ids in both)",
         "",
         f"{'error':<18}{'RMS':>14}{'max':>14}",
         f"{'features xy (m)':<18}{_number(result.feature_rms):>14}{_number(result.feature_max):>14}",

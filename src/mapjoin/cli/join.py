@@ -8,32 +8,30 @@ import click
 
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE
-from ..joining import STRATEGIES, join as join_maps
+from ..joining import join as join_maps
 from . import common, main
-from .common import (TABLE_EXTENSIONS, covariance_option, global_map_format_option, global_map_output_option,
-                     input_format_option, inputs_argument, progress_bar, say, solver_option)
+from .common import (covariance_option, global_map_format_option, global_map_output_option, input_format_option,
+                     inputs_argument, progress_bar, say, solver_option)
 
 
 @main.command()
 @inputs_argument
 @global_map_output_option
 @global_map_format_option
-@click.option("--report", "report_path", metavar="FILE",
-              help=f"Per-join report ({TABLE_EXTENSIONS}): common/new features, a, C_phi, minima, phi*.")
+@common.report_option
 @covariance_option
 @solver_option
-@click.option("--strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
-              help="Order of the joins: each map onto the global map so far, or neighbours pairwise, "
-                   "level by level (faster, less accurate: docs/joining.md, 'Strategies').")
-@click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
+@common.strategy_option
+@common.jobs_option
 @click.option("--refine", "exact", is_flag=True,
-              help="Then refine to the exact least-squares join (as `mapjoin refine`), with covariances.")
+              help="Then refine to the exact least-squares join (as `mapjoin refine`), with marginal "
+                   "covariances unless --no-covariances; the exact solve's options below need it.")
+@common.refine_options
 @input_format_option
 @click.pass_context
 def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
          report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, exact: bool,
-         input_format: str | None) -> None:
+         max_iterations: int, tolerance: float | None, no_covariances: bool, input_format: str | None) -> None:
     """Join a chain of local maps into one global map.
 
     Map k must start at the end pose of map k-1; the global frame is the start pose of
@@ -48,20 +46,20 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
       mapjoin join ../shared/data/VicPark_6898_local_maps --strategy tree --jobs 2 -o vp.csv
       mapjoin join ../shared/data/DLR_200_local_maps --refine -o dlr_exact.yaml
     """
-    if jobs > 1 and strategy != "tree":
-        raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
+    common.check_jobs(jobs, strategy)
+    if not exact and (solve_options := common.given(ctx, common.REFINE_OPTIONS)):
+        raise click.UsageError(f"{solve_options[0]} is an option of the exact solve; add --refine")
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
-    paths = outputs.guard(mapio.resolve_inputs(inputs))
     start = time.perf_counter()
-    with common.options_for(format="--input-format"):
-        maps = mapio.read_map_paths(paths, format=input_format)
+    maps = common.read_local_maps(inputs, input_format, outputs)
     read = time.perf_counter() - start
     with progress_bar(ctx, len(maps), "joining") as progress:
         if exact:
             from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
             refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
-                                      join_progress=progress)
+                                      join_progress=progress, progress=common.iteration_printer(ctx),
+                                      **common.solve_arguments(max_iterations, tolerance, no_covariances))
             result, global_map = refined.fast_join, refined.global_map
         else:
             result = join_maps(maps, covariance, solver, strategy, jobs, progress)
@@ -69,7 +67,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     if exact:
         common.warn_if_doubtful(refined)
         say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
-                 f"{refined.iterations} iterations ({refined.reason})")
+                 f"{common.counted(refined.iterations, 'iteration')} ({refined.reason})")
     elapsed = time.perf_counter() - start
     with outputs, common.options_for(format="--format"):
         mapio.write_global_map(global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
@@ -82,8 +80,9 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                      f"C_phi={r.c_phi:+.4f}, minima={r.minima}, phi*={r.phi:+.6f}{second}")
     two = sum(r.minima == 2 for r in result.report)
     g = global_map
-    say(ctx, f"joined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{len(result.report)} joins ({two} with two minima), covariance {covariance}, {strategy}, "
+    say(ctx, f"joined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
+             f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
+             f"({two} with two minima), covariance {covariance}, {strategy}, "
              f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}")
     if exact:
         common.exit_if_not_converged(ctx, refined, output)

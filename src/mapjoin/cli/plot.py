@@ -6,12 +6,15 @@ figure is drawn, so the other commands start without it.
 
 from __future__ import annotations
 
+import io
 import os
 
 import click
 
 from .. import io as mapio
 from .. import plot as figures
+from ..errors import MapjoinError
+from ..maps import GlobalMap
 from . import common, main
 from .common import covariance_option, input_format_option, inputs_argument, say, solver_option
 
@@ -33,18 +36,21 @@ figure_option = click.option("-o", "--output", required=True, metavar="FILE",
 @click.pass_context
 def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str | None, ellipses: bool,
          labels: tuple[str, ...]) -> None:
-    """Draw global maps: features, trajectories, uncertainty.
+    """Draw maps: features, trajectories, uncertainty.
 
     Several maps are overlaid in distinct styles with a legend, e.g. the fast join against
     the exact one (the paper's Fig. 5). Axes are in metres with equal scales; the
     trajectories start at the origin, the start pose of the first local map. MAP is a
-    global map (.csv or .yaml) or - for stdin.
+    global map (.csv or .yaml), - for stdin, or a chain of local maps (a folder, a glob,
+    a file), drawn chained by their start poses, without a join: the drift a join
+    corrects (--ellipses needs a global map: join them first).
 
     \b
     Examples:
       mapjoin join ../shared/data/VicPark_200_local_maps -o fast.csv
       mapjoin refine ../shared/data/VicPark_200_local_maps -o exact.csv
       mapjoin plot fast.csv exact.csv --label "fast join" --label exact -o vicpark.png
+      mapjoin plot ../shared/data/VicPark_200_local_maps fast.csv -o drift.png
       mapjoin join ../shared/data/535_data_5_local_maps | mapjoin plot - --ellipses \\
           --truth ../shared/data/535_data_5_local_maps -o sim535.pdf
     """
@@ -55,12 +61,12 @@ def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str
         raise click.UsageError("stdin (-) can be read only once")
     outputs = mapio.Outputs(files={"-o": output})
     outputs.guard([*maps, *([truth_path] if truth_path else [])])
-    global_maps = [mapio.read_global_map(path) for path in maps]
+    global_maps = [_drawable(path, ellipses) for path in maps]
     truth = mapio.read_truth(truth_path) if truth_path else None
     names = labels or [global_map.name for global_map in global_maps]
     with outputs:
         figures.save(figures.map_figure(global_maps, names, truth, ellipses), output)
-    say(ctx, f"plotted {len(global_maps)} map{'s' if len(global_maps) > 1 else ''}"
+    say(ctx, f"plotted {common.counted(len(global_maps), 'map')}"
              f"{' and the ground truth' if truth else ''} -> {output}")
 
 
@@ -90,7 +96,7 @@ def plot_minima(ctx: click.Context, report: str, output: str) -> None:
     with outputs:
         figures.save(figures.minima_figure(table), output)
     what = "join" if table.join is not None else "problem"
-    say(ctx, f"plotted {len(table.a)} {what}{'s' if len(table.a) != 1 else ''} -> {output}")
+    say(ctx, f"plotted {common.counted(len(table.a), what)} -> {output}")
 
 
 @main.command("plot-join")
@@ -123,9 +129,7 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
     """
     figures.figure_format(output)
     outputs = mapio.Outputs(files={"-o": output})
-    paths = outputs.guard(mapio.resolve_inputs(inputs))
-    with common.options_for(format="--input-format"):
-        maps = mapio.read_map_paths(paths, format=input_format)
+    maps = common.read_local_maps(inputs, input_format, outputs)
     if join_number is None:
         if len(maps) != 2:
             raise click.UsageError(f"{len(maps)} maps: choose a join with --join K (1 to {len(maps) - 1}; "
@@ -140,8 +144,36 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
              f"({len(problem.z0)} common features, covariance {covariance})")
     with outputs:
         figures.save(figures.join_figure(curve, title), output)
-    say(ctx, f"plotted join {join_number} ({len(curve.minima)} minim{'a' if len(curve.minima) > 1 else 'um'}, "
+    say(ctx, f"plotted join {join_number} ({common.counted(len(curve.minima), 'minimum', 'minima')}, "
              f"phi* = {curve.minima[0][0]:+.6f} rad) -> {output}")
+
+
+def _drawable(argument: str, ellipses: bool) -> GlobalMap:
+    """MAP as a global map: read as one, else read as local maps (a folder, a glob, a local-map file, stdin)
+    chained by their start poses; the global map's error when it is neither."""
+    source: str | io.StringIO = argument
+    if argument == "-":  # read once, tried as both
+        source = io.StringIO(mapio.read_text("-", "<stdin>"))
+        source.name = "<stdin>"
+    single = not (os.path.isdir(argument) or any(character in argument for character in "*?["))
+    if single:  # a file, -, or nothing there (the global map's error says so)
+        try:
+            return mapio.read_global_map(source)
+        except MapjoinError as error:
+            not_global = error
+            if isinstance(source, io.StringIO):
+                source.seek(0)
+    try:
+        local_maps = (mapio.read_map_file(source, name="<stdin>") if isinstance(source, io.StringIO)
+                      else mapio.read_map_paths(mapio.resolve_inputs([argument])))
+    except MapjoinError:
+        if single:
+            raise not_global from None
+        raise
+    if ellipses:
+        raise click.UsageError(f"{argument} holds local maps: --ellipses draws a global map's uncertainty; "
+                               "join them first (mapjoin join MAPS -o global.csv)")
+    return figures.chained_local_maps(local_maps, f"{argument} (local maps chained, not joined)")
 
 
 def _short(name: str) -> str:

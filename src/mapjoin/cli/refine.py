@@ -7,50 +7,34 @@ import time
 import click
 
 from .. import io as mapio
-from ..io.registry import GLOBAL_MAP
-from ..joining import STRATEGIES
-from ..maps import Range
+from ..io.registry import GLOBAL_MAP, TABLE
 from . import common, main
-from .common import (global_map_format_option, global_map_output_option, input_format_option, inputs_argument,
-                     progress_bar, say)
-
-
-def _default_tolerance() -> float:
-    """refine's default stopping tolerance (asked for only when the command runs: refine imports scipy)."""
-    from ..refine import TOLERANCE
-
-    return TOLERANCE
-
-
-TOLERANCE_RANGE = Range("tolerance", 0.0, 1.0)  # relative: beyond 1, every step would stop the solve
+from .common import (covariance_option, global_map_format_option, global_map_output_option, input_format_option,
+                     inputs_argument, progress_bar, say, solver_option)
 
 
 @main.command()
 @inputs_argument
 @global_map_output_option
 @global_map_format_option
-@click.option("--max-iterations", type=click.IntRange(min=0), default=100, show_default=True,
-              help="At most this many (accepted) Gauss-Newton/Newton steps.")
-@click.option("--tolerance", type=common.FiniteFloat(TOLERANCE_RANGE), default=lambda: _default_tolerance(), show_default="1e-12",
-              help="Stop when a step changes chi^2 by at most this (relative) or moves no unknown by more "
-                   "than this times (1 + largest |unknown|); 0 runs to chi^2's rounding.")
-@click.option("--start", "strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
-              help="The fast join to start from. On long runs with loop closures the sequential join drifts "
-                   "(hundreds of metres over two laps of 3000 simulated maps) and the solve can end in a worse "
-                   "local minimum, where the tree's start reaches the optimum (benchmarks/README.md, 'Synthetic "
-                   "scale series').")
-@click.option("--no-covariances", is_flag=True,
-              help="Skip the marginal covariances (faster): no cov columns, the fast join's variances.")
+@common.report_option
+@covariance_option
+@solver_option
+@common.strategy_option
+@common.jobs_option
+@common.refine_options
 @input_format_option
 @click.pass_context
 def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
-           max_iterations: int, tolerance: float, strategy: str, no_covariances: bool,
-           input_format: str | None) -> None:
+           report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, max_iterations: int,
+           tolerance: float | None, no_covariances: bool, input_format: str | None) -> None:
     """Join local maps exactly: the least-squares optimum.
 
     Solves the problem I-SLSJF solves: all end poses and features at once, each local
     map weighted by its full covariance, by sparse Gauss-Newton with Levenberg-Marquardt
-    safeguards (Newton steps near the optimum) from the fast join (--start). The global
+    safeguards (Newton steps near the optimum) from the fast join (--start, made with
+    --covariance, --solver and --jobs as `mapjoin join` makes it; --report writes that
+    fast join's per-join report, the table `join --report` writes). The global
     map holds the marginal covariance of every feature and pose (cov_* columns in CSV,
     cov in YAML) unless --no-covariances. With -v, chi^2 is printed after every step; a
     warning says when the final chi^2 is implausible for its degrees of freedom. A
@@ -62,32 +46,31 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
       mapjoin refine ../shared/data/VicPark_200_local_maps -o vicpark_exact.csv
       mapjoin -v refine 'maps/localmap_*.yaml' --format yaml -o exact.yaml
       mapjoin simulate -o - | mapjoin refine - --no-covariances > exact.csv
-      mapjoin refine ../shared/data/VicPark_6898_local_maps --start tree -o vp_exact.csv
+      mapjoin refine ../shared/data/VicPark_6898_local_maps --start tree --jobs 2 -o vp_exact.csv
+      mapjoin refine ../shared/data/VicPark_200_local_maps --report joins.csv -o exact.csv
     """
     from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
-    outputs = mapio.Outputs(files={"-o": output})
-    paths = outputs.guard(mapio.resolve_inputs(inputs))
+    common.check_jobs(jobs, strategy)
+    outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
     start = time.perf_counter()
-    with common.options_for(format="--input-format"):
-        maps = mapio.read_map_paths(paths, format=input_format)
-
+    maps = common.read_local_maps(inputs, input_format, outputs)
     read = time.perf_counter() - start
-    def report(iteration: int, cost: float) -> None:
-        say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
-
     with progress_bar(ctx, len(maps), "fast join") as progress:
-        result = join_and_refine(maps, start=strategy, join_progress=progress, max_iterations=max_iterations,
-                                 tolerance=tolerance, covariances=not no_covariances,
-                                 progress=report if ctx.obj["verbose"] else None)
+        result = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
+                                 join_progress=progress, progress=common.iteration_printer(ctx),
+                                 **common.solve_arguments(max_iterations, tolerance, no_covariances))
     elapsed = time.perf_counter() - start
     with outputs, common.options_for(format="--format"):
         mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
+        if report_path:
+            mapio.write_table(result.fast_join.report, report_path, common.output_format(report_path, None, TABLE))
     common.warn_if_doubtful(result)
     g, joins = result.global_map, result.fast_join.report
     two = sum(r.minima == 2 for r in joins)
-    say(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{len(joins)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
+    say(ctx, f"refined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
+             f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(joins), 'join')} ({two} with two "
+             f"minima), {common.counted(result.iterations, 'iteration')}, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")

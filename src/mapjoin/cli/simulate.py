@@ -57,5 +57,5 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
         mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format)
         if truth_path:
             mapio.write_truth(simulation.truth, truth_path)
-    say(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
+    say(ctx, f"simulated {common.counted(count, 'local map')} (seed {seed})"
              + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))

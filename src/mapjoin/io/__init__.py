@@ -44,7 +44,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, counted
 from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate
 from . import registry
 from .g2o import g2o_feature_offset
@@ -206,8 +206,8 @@ def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[st
     if fmt.spherical_only:
         dropped = [local_map.name for local_map in maps if local_map.covariance is not None]
         if dropped:
-            log.warning("%s holds spherical variances only: dropped the full covariances of %d map(s) "
-                        "(first: %s)", format, len(dropped), dropped[0])
+            log.warning("%s holds spherical variances only: dropped the full covariances of %s "
+                        "(first: %s)", format, counted(len(dropped), "map"), dropped[0])
     if isinstance(target, (str, os.PathLike)) and (
             os.path.isdir(target) or os.fspath(target).endswith(("/", os.sep))):
         return _write_map_folder(maps, os.fspath(target), fmt, codec)
@@ -248,12 +248,12 @@ def read_truth(source: Source, format: str | None = None) -> GroundTruth:
 
 
 def write_table(rows: Sequence[Any], target: Source, format: str | None = None) -> None:
-    """Write dataclass instances (all of one type) as a CSV, YAML or JSON table."""
+    """Write dataclass instances (all of one type), or mappings with the same keys, as a CSV, YAML or JSON table."""
     _write_data(rows, target, format, registry.TABLE)
 
 
 def read_minima_table(source: Source) -> MinimaTable:
-    """The columns ``a`` and ``c_phi`` (and ``join``) of any table holding them: a ``join --report`` output,
+    """The columns ``a`` and ``c_phi`` (and ``join``, ``map``) of any table holding them: a ``join --report`` output,
     a ``check-minima --batch`` input or output.
 
     CSV, YAML or JSON by the extension; otherwise (``-``: stdin, ``.txt``, ...) YAML/JSON when

@@ -5,7 +5,7 @@ empty cell), YAML as a list of mappings or JSON as a list of objects (``None`` -
 Numpy scalars and arrays become plain numbers/lists.
 
 Minima tables (``check-minima --batch``, and any table holding the columns): CSV with a
-header naming ``a`` and ``c_phi`` (and optionally ``join``), one row per problem of
+header naming ``a`` and ``c_phi`` (and optionally ``join`` and ``map``, which identify a row), one row per problem of
 Theorem 2 (``a`` in [0, 1e100], ``|c_phi|`` <= 1e6), or a YAML/JSON list of mappings with them.
 """
 
@@ -26,16 +26,21 @@ __all__ = ["MinimaTable", "dump_csv", "dump_json", "dump_yaml", "read_minima_csv
 
 @dataclasses.dataclass(frozen=True)
 class MinimaTable:
-    """Theorem 2's ``a`` and ``C_phi`` of each row of a table; ``join`` the join numbers when it has a join column."""
+    """Theorem 2's ``a`` and ``C_phi`` of each row of a table; ``join`` the join numbers when it has a join column,
+    ``map_names`` the map column's names when it has one (a report of ``mapjoin join``): what identifies a row."""
 
     source: str
     a: np.ndarray
     c_phi: np.ndarray
     join: np.ndarray | None = None
+    map_names: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         """Refuse a row outside the accepted ranges (docs/formats.md, "Accepted values"): ``a`` in [0, 1e100],
         ``|c_phi|`` <= 1e6 rad (beyond, its reduction modulo 2 pi loses the digits the minima depend on)."""
+        for column, values in (("c_phi", self.c_phi), ("join", self.join), ("map", self.map_names)):
+            if values is not None and len(values) != len(self.a):
+                raise ValueError(f"{len(values)} {column} values for {len(self.a)} rows")
         for column, limits in (("a", MINIMA_A), ("c_phi", ANGLE)):
             values = getattr(self, column)
             bad = np.flatnonzero(limits.outside(values))
@@ -56,7 +61,8 @@ def read_minima_csv(text: str, source: str) -> MinimaTable:
                          f"line {table.header_line}")
     a, c_phi = (table.values((column,), None, kind)[:, 0] for column, kind in _MINIMA_COLUMNS.items())
     join = table.values(("join",), None, "id")[:, 0] if "join" in table.header else None
-    return MinimaTable(source, a, c_phi, join)
+    map_names = tuple(table.text("map").tolist()) if "map" in table.header else None
+    return MinimaTable(source, a, c_phi, join, map_names)
 
 
 def read_minima_records(text: str, source: str) -> MinimaTable:
@@ -66,16 +72,25 @@ def read_minima_records(text: str, source: str) -> MinimaTable:
     records = document.get((), "list")
     for row in range(len(records)):
         document.get((row,), "mapping")
-    kinds = {**_MINIMA_COLUMNS, **({"join": "id"} if any("join" in record for record in records) else {})}
+    kinds = {**_MINIMA_COLUMNS, **{key: kind for key, kind in (("join", "id"), ("map", "text"))
+                                   if any(key in record for record in records)}}
     columns = {key: [document.get((row, key), kind) for row in range(len(records))] for key, kind in kinds.items()}
     join = np.array(columns["join"], dtype=np.int64) if "join" in columns else None
-    return MinimaTable(source, np.array(columns["a"], dtype=float), np.array(columns["c_phi"], dtype=float), join)
+    map_names = tuple(columns["map"]) if "map" in columns else None
+    return MinimaTable(source, np.array(columns["a"], dtype=float), np.array(columns["c_phi"], dtype=float), join,
+                       map_names)
 
 
 def _table(rows: Sequence[Any]) -> tuple[list[str], list[list[Any]]]:
-    """Field names and plain-Python values of dataclass instances of one type."""
+    """Field names and plain-Python values of dataclass instances of one type, or of mappings with the same
+    keys (a table whose columns depend on its input, e.g. ``check-minima --batch``)."""
     if not rows:
         return [], []
+    if isinstance(rows[0], dict):
+        names = list(rows[0])
+        if any(list(row) != names for row in rows):
+            raise TypeError("table rows must all have the same keys, in the same order")
+        return names, [[_plain(row[name]) for name in names] for row in rows]
     kind = type(rows[0])
     if any(type(row) is not kind for row in rows):
         raise TypeError(f"table rows must all be {kind.__name__} instances")
