@@ -10,8 +10,9 @@ from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE
 from ..joining import STRATEGIES, join as join_maps
 from . import common, main
-from .common import (TABLE_EXTENSIONS, covariance_option, global_map_format_option, global_map_output_option,
-                     input_format_option, inputs_argument, progress_bar, say, solver_option)
+from .common import (TABLE_EXTENSIONS, covariance_option, gate_option, global_map_format_option,
+                     global_map_output_option, input_format_option, inputs_argument, on_inconsistent_option,
+                     progress_bar, say, solver_option)
 
 
 @main.command()
@@ -19,7 +20,8 @@ from .common import (TABLE_EXTENSIONS, covariance_option, global_map_format_opti
 @global_map_output_option
 @global_map_format_option
 @click.option("--report", "report_path", metavar="FILE",
-              help=f"Per-join report ({TABLE_EXTENSIONS}): common/new features, a, C_phi, minima, phi*.")
+              help=f"Per-join report ({TABLE_EXTENSIONS}): common/new features, a, C_phi, minima, phi*, "
+                   "the consistency check (chi2, dof, p, flag, action).")
 @covariance_option
 @solver_option
 @click.option("--strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
@@ -29,11 +31,13 @@ from .common import (TABLE_EXTENSIONS, covariance_option, global_map_format_opti
               help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
 @click.option("--refine", "exact", is_flag=True,
               help="Then refine to the exact least-squares join (as `mapjoin refine`), with covariances.")
+@gate_option
+@on_inconsistent_option
 @input_format_option
 @click.pass_context
 def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
          report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, exact: bool,
-         input_format: str | None) -> None:
+         gate: float, on_inconsistent: str, input_format: str | None) -> None:
     """Join a chain of local maps into one global map.
 
     Map k must start at the end pose of map k-1; the global frame is the start pose of
@@ -50,6 +54,8 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     """
     if jobs > 1 and strategy != "tree":
         raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
+    if on_inconsistent == "skip" and strategy != "sequential":
+        raise click.UsageError("--on-inconsistent skip re-joins the chain map by map; use --strategy sequential")
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
     paths = outputs.guard(mapio.resolve_inputs(inputs))
     start = time.perf_counter()
@@ -61,10 +67,11 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
             from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
             refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
-                                      join_progress=progress)
+                                      join_progress=progress, gate=gate, on_inconsistent=on_inconsistent)
             result, global_map = refined.fast_join, refined.global_map
         else:
-            result = join_maps(maps, covariance, solver, strategy, jobs, progress)
+            result = join_maps(maps, covariance, solver, strategy, jobs, progress, gate=gate,
+                               on_inconsistent=on_inconsistent)
             global_map = result.global_map
     if exact:
         common.warn_if_doubtful(refined)
@@ -83,7 +90,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     two = sum(r.minima == 2 for r in result.report)
     g = global_map
     say(ctx, f"joined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{len(result.report)} joins ({two} with two minima), covariance {covariance}, {strategy}, "
+             f"{len(result.report)} joins ({two} with two minima, {common.inconsistency(result.report)}), covariance {covariance}, {strategy}, "
              f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}")
     if exact:
         common.exit_if_not_converged(ctx, refined, output)

@@ -11,8 +11,8 @@ from ..io.registry import GLOBAL_MAP
 from ..joining import STRATEGIES
 from ..maps import Range
 from . import common, main
-from .common import (global_map_format_option, global_map_output_option, input_format_option, inputs_argument,
-                     progress_bar, say)
+from .common import (gate_option, global_map_format_option, global_map_output_option, input_format_option,
+                     inputs_argument, on_inconsistent_option, progress_bar, say)
 
 
 def _default_tolerance() -> float:
@@ -41,11 +41,13 @@ TOLERANCE_RANGE = Range("tolerance", 0.0, 1.0)  # relative: beyond 1, every step
                    "scale series').")
 @click.option("--no-covariances", is_flag=True,
               help="Skip the marginal covariances (faster): no cov columns, the fast join's variances.")
+@gate_option
+@on_inconsistent_option
 @input_format_option
 @click.pass_context
 def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
-           max_iterations: int, tolerance: float, strategy: str, no_covariances: bool,
-           input_format: str | None) -> None:
+           max_iterations: int, tolerance: float, strategy: str, no_covariances: bool, gate: float,
+           on_inconsistent: str, input_format: str | None) -> None:
     """Join local maps exactly: the least-squares optimum.
 
     Solves the problem I-SLSJF solves: all end poses and features at once, each local
@@ -66,6 +68,9 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     """
     from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
+    if on_inconsistent == "skip" and strategy != "sequential":
+        raise click.UsageError("--on-inconsistent skip re-joins the chain map by map; use --start sequential")
+
     outputs = mapio.Outputs(files={"-o": output})
     paths = outputs.guard(mapio.resolve_inputs(inputs))
     start = time.perf_counter()
@@ -79,7 +84,8 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     with progress_bar(ctx, len(maps), "fast join") as progress:
         result = join_and_refine(maps, start=strategy, join_progress=progress, max_iterations=max_iterations,
                                  tolerance=tolerance, covariances=not no_covariances,
-                                 progress=report if ctx.obj["verbose"] else None)
+                                 progress=report if ctx.obj["verbose"] else None, gate=gate,
+                                 on_inconsistent=on_inconsistent)
     elapsed = time.perf_counter() - start
     with outputs, common.options_for(format="--format"):
         mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
@@ -87,7 +93,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     g, joins = result.global_map, result.fast_join.report
     two = sum(r.minima == 2 for r in joins)
     say(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{len(joins)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
+             f"{len(joins)} joins ({two} with two minima, {common.inconsistency(joins)}), {result.iterations} iterations, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")
