@@ -113,8 +113,18 @@ def test_statistic_is_chi_square_when_the_maps_are_the_spherical_model(link):
     assert scipy.stats.kstest(wrong, "uniform").pvalue < 1e-3  # too much noise: the test sees it
 
 
-def test_p_values_against_the_chi_square_survival_function():
-    chi2, dof = np.array([0.0, 3.0, 50.0, 7.0]), np.array([4, 2, 10, 0])
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 1500), st.floats(0, 4)), min_size=1, max_size=30))
+def test_p_values_against_the_chi_square_survival_function(cases):
+    dof = np.array([d for d, _ in cases])
+    chi2 = np.array([d * r for d, r in cases])  # around the mean, where p is neither 0 nor 1
+    expected = np.where(dof > 0, scipy.stats.chi2.sf(chi2, np.maximum(dof, 1)), 1.0)
+    found = p_values(chi2, dof)
+    assert np.allclose(found, expected, rtol=1e-9, atol=1e-300)
+
+
+def test_p_values_at_the_edges():
+    chi2, dof = np.array([0.0, 3.0, 50.0, 7.0, 0.0, 1e6]), np.array([4, 1, 10, 0, 1, 30])
     expected = [scipy.stats.chi2.sf(c, d) if d else 1.0 for c, d in zip(chi2, dof)]
     assert p_values(chi2, dof) == pytest.approx(expected, rel=1e-12)
     assert degrees_of_freedom(np.array([0, 1, 5]), np.array([True, False, False])).tolist() == [0, 1, 9]

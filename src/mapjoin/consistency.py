@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal
 
@@ -61,16 +62,32 @@ def degrees_of_freedom(common: np.ndarray, link: np.ndarray | bool = True) -> np
 def p_values(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
     """``P(X >= chi2)`` for ``X ~ chi-square(dof)``; 1 where ``dof`` is 0 (nothing tested).
 
-    Uses ``scipy.special.chdtrc`` (the regularised upper incomplete gamma function), imported here:
-    scipy.stats would cost about a second.
+    For integer ``dof`` the upper regularised gamma function ``Q(dof/2, y)``, ``y = chi2/2``, is a
+    finite sum: ``Q(a + 1, y) = Q(a, y) + y^a e^-y / Gamma(a + 1)`` from ``Q(1, y) = e^-y`` (even dof)
+    or ``Q(1/2, y) = erfc(sqrt y)`` (odd), i.e. ``dof/2 - 1`` positive terms (no cancellation),
+    summed for all joins at once in O(sum of dof) (a join's dof is twice its common features, so
+    this is linear in the data). Numpy and :mod:`math` only: a join imports no scipy.
     """
-    from scipy.special import chdtrc
-
     chi2, dof = np.asarray(chi2, dtype=float), np.asarray(dof, dtype=np.int64)
-    tested = dof > 0
-    p = np.ones(chi2.shape)
-    p[tested] = chdtrc(dof[tested], np.maximum(chi2[tested], 0.0))
-    return p
+    y = np.maximum(chi2, 0.0) / 2
+    odd = dof % 2 == 1
+    first = np.where(odd, 0.5, 1.0)  # the exponent of the first term
+    count = np.where(odd, (dof - 1) // 2, np.maximum(dof // 2 - 1, 0))  # terms: exponents first .. dof/2 - 1
+    with np.errstate(divide="ignore"):
+        log_y = np.log(y)
+    base = np.exp(-y)
+    base[odd] = [math.erfc(math.sqrt(value)) for value in y[odd].tolist()]  # odd dof: joins without the link
+    join = np.repeat(np.arange(len(dof)), count)
+    step = np.arange(len(join)) - np.repeat(np.cumsum(count) - count, count)  # 0, 1, .. within a join
+    top = int(count.max(initial=0)) + 1
+    log_factorial = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1.0, top + 1)))])  # lgamma(k + 1)
+    log_half = math.lgamma(1.5) + np.concatenate([[0.0], np.cumsum(np.log(np.arange(1.0, top + 1) + 0.5))])
+    odd_term = odd[join]
+    exponent = first[join] + step  # each term is y^e e^-y / Gamma(e + 1)
+    log_gamma = np.where(odd_term, log_half[step], log_factorial[np.minimum(step + 1, top)])
+    terms = np.exp(exponent * log_y[join] - y[join] - log_gamma)
+    p = base + np.bincount(join, terms, len(dof))
+    return np.where(dof > 0, np.minimum(p, 1.0), 1.0)
 
 
 def flags(p: np.ndarray, minima: np.ndarray, gate: float = DEFAULT_GATE) -> np.ndarray:
