@@ -231,6 +231,13 @@ def test_skip_leaves_out_a_map_whose_features_disagree_and_continues_the_chain(c
     assert compare(exact, g).rms_xy <= 2 * compare(exact, join(maps).global_map).rms_xy
 
 
+def test_skip_needs_the_sequential_strategy_and_gate_a_probability(chains):
+    with pytest.raises(ValueError, match="sequential"):
+        join(chains["535_data_5_local_maps"], strategy="tree", on_inconsistent="skip")
+    with pytest.raises(ValueError, match="probability"):
+        join(chains["535_data_5_local_maps"], gate=1.5)
+
+
 def test_cli_report_columns_and_summary(data_dir, tmp_path):
     for name in ("joins.csv", "joins.yaml", "joins.json"):
         result = run("join", str(data_dir / "535_data_5_local_maps"), "-o", str(tmp_path / f"{name}.csv"),

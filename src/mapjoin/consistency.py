@@ -162,8 +162,7 @@ def enforce(result: JoinResult, policy: Policy, gate: float,
         _warn(summarise_flagged([r.map for r in flagged], [describe(r, gate) for r in flagged]))
         return result
     if rejoin is None:
-        raise ValueError("the skip policy needs the sequential strategy (each join puts one map onto the maps "
-                         "before it)")
+        raise ValueError("the skip policy needs a rejoin (the sequential strategy)")
     unlinked: set[int] = set()
     left_out: set[int] = set()
     names, actions = [], []

@@ -19,6 +19,7 @@ Spherical variances are propagated so that later joins weigh the estimates corre
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -94,7 +95,8 @@ class JoinRecord:
     action: str = "joined"
 
 
-_LEVEL = 13  # index of ``level`` in a report row (JoinRecord's fields after ``join``)
+_ROW = [field.name for field in dataclasses.fields(JoinRecord)][1:]  # a report row: the fields after ``join``
+_COMMON, _MINIMA, _COST, _LEVEL = (_ROW.index(name) for name in ("common", "minima", "cost", "level"))
 
 
 @dataclass(frozen=True)
@@ -245,8 +247,8 @@ def _report(rows: Sequence[tuple], unlinked: frozenset[int] = frozenset(),
     if not rows:
         return ()
     link = np.array([number not in unlinked for number in range(1, len(rows) + 1)])
-    common, minima = np.array([row[3] for row in rows]), np.array([row[7] for row in rows])
-    chi2 = np.array([row[9] for row in rows], dtype=float)
+    common, minima = np.array([row[_COMMON] for row in rows]), np.array([row[_MINIMA] for row in rows])
+    chi2 = np.array([row[_COST] for row in rows], dtype=float)
     dof = degrees_of_freedom(common, link)
     p = p_values(chi2, dof)
     flagged = flags(p, minima, gate)
@@ -510,6 +512,8 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
     map) or ``skip`` (sequential only: such a map is joined by its features alone or left out; see
     :func:`mapjoin.consistency.enforce`).
     """
+    if on_inconsistent == "skip" and strategy != "sequential":
+        raise ValueError("on_inconsistent='skip' re-joins the chain map by map: it needs strategy='sequential'")
     if strategy == "sequential":
         result = join_sequential(maps, covariance, solver, progress, gate=gate)
     elif strategy == "tree":
