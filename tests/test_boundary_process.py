@@ -19,6 +19,11 @@ import pytest
 MAPJOIN = [sys.executable, "-m", "mapjoin"]
 
 
+# the sequential join of a long simulated run drifts and fails the consistency check at its loop
+# closures (docs/method.md#chi-square-check); gate 0 keeps those warnings out of the one-line checks
+QUIET_CHECK = ("--gate", "0")
+
+
 def mapjoin(*args: str, cwd: Path, **kwargs) -> subprocess.CompletedProcess:
     return subprocess.run([*MAPJOIN, *args], cwd=cwd, capture_output=True, text=True, timeout=120, **kwargs)
 
@@ -39,7 +44,7 @@ def maps(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("delay", [0.25, 0.4, 0.6, 0.9, 1.3])
 def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(maps, tmp_path, delay):
-    process = subprocess.Popen([*MAPJOIN, "join", str(maps), "--refine", "-o", "out.csv"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen([*MAPJOIN, "join", str(maps), "--refine", "-o", "out.csv", *QUIET_CHECK], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(delay)
     process.send_signal(signal.SIGINT)
     stdout, stderr = process.communicate(timeout=120)
@@ -55,7 +60,7 @@ def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(maps, tmp_path, delay):
 
 
 def test_closed_stdout_is_one_line_and_nonzero(maps, tmp_path):
-    result = subprocess.run([*MAPJOIN, "join", str(maps)], cwd=tmp_path, stdin=subprocess.DEVNULL,
+    result = subprocess.run([*MAPJOIN, "join", str(maps), *QUIET_CHECK], cwd=tmp_path, stdin=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, timeout=120,
                             preexec_fn=lambda: os.close(1))
     assert result.returncode != 0
@@ -64,7 +69,7 @@ def test_closed_stdout_is_one_line_and_nonzero(maps, tmp_path):
 
 def test_full_stdout_is_one_line_and_nonzero(maps, tmp_path):
     with open("/dev/full", "w") as full:
-        result = subprocess.run([*MAPJOIN, "join", str(maps)], cwd=tmp_path, stdout=full, stderr=subprocess.PIPE,
+        result = subprocess.run([*MAPJOIN, "join", str(maps), *QUIET_CHECK], cwd=tmp_path, stdout=full, stderr=subprocess.PIPE,
                                 text=True, timeout=120)
     assert result.returncode == 1
     assert_one_line_error(result.stderr)
@@ -72,7 +77,7 @@ def test_full_stdout_is_one_line_and_nonzero(maps, tmp_path):
 
 def test_a_pipe_closed_early_ends_quietly(maps, tmp_path):
     """``mapjoin join ... | head -c 100``: no message, as other Unix tools end."""
-    process = subprocess.Popen([*MAPJOIN, "join", str(maps)], cwd=tmp_path, stdout=subprocess.PIPE,
+    process = subprocess.Popen([*MAPJOIN, "join", str(maps), *QUIET_CHECK], cwd=tmp_path, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE)
     assert len(process.stdout.read(100)) == 100
     process.stdout.close()
@@ -107,7 +112,7 @@ def test_a_full_device_output_fails_in_one_line(maps, tmp_path):
     full = tmp_path / "full"
     if not _device(full, 7):
         pytest.skip("creating a device node needs root (CI runs as root)")
-    result = mapjoin("join", str(maps), "-o", str(full), cwd=tmp_path)
+    result = mapjoin("join", str(maps), "-o", str(full), *QUIET_CHECK, cwd=tmp_path)
     assert result.returncode == 1
     assert_one_line_error(result.stderr)
     assert stat.S_ISCHR(os.lstat(full).st_mode)

@@ -13,6 +13,8 @@ used, so ``import mapjoin`` stays cheap and scipy is loaded only by :func:`refin
     maps = mapjoin.read_maps("../shared/data/VicPark_200_local_maps")  # a path, a glob, "-" or a list
     fast = mapjoin.join(maps)                          # sequential one-step joins (strategy="tree" too)
     fast.report[0].minima                              # each join's certificate: 1 or 2 local minima
+    fast.report[0].p                                   # its chi-square check (chi2, dof, p, flag)
+    mapjoin.join(maps, gate=1e-10, on_inconsistent="stop")  # or "warn" (default), "skip"
     exact = mapjoin.join_and_refine(maps)              # the fast join, then the exact optimum
     mapjoin.write_global_map(exact.global_map, "exact.csv")
     mapjoin.check_minima(a=5.0, c_phi=2.5)             # Theorem 2 for one join's (a, C_phi)

@@ -19,6 +19,7 @@ Spherical variances are propagated so that later joins weigh the estimates corre
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -28,6 +29,7 @@ from typing import Literal
 
 import numpy as np
 
+from .consistency import DEFAULT_GATE, Policy, degrees_of_freedom, enforce, flags, p_values
 from .errors import JoinError
 from .covariance import (DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances, fuse, placed_variances,
                          squared_norm, translation_variance)
@@ -44,7 +46,7 @@ from .onestep import (
 from .se2 import wrap
 
 __all__ = ["STRATEGIES", "JoinRecord", "JoinResult", "Strategy", "certify_pair",
-           "check_chain", "join", "join_sequential", "join_tree"]
+           "check_chain", "join", "join_sequential", "join_tree", "without_features"]
 
 log = logging.getLogger("mapjoin")
 
@@ -61,6 +63,13 @@ class JoinRecord:
     join number for the sequential strategy). ``phi`` is phi*, the orientation of right's
     start pose in left's frame, ``cost`` f_1(phi*); ``phi2``/``cost2`` the other local
     minimum when ``minima`` is 2.
+
+    The consistency check (:mod:`mapjoin.consistency`, docs/method.md#chi-square-check):
+    ``features_cost`` is the minimum without the heading link (c0 - 2 a0), ``chi2`` the
+    statistic (``cost``, or ``features_cost`` for a map joined by its features alone), ``dof``
+    its degrees of freedom, ``p`` its upper tail probability, ``flag`` whether the join failed
+    the gate (or has two minima). ``action``: ``joined``, ``features only`` (joined without the
+    heading link) or ``left out`` (its features dropped, its end pose kept), as the policy decided.
     """
 
     join: int
@@ -78,6 +87,16 @@ class JoinRecord:
     cost2: float | None
     iterations: int
     level: int
+    features_cost: float = math.nan
+    chi2: float = math.nan
+    dof: int = 0
+    p: float = 1.0
+    flag: bool = False
+    action: str = "joined"
+
+
+_ROW = [field.name for field in dataclasses.fields(JoinRecord)][1:]  # a report row: the fields after ``join``
+_COMMON, _MINIMA, _COST, _LEVEL = (_ROW.index(name) for name in ("common", "minima", "cost", "level"))
 
 
 @dataclass(frozen=True)
@@ -180,28 +199,34 @@ def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray,
     second = found.count == 2  # the other minimum and its cost, else None
     other_phi = np.where(second, found.other_phi, None).tolist()
     other_cost = np.where(second, linked_cost(k, odometry_phi, p_phi, found.other_phi), None).tolist()
-    rows = [_row(*label[:3], common, label[3], *solution, level) for label, common, *solution in zip(
+    rows = [_row(*label[:3], common, label[3], *solution, level, free) for label, common, *solution, free in zip(
         labels, np.bincount(pair, minlength=count).tolist(), found.a.tolist(), found.c_phi.tolist(),
         found.count.tolist(), phi.tolist(), linked_cost(k, odometry_phi, p_phi, phi).tolist(), other_phi, other_cost,
-        found.iterations.tolist())]
+        found.iterations.tolist(), (k.c0 - 2.0 * k.a0).tolist())]
     return _Joins(phi, turn, t, phi_variance, translation_variance(k.weight, k.mean1, phi_variance), rows)
 
 
 def _solve_join(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarray, odometry_xy: complex,
                 odometry_phi: float, odometry_variances: tuple[float, float], solver: Solver,
-                label: tuple[str, int, int, int], level: int, warn: bool = True) -> _Joins:
+                label: tuple[str, int, int, int], level: int, warn: bool = True, link: bool = True) -> _Joins:
     """One join as :func:`_solve_joins` computes it, on Python numbers: the sequential strategy's step
-    (``warn``: as :func:`_row`)."""
+    (``warn``: as :func:`_row`). ``link=False`` joins by the features alone: phi* = phi0, the chi = 0
+    solution (docs/method.md#without-the-orientation-link), reported with one minimum."""
     var_o, p_phi = odometry_variances
     k = point_constants(z0, var0, z1, var1, odometry_xy, var_o)
     found = global_orientation(k.a0, k.phi0, odometry_phi, p_phi, solver)
-    phi, other = found.phi, found.other_phi
-    information = k.a0 * math.cos(phi - k.phi0) + 1.0 / p_phi  # f_1''(phi*) / 2
+    features_cost = k.c0 - 2.0 * k.a0
+    if link:
+        phi, other, minima, iterations = found.phi, found.other_phi, found.minima.count, found.iterations
+        information = k.a0 * math.cos(phi - k.phi0) + 1.0 / p_phi  # f_1''(phi*) / 2
+        cost = float(linked_cost(k, odometry_phi, p_phi, phi))
+    else:
+        phi, other, minima, iterations, information, cost = wrap(k.phi0), None, 1, 0, k.a0, features_cost
     phi_variance = 1.0 / information if information > 0 else p_phi
     turn = complex(math.cos(phi), math.sin(phi))
     other_cost = float(linked_cost(k, odometry_phi, p_phi, other)) if other is not None else None
-    row = _row(*label[:3], len(z0), label[3], found.minima.a, found.minima.c_phi, found.minima.count, phi,
-               float(linked_cost(k, odometry_phi, p_phi, phi)), other, other_cost, found.iterations, level, warn=warn)
+    row = _row(*label[:3], len(z0), label[3], found.minima.a, found.minima.c_phi, minima, phi,
+               cost, other, other_cost, iterations, level, features_cost, warn=warn)
     return _Joins(phi, turn, k.mean0 - turn * k.mean1, phi_variance, translation_variance(k.weight, k.mean1, phi_variance),
                   [row])
 
@@ -221,9 +246,21 @@ def _warn_if_unlinked(name: str, common: int) -> None:
                     "start pose alone (no correction of the map so far)", name)
 
 
-def _report(rows: Sequence[tuple]) -> tuple[JoinRecord, ...]:
-    """The report: the joins' rows numbered from 1."""
-    return tuple(JoinRecord(number, *row) for number, row in enumerate(rows, start=1))
+def _report(rows: Sequence[tuple], unlinked: frozenset[int] = frozenset(),
+            gate: float = DEFAULT_GATE) -> tuple[JoinRecord, ...]:
+    """The report: the joins' rows numbered from 1, each with its consistency check
+    (:mod:`mapjoin.consistency`); ``unlinked`` are the numbers of the joins made by features alone."""
+    if not rows:
+        return ()
+    link = np.array([number not in unlinked for number in range(1, len(rows) + 1)])
+    common, minima = np.array([row[_COMMON] for row in rows]), np.array([row[_MINIMA] for row in rows])
+    chi2 = np.array([row[_COST] for row in rows], dtype=float)
+    dof = degrees_of_freedom(common, link)
+    p = p_values(chi2, dof)
+    flagged = flags(p, minima, gate)
+    return tuple(JoinRecord(number, *row, chi2=c, dof=d, p=q, flag=f, action="joined" if ln else "features only")
+                 for number, (row, c, d, q, f, ln) in enumerate(zip(rows, chi2.tolist(), dof.tolist(), p.tolist(),
+                                                                     flagged.tolist(), link.tolist()), start=1))
 
 
 def _place(turn, t, t_variance, phi_variance, points, variances, squared):
@@ -299,14 +336,17 @@ class _Labels:
 
 def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
                     solver: Solver = "bisection",
-                    progress: Callable[[int], None] | None = None, *, warn: bool = True) -> JoinResult:
+                    progress: Callable[[int], None] | None = None, *, warn: bool = True,
+                    gate: float = DEFAULT_GATE, unlinked: frozenset[int] = frozenset()) -> JoinResult:
     """Join ``maps`` (a connected chain) one after the other; the global frame is the first map's start.
 
     The global map lives in arrays indexed by compact feature id, so join k reads and writes
     only the rows of map k (its common features first, then its new ones: two slices); the
     1-D problem and the poses are Python numbers. ``progress`` is called with the number of maps joined.
     ``warn``: warn about each map that shares no feature with those before it (callers joining
-    pieces of their own, which the user never sees, say False).
+    pieces of their own, which the user never sees, say False). ``gate``: the report's flags
+    (:mod:`mapjoin.consistency`); ``unlinked``: the joins (numbers k, map k+1 onto maps 1..k) made by
+    the features alone, without the heading link.
     """
     feature_ids, pieces = _prepare(maps, covariance)
     offsets = np.searchsorted(pieces.feature_piece, np.arange(len(maps) + 1))
@@ -333,7 +373,8 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         z0, var0 = positions[shared], position_variances[shared]
         joins = _solve_join(z0, var0, z[rows][:common], var[rows][:common], pose_xy[k - 1], pose_phi[k - 1],
                             (var_xy[k - 1], var_phi[k - 1]), solver,
-                            (local_map.name, local_map.start_id, local_map.end_id, local_map.size), k, warn)
+                            (local_map.name, local_map.start_id, local_map.end_id, local_map.size), k, warn,
+                            k not in unlinked)
         move = (joins.turn, joins.t, joins.t_variance, joins.phi_variance)
         placed, spread = _place(*move, z[rows], var[rows], squared[rows])
         positions[shared], position_variances[shared] = fuse(z0, var0, placed[:common], information[rows][:common])
@@ -349,7 +390,8 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
                      feature_ids=np.arange(len(feature_ids)), features=positions,
                      feature_variances=position_variances, pose_xy=np.array(pose_xy, dtype=complex),
                      pose_phi=np.array(pose_phi), pose_variances=np.column_stack([var_xy, var_phi]))
-    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"), _report(report))
+    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"),
+                      _report(report, unlinked, gate))
 
 
 def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
@@ -420,7 +462,7 @@ def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[tuple]
 
 def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
               solver: Solver = "bisection", jobs: int = 1,
-              progress: Callable[[int], None] | None = None) -> JoinResult:
+              progress: Callable[[int], None] | None = None, *, gate: float = DEFAULT_GATE) -> JoinResult:
     """Join ``maps`` pairwise, level by level (Remark 8); ``jobs`` processes share the lower levels.
 
     With ``jobs > 1`` the maps are cut into aligned blocks of 2^L maps (at least ``jobs``
@@ -452,8 +494,9 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
     pieces, upper = _join_levels(pieces, labels, solver, depth,
                                  (lambda done: progress(done + len(records))) if progress else None)
     records += upper
-    records.sort(key=lambda row: row[-1])  # by level, stable: chain order within a level
-    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"), _report(records))
+    records.sort(key=lambda row: row[_LEVEL])  # by level, stable: chain order within a level
+    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"),
+                      _report(records, gate=gate))
 
 
 def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:
@@ -469,13 +512,37 @@ def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:
 
 def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection",
          strategy: Strategy = "sequential", jobs: int = 1,
-         progress: Callable[[int], None] | None = None) -> JoinResult:
-    """Join ``maps`` with ``strategy`` (``jobs`` only matters for the tree)."""
+         progress: Callable[[int], None] | None = None, *, gate: float = DEFAULT_GATE,
+         on_inconsistent: Policy = "warn") -> JoinResult:
+    """Join ``maps`` with ``strategy`` (``jobs`` only matters for the tree).
+
+    Every join is checked (:mod:`mapjoin.consistency`): a join whose chi-square p-value is below
+    ``gate``, or that has two minima, is flagged in the report, and ``on_inconsistent`` says what
+    happens then: ``warn`` (one warning per flagged map), ``stop`` (:class:`JoinError` naming the
+    map) or ``skip`` (sequential only: such a map is joined by its features alone or left out; see
+    :func:`mapjoin.consistency.enforce`).
+    """
+    if on_inconsistent == "skip" and strategy != "sequential":
+        raise ValueError("on_inconsistent='skip' re-joins the chain map by map: it needs strategy='sequential'")
     if strategy == "sequential":
-        return join_sequential(maps, covariance, solver, progress)
-    if strategy == "tree":
-        return join_tree(maps, covariance, solver, jobs, progress)
-    raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
+        result = join_sequential(maps, covariance, solver, progress, gate=gate)
+    elif strategy == "tree":
+        result = join_tree(maps, covariance, solver, jobs, progress, gate=gate)
+    else:
+        raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
+
+    def rejoin(unlinked: frozenset[int], left_out: frozenset[int]) -> JoinResult:
+        chain = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
+        return join_sequential(chain, covariance, solver, warn=False, gate=gate, unlinked=unlinked)
+
+    return enforce(result, on_inconsistent, gate, rejoin if strategy == "sequential" else None)
+
+
+def without_features(local_map: LocalMap) -> LocalMap:
+    """``local_map`` with its end pose only (a map the skip policy leaves out: its odometry stays in the chain)."""
+    return LocalMap(local_map.name, local_map.start_id, local_map.end_id, local_map.end_pose,
+                    np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros(0), local_map.pose_variances,
+                    None if local_map.covariance is None else local_map.covariance[:3, :3])
 
 
 def certify_pair(first: LocalMap, second: LocalMap, covariance: CovarianceMode = DEFAULT_COVARIANCE,

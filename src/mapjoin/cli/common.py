@@ -6,12 +6,13 @@ import contextlib
 import logging
 import math
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
 import click
 
 from .. import io as mapio
+from ..consistency import DEFAULT_GATE, POLICIES
 from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
 from ..errors import InputError, counted, shown
 from ..io.numbers import first_unplain
@@ -21,6 +22,7 @@ from ..maps import LocalMap, Range
 from ..onestep import SOLVERS
 
 if TYPE_CHECKING:
+    from ..joining import JoinRecord
     from ..refine import RefineResult
 
 log = logging.getLogger("mapjoin")
@@ -54,6 +56,14 @@ input_format_option = click.option(
 covariance_option = click.option(
     "--covariance", type=click.Choice(COVARIANCE_MODES), default=DEFAULT_COVARIANCE, show_default=True,
     help="How each local map's covariance is made spherical (see docs/joining.md, 'Covariance modes').")
+gate_option = click.option(
+    "--gate", type=FiniteFloat(Range("gate", 0.0, 1.0)), default=DEFAULT_GATE, show_default=True, metavar="LEVEL",
+    help="Flag a join whose chi-square p-value is below LEVEL (and every join with two minima); the default "
+         "comes from the clean real datasets (docs/joining.md, 'Consistency').")
+on_inconsistent_option = click.option(
+    "--on-inconsistent", type=click.Choice(POLICIES), default="warn", show_default=True,
+    help="What a flagged join does: warn (one warning per map), stop (exit 1 naming the map, nothing written) "
+         "or skip (sequential: join the map by its features alone, or leave its features out).")
 solver_option = click.option(
     "--solver", type=click.Choice(SOLVERS), default="bisection", show_default=True,
     help="1-D global solver of Algorithm 1.")
@@ -97,7 +107,8 @@ jobs_option = click.option(
     help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
 report_option = click.option(
     "--report", "report_path", metavar="FILE",
-    help=f"Per-join report of the fast join ({TABLE_EXTENSIONS}): common/new features, a, C_phi, minima, phi*.")
+    help=f"Per-join report of the fast join ({TABLE_EXTENSIONS}): common/new features, a, C_phi, minima, phi*, "
+         "the consistency check (chi2, dof, p, flag, action).")
 
 
 def check_jobs(jobs: int, strategy: str) -> None:
@@ -246,3 +257,12 @@ def warn_if_doubtful(result: RefineResult) -> None:
                 "of freedom (%d residuals - %d unknowns; chi^2/dof = %.3f): the local maps' covariances look %s",
                 result.cost, 100 * verdict.level, verdict.low[0], verdict.high[0], dof, result.residuals,
                 result.unknowns, result.cost / dof, which)
+
+
+def inconsistency(report: Sequence[JoinRecord]) -> str:
+    """The summary's count of flagged joins, and what the skip policy did with them."""
+    text = f"{sum(r.flag for r in report)} inconsistent"
+    unlinked, left_out = (sum(r.action == action for r in report) for action in ("features only", "left out"))
+    if unlinked or left_out:
+        text += f": {unlinked} joined by features alone, {left_out} left out"
+    return text

@@ -10,8 +10,9 @@ from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE
 from ..joining import join as join_maps
 from . import common, main
-from .common import (covariance_option, global_map_format_option, global_map_output_option, input_format_option,
-                     inputs_argument, progress_bar, say, solver_option)
+from .common import (covariance_option, gate_option, global_map_format_option, global_map_output_option,
+                     input_format_option, inputs_argument, on_inconsistent_option, progress_bar, say,
+                     solver_option)
 
 
 @main.command()
@@ -27,11 +28,14 @@ from .common import (covariance_option, global_map_format_option, global_map_out
               help="Then refine to the exact least-squares join (as `mapjoin refine`), with marginal "
                    "covariances unless --no-covariances; the exact solve's options below need it.")
 @common.refine_options
+@gate_option
+@on_inconsistent_option
 @input_format_option
 @click.pass_context
 def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
          report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, exact: bool,
-         max_iterations: int, tolerance: float | None, no_covariances: bool, input_format: str | None) -> None:
+         max_iterations: int, tolerance: float | None, no_covariances: bool, gate: float, on_inconsistent: str,
+         input_format: str | None) -> None:
     """Join a chain of local maps into one global map.
 
     Map k must start at the end pose of map k-1; the global frame is the start pose of
@@ -49,6 +53,8 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     common.check_jobs(jobs, strategy)
     if not exact and (solve_options := common.given(ctx, common.REFINE_OPTIONS)):
         raise click.UsageError(f"{solve_options[0]} is an option of the exact solve; add --refine")
+    if on_inconsistent == "skip" and strategy != "sequential":
+        raise click.UsageError("--on-inconsistent skip re-joins the chain map by map; use --strategy sequential")
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
     start = time.perf_counter()
     maps = common.read_local_maps(inputs, input_format, outputs)
@@ -59,10 +65,12 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
 
             refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
                                       join_progress=progress, progress=common.iteration_printer(ctx),
+                                      gate=gate, on_inconsistent=on_inconsistent,
                                       **common.solve_arguments(max_iterations, tolerance, no_covariances))
             result, global_map = refined.fast_join, refined.global_map
         else:
-            result = join_maps(maps, covariance, solver, strategy, jobs, progress)
+            result = join_maps(maps, covariance, solver, strategy, jobs, progress, gate=gate,
+                               on_inconsistent=on_inconsistent)
             global_map = result.global_map
     if exact:
         common.warn_if_doubtful(refined)
@@ -82,7 +90,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     g = global_map
     say(ctx, f"joined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
              f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
-             f"({two} with two minima), covariance {covariance}, {strategy}, "
+             f"({two} with two minima, {common.inconsistency(result.report)}), covariance {covariance}, {strategy}, "
              f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}")
     if exact:
         common.exit_if_not_converged(ctx, refined, output)

@@ -9,8 +9,9 @@ import click
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE
 from . import common, main
-from .common import (covariance_option, global_map_format_option, global_map_output_option, input_format_option,
-                     inputs_argument, progress_bar, say, solver_option)
+from .common import (covariance_option, gate_option, global_map_format_option, global_map_output_option,
+                     input_format_option, inputs_argument, on_inconsistent_option, progress_bar, say,
+                     solver_option)
 
 
 @main.command()
@@ -23,11 +24,14 @@ from .common import (covariance_option, global_map_format_option, global_map_out
 @common.strategy_option
 @common.jobs_option
 @common.refine_options
+@gate_option
+@on_inconsistent_option
 @input_format_option
 @click.pass_context
 def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
            report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, max_iterations: int,
-           tolerance: float | None, no_covariances: bool, input_format: str | None) -> None:
+           tolerance: float | None, no_covariances: bool, gate: float, on_inconsistent: str,
+           input_format: str | None) -> None:
     """Join local maps exactly: the least-squares optimum.
 
     Solves the problem I-SLSJF solves: all end poses and features at once, each local
@@ -53,12 +57,15 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
 
     common.check_jobs(jobs, strategy)
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
+    if on_inconsistent == "skip" and strategy != "sequential":
+        raise click.UsageError("--on-inconsistent skip re-joins the chain map by map; use --start sequential")
     start = time.perf_counter()
     maps = common.read_local_maps(inputs, input_format, outputs)
     read = time.perf_counter() - start
     with progress_bar(ctx, len(maps), "fast join") as progress:
         result = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
                                  join_progress=progress, progress=common.iteration_printer(ctx),
+                                 gate=gate, on_inconsistent=on_inconsistent,
                                  **common.solve_arguments(max_iterations, tolerance, no_covariances))
     elapsed = time.perf_counter() - start
     with outputs, common.options_for(format="--format"):
@@ -70,7 +77,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     two = sum(r.minima == 2 for r in joins)
     say(ctx, f"refined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
              f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(joins), 'join')} ({two} with two "
-             f"minima), {common.counted(result.iterations, 'iteration')}, chi^2 "
+             f"minima, {common.inconsistency(joins)}), {common.counted(result.iterations, 'iteration')}, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..covariance import DEFAULT_COVARIANCE, CovarianceMode, spherical_summary
-from ..joining import JoinResult, Strategy, join
+from ..consistency import DEFAULT_GATE, Policy
+from ..joining import JoinResult, Strategy, without_features, join
 from ..maps import GlobalMap, LocalMap, Provenance
 from ..onestep import Solver
 from .problem import ExactProblem
@@ -86,14 +87,18 @@ def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy = "sequential",
                     covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection", jobs: int = 1,
                     join_progress: Callable[[int], None] | None = None, max_iterations: int = 100,
                     tolerance: float = TOLERANCE, covariances: bool = True,
-                    progress: Callable[[int, float], None] | None = None) -> RefineResult:
+                    progress: Callable[[int, float], None] | None = None, gate: float = DEFAULT_GATE,
+                    on_inconsistent: Policy = "warn") -> RefineResult:
     """Join the chain ``maps`` fast (:func:`mapjoin.joining.join` with strategy ``start``,
-    ``covariance``, ``solver``, ``jobs`` and ``join_progress``), then refine that to the
+    ``covariance``, ``solver``, ``jobs``, ``join_progress``, ``gate`` and ``on_inconsistent``: a map
+    the skip policy leaves out keeps only its end pose in the refinement too), then refine that to the
     exact least-squares join (:func:`refine` with the other arguments). The result holds
     the fast join (``fast_join``) and its time (``initial_seconds``)."""
     maps = list(maps)
     began = time.perf_counter()
-    fast = join(maps, covariance, solver, start, jobs, join_progress)
+    fast = join(maps, covariance, solver, start, jobs, join_progress, gate=gate, on_inconsistent=on_inconsistent)
+    left_out = {r.join for r in fast.report if r.action == "left out"}
+    maps = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
     initial_seconds = time.perf_counter() - began
     result = refine(maps, fast.global_map, max_iterations=max_iterations, tolerance=tolerance,
                     covariances=covariances, progress=progress)

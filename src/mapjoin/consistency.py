@@ -1,0 +1,187 @@
+"""The consistency check of each join: its minimum cost as a chi-square statistic, and the gate.
+
+A join's cost at its optimum (docs/method.md#one-step-problem) is a sum of squared,
+variance-weighted residuals: the common features seen from both sides and the odometry.
+If the inputs were exactly the spherical model's (independent Gaussian errors with the
+given variances), ``min F`` would be chi-square distributed with
+
+- ``dof = 2n`` with the orientation link: 4n + 3 observed scalars (``Z0_j``, ``Z1_j``, the
+  odometry's x, y, heading) minus 2n + 3 unknowns (``f_j``, ``t``, ``phi``);
+- ``dof = 2n - 1`` without it (chi = 0, a map joined by its features alone): 4n + 2 observed
+  minus 2n + 3 unknowns
+
+(docs/method.md#chi-square-check). ``p`` is the upper tail probability of the statistic under
+that distribution; a join is *flagged* when ``p < gate`` or when its 1-D problem has two
+minima (Theorem 2: odometry heading and feature evidence then disagree by more than 72°).
+
+The real maps are not the spherical model (correlations dropped, propagated variances
+that are weights), so the statistic's tails are heavier than chi-square; the default
+:data:`DEFAULT_GATE` comes from the measurement over all clean joins of the five real
+datasets in docs/method.md#chi-square-check, not from the nominal rate.
+
+The cost splits into the features' share ``features_cost = c0 - 2 a0`` (the chi = 0
+minimum, ``2n - 1`` dof) and the heading link's share ``chi2 - features_cost`` (>= 0). The
+``skip`` policy uses it to tell which side of a flagged join is at fault (:func:`blame`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+from .errors import JoinError
+
+if TYPE_CHECKING:
+    from .joining import JoinRecord, JoinResult
+
+log = logging.getLogger("mapjoin")
+
+__all__ = ["DEFAULT_GATE", "POLICIES", "Policy", "blame", "degrees_of_freedom", "describe", "enforce", "flags",
+           "p_values", "summarise_flagged"]
+
+#: a join is flagged when its p-value is below this (docs/method.md#chi-square-check, measured)
+DEFAULT_GATE = 1e-10
+Policy = Literal["warn", "skip", "stop"]
+POLICIES: tuple[str, ...] = ("warn", "skip", "stop")
+#: how many flagged joins are named one by one before the rest are only counted
+NAMED = 5
+
+
+def degrees_of_freedom(common: np.ndarray, link: np.ndarray | bool = True) -> np.ndarray:
+    """Observed scalars minus unknowns of joins with ``common`` common features: ``2n`` with the
+    heading link, ``2n - 1`` without (never below 0: a join without common feature tests nothing)."""
+    common = np.asarray(common, dtype=np.int64)
+    return np.maximum(2 * common - np.where(link, 0, 1), 0)
+
+
+def p_values(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """``P(X >= chi2)`` for ``X ~ chi-square(dof)``; 1 where ``dof`` is 0 (nothing tested).
+
+    For integer ``dof`` the upper regularised gamma function ``Q(dof/2, y)``, ``y = chi2/2``, is a
+    finite sum: ``Q(a + 1, y) = Q(a, y) + y^a e^-y / Gamma(a + 1)`` from ``Q(1, y) = e^-y`` (even dof)
+    or ``Q(1/2, y) = erfc(sqrt y)`` (odd), i.e. ``dof/2 - 1`` positive terms (no cancellation),
+    summed for all joins at once in O(sum of dof) (a join's dof is twice its common features, so
+    this is linear in the data). Numpy and :mod:`math` only: a join imports no scipy.
+    """
+    chi2, dof = np.asarray(chi2, dtype=float), np.asarray(dof, dtype=np.int64)
+    y = np.maximum(chi2, 0.0) / 2
+    odd = dof % 2 == 1
+    first = np.where(odd, 0.5, 1.0)  # the exponent of the first term
+    count = np.where(odd, (dof - 1) // 2, np.maximum(dof // 2 - 1, 0))  # terms: exponents first .. dof/2 - 1
+    with np.errstate(divide="ignore"):
+        log_y = np.log(y)
+    base = np.exp(-y)
+    base[odd] = [math.erfc(math.sqrt(value)) for value in y[odd].tolist()]  # odd dof: joins without the link
+    join = np.repeat(np.arange(len(dof)), count)
+    step = np.arange(len(join)) - np.repeat(np.cumsum(count) - count, count)  # 0, 1, .. within a join
+    top = int(count.max(initial=0)) + 1
+    log_factorial = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1.0, top + 1)))])  # lgamma(k + 1)
+    log_half = math.lgamma(1.5) + np.concatenate([[0.0], np.cumsum(np.log(np.arange(1.0, top + 1) + 0.5))])
+    odd_term = odd[join]
+    exponent = first[join] + step  # each term is y^e e^-y / Gamma(e + 1)
+    log_gamma = np.where(odd_term, log_half[step], log_factorial[np.minimum(step + 1, top)])
+    terms = np.exp(exponent * log_y[join] - y[join] - log_gamma)
+    p = base + np.bincount(join, terms, len(dof))
+    return np.where(dof > 0, np.minimum(p, 1.0), 1.0)
+
+
+def flags(p: np.ndarray, minima: np.ndarray, gate: float = DEFAULT_GATE) -> np.ndarray:
+    """Flagged joins: ``p < gate`` or two minima (always)."""
+    if not 0.0 <= gate <= 1.0:
+        raise ValueError(f"gate must be a probability in [0, 1], got {gate!r}")
+    return (np.asarray(p) < gate) | (np.asarray(minima) == 2)
+
+
+def blame(features_cost: float, common: int, gate: float = DEFAULT_GATE) -> Literal["odometry", "features"]:
+    """Which side of a flagged join contradicts the other.
+
+    ``odometry`` when the features alone fit (the chi = 0 minimum ``features_cost`` passes the gate
+    with its ``2n - 1`` degrees of freedom): the heading link is what the features disagree with,
+    so the map can be joined by its features. ``features`` otherwise: the map's features disagree
+    with the map so far whatever the heading.
+    """
+    dof = degrees_of_freedom(np.array([common]), False)
+    if dof[0] > 0 and p_values(np.array([features_cost]), dof)[0] >= gate:
+        return "odometry"
+    return "features"
+
+
+def summarise_flagged(names: list[str], details: list[str]) -> list[str]:
+    """Warning lines for the flagged joins (``names`` the maps, ``details`` what is wrong with each):
+    the first :data:`NAMED` one by one, then one line counting the rest."""
+    lines = [f"{name}: {detail}" for name, detail in zip(names[:NAMED], details[:NAMED])]
+    if len(names) > NAMED:
+        lines.append(f"... and {len(names) - NAMED} more inconsistent joins (the report's flag column lists them)")
+    return lines
+
+
+def describe(record: JoinRecord, gate: float) -> str:
+    """Why ``record`` is flagged, in one clause."""
+    if record.minima == 2:
+        return (f"join {record.join} has two minima (C_phi = {record.c_phi:+.3f} rad): its odometry heading and "
+                f"its features contradict each other grossly")
+    link = record.chi2 - record.features_cost if record.action == "joined" else 0.0
+    return (f"join {record.join} is inconsistent: chi^2 = {record.chi2:.6g} for {record.dof} degrees of freedom "
+            f"(p = {record.p:.3g} < {gate:g}; heading link's share {link:.6g}, C_phi = {record.c_phi:+.3f} rad)")
+
+
+def _warn(lines: list[str]) -> None:
+    for line in lines:
+        log.warning("%s", line)
+
+
+def enforce(result: JoinResult, policy: Policy, gate: float,
+            rejoin: Callable[[frozenset[int], frozenset[int]], JoinResult] | None) -> JoinResult:
+    """Apply ``policy`` to the flagged joins of ``result`` (docs/method.md#chi-square-check).
+
+    - ``warn``: one warning per flagged join naming its map (the first :data:`NAMED`, then a count);
+      ``result`` unchanged.
+    - ``stop``: :class:`~mapjoin.errors.JoinError` naming the first flagged join's map.
+    - ``skip``: the best map that can still be made. Flagged joins are resolved one at a time, in
+      chain order: if the features alone pass the gate (:func:`blame` says ``odometry``), the map is
+      joined by its features alone (the chi = 0 solution, phi* = phi0); otherwise, or if that join is
+      still flagged, the map is left out: its features are dropped and its end pose kept (placed by
+      its odometry from the previous map's end), so the chain continues through it. ``rejoin(unlinked,
+      left_out)`` joins the chain again with those join numbers (sequential strategy only: join k
+      puts map k+1 onto maps 1..k); each resolved join costs one such join of the whole chain.
+    """
+    if policy not in POLICIES:
+        raise ValueError(f"unknown policy {policy!r}; expected one of {', '.join(POLICIES)}")
+    flagged = [r for r in result.report if r.flag]
+    if not flagged:
+        return result
+    if policy == "stop":
+        raise JoinError(f"{flagged[0].map}: {describe(flagged[0], gate)}; stopped (--on-inconsistent stop), "
+                        f"{len(flagged)} inconsistent joins in all")
+    if policy == "warn":
+        _warn(summarise_flagged([r.map for r in flagged], [describe(r, gate) for r in flagged]))
+        return result
+    if rejoin is None:
+        raise ValueError("the skip policy needs a rejoin (the sequential strategy)")
+    unlinked: set[int] = set()
+    left_out: set[int] = set()
+    names, actions = [], []
+    while True:
+        pending = next((r for r in result.report if r.flag and r.join not in left_out), None)
+        if pending is None:
+            break
+        number = pending.join
+        if number not in unlinked and blame(pending.features_cost, pending.common, gate) == "odometry":
+            unlinked.add(number)
+            actions.append(f"{describe(pending, gate)}; its features alone fit, so it is joined by them "
+                           f"without the heading link (phi* = phi0)")
+        else:
+            unlinked.discard(number)
+            left_out.add(number)
+            actions.append(f"{describe(pending, gate)}; left out: its features dropped, its end pose kept "
+                           f"(placed by its odometry)")
+        names.append(pending.map)
+        result = rejoin(frozenset(unlinked), frozenset(left_out))
+    _warn(summarise_flagged(names, actions))
+    report = tuple(dataclasses.replace(r, action="left out") if r.join in left_out else r for r in result.report)
+    return dataclasses.replace(result, report=report)
