@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import re
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
-from mapjoin.consistency import DEFAULT_GATE, NAMED, degrees_of_freedom, flags, p_values
+from mapjoin.consistency import DEFAULT_GATE, degrees_of_freedom, flags, p_values
 from mapjoin.errors import JoinError
 from mapjoin.evaluation import compare
 from mapjoin.joining import join, join_sequential
@@ -193,14 +194,23 @@ def test_stop_names_the_map(chains):
         join(corrupted, on_inconsistent="stop")
 
 
-def test_warn_names_the_first_maps_then_counts(chains, caplog):
+def test_warn_names_every_flagged_map_once(chains, caplog):
+    """The library warns once per flagged join, naming its map (the command line counts repeats)."""
     maps = chains["DLR_200_local_maps"]
     with caplog.at_level(logging.WARNING, logger="mapjoin"):
         result = join(maps)
     flagged = [r for r in result.report if r.flag]
     lines = [record.getMessage() for record in caplog.records if "inconsistent" in record.getMessage()]
-    assert len(flagged) > NAMED and len(lines) == NAMED + 1
-    assert lines[0].startswith(flagged[0].map) and f"{len(flagged) - NAMED} more" in lines[-1]
+    assert len(flagged) > 1 and len(lines) == len(flagged)
+    assert [line.split(": join ")[0] for line in lines] == [r.map for r in flagged]
+
+
+def test_the_command_line_shows_one_inconsistent_join_and_counts_the_rest(data_dir, tmp_path):
+    result = run("join", str(data_dir / "DLR_200_local_maps"), "-o", str(tmp_path / "g.csv"))
+    assert result.exit_code == 0
+    shown = [line for line in result.stderr.splitlines() if re.search(r"join \d+ is inconsistent", line)]
+    flagged = int(re.search(r"(\d+) inconsistent\)", result.stderr)[1])
+    assert len(shown) == 1 and f"{flagged - 1} more warnings like" in result.stderr
 
 
 def test_skip_joins_a_map_by_its_features_when_the_heading_link_is_wrong(chains):

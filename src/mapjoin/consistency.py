@@ -42,14 +42,12 @@ if TYPE_CHECKING:
 log = logging.getLogger("mapjoin")
 
 __all__ = ["DEFAULT_GATE", "POLICIES", "Policy", "blame", "degrees_of_freedom", "describe", "enforce", "flags",
-           "p_values", "summarise_flagged"]
+           "p_values"]
 
 #: a join is flagged when its p-value is below this (docs/method.md#chi-square-check, measured)
 DEFAULT_GATE = 1e-10
 Policy = Literal["warn", "skip", "stop"]
 POLICIES: tuple[str, ...] = ("warn", "skip", "stop")
-#: how many flagged joins are named one by one before the rest are only counted
-NAMED = 5
 
 
 def degrees_of_freedom(common: np.ndarray, link: np.ndarray | bool = True) -> np.ndarray:
@@ -111,36 +109,36 @@ def blame(features_cost: float, common: int, gate: float = DEFAULT_GATE) -> Lite
     return "features"
 
 
-def summarise_flagged(names: list[str], details: list[str]) -> list[str]:
-    """Warning lines for the flagged joins (``names`` the maps, ``details`` what is wrong with each):
-    the first :data:`NAMED` one by one, then one line counting the rest."""
-    lines = [f"{name}: {detail}" for name, detail in zip(names[:NAMED], details[:NAMED])]
-    if len(names) > NAMED:
-        lines.append(f"... and {len(names) - NAMED} more inconsistent joins (the report's flag column lists them)")
-    return lines
-
-
 def describe(record: JoinRecord, gate: float) -> str:
     """Why ``record`` is flagged, in one clause."""
+    template, arguments = _why(record, gate)
+    return template % arguments
+
+
+def _why(record: JoinRecord, gate: float) -> tuple[str, tuple]:
+    """:func:`describe`'s message as a logging template and its arguments (one template per kind of
+    flag, so that the command line can count repeated warnings of a kind)."""
     if record.minima == 2:
-        return (f"join {record.join} has two minima (C_phi = {record.c_phi:+.3f} rad): its odometry heading and "
-                f"its features contradict each other grossly")
+        return ("join %d has two minima (C_phi = %+.3f rad): its odometry heading and its features contradict "
+                "each other grossly", (record.join, record.c_phi))
     link = record.chi2 - record.features_cost if record.action == "joined" else 0.0
-    return (f"join {record.join} is inconsistent: chi^2 = {record.chi2:.6g} for {record.dof} degrees of freedom "
-            f"(p = {record.p:.3g} < {gate:g}; heading link's share {link:.6g}, C_phi = {record.c_phi:+.3f} rad)")
+    return ("join %d is inconsistent: chi^2 = %.6g for %d degrees of freedom (p = %.3g < %g; heading link's "
+            "share %.6g, C_phi = %+.3f rad)", (record.join, record.chi2, record.dof, record.p, gate, link, record.c_phi))
 
 
-def _warn(lines: list[str]) -> None:
-    for line in lines:
-        log.warning("%s", line)
+def _warn(flagged: list[JoinRecord], gate: float) -> None:
+    """One warning per flagged join, naming its map."""
+    for record in flagged:
+        template, arguments = _why(record, gate)
+        log.warning("%s: " + template, record.map, *arguments)
 
 
 def enforce(result: JoinResult, policy: Policy, gate: float,
             rejoin: Callable[[frozenset[int], frozenset[int]], JoinResult] | None) -> JoinResult:
     """Apply ``policy`` to the flagged joins of ``result`` (docs/method.md#chi-square-check).
 
-    - ``warn``: one warning per flagged join naming its map (the first :data:`NAMED`, then a count);
-      ``result`` unchanged.
+    - ``warn``: one warning per flagged join naming its map (the command line shows the first of
+      each kind and counts the rest); ``result`` unchanged.
     - ``stop``: :class:`~mapjoin.errors.JoinError` naming the first flagged join's map.
     - ``skip``: the best map that can still be made. Flagged joins are resolved one at a time, in
       chain order: if the features alone pass the gate (:func:`blame` says ``odometry``), the map is
@@ -159,13 +157,12 @@ def enforce(result: JoinResult, policy: Policy, gate: float,
         raise JoinError(f"{flagged[0].map}: {describe(flagged[0], gate)}; stopped (--on-inconsistent stop), "
                         f"{len(flagged)} inconsistent joins in all")
     if policy == "warn":
-        _warn(summarise_flagged([r.map for r in flagged], [describe(r, gate) for r in flagged]))
+        _warn(flagged, gate)
         return result
     if rejoin is None:
         raise ValueError("the skip policy needs a rejoin (the sequential strategy)")
     unlinked: set[int] = set()
     left_out: set[int] = set()
-    names, actions = [], []
     while True:
         pending = next((r for r in result.report if r.flag and r.join not in left_out), None)
         if pending is None:
@@ -173,15 +170,13 @@ def enforce(result: JoinResult, policy: Policy, gate: float,
         number = pending.join
         if number not in unlinked and blame(pending.features_cost, pending.common, gate) == "odometry":
             unlinked.add(number)
-            actions.append(f"{describe(pending, gate)}; its features alone fit, so it is joined by them "
-                           f"without the heading link (phi* = phi0)")
+            log.warning("%s: %s; its features alone fit, so it is joined by them without the heading link "
+                        "(phi* = phi0)", pending.map, describe(pending, gate))
         else:
             unlinked.discard(number)
             left_out.add(number)
-            actions.append(f"{describe(pending, gate)}; left out: its features dropped, its end pose kept "
-                           f"(placed by its odometry)")
-        names.append(pending.map)
+            log.warning("%s: %s; left out: its features dropped, its end pose kept (placed by its odometry)",
+                        pending.map, describe(pending, gate))
         result = rejoin(frozenset(unlinked), frozenset(left_out))
-    _warn(summarise_flagged(names, actions))
     report = tuple(dataclasses.replace(r, action="left out") if r.join in left_out else r for r in result.report)
     return dataclasses.replace(result, report=report)
