@@ -102,4 +102,4 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
     ctx.obj = {"quiet": quiet, "verbose": verbose}
 
 
-from . import build, check_minima, compare, convert, datasets, evaluate, join, plot, refine, simulate  # noqa: E402,F401  (registers the commands)
+from . import build, check_minima, compare, convert, datasets, evaluate, join, merge, plot, refine, simulate  # noqa: E402,F401  (registers the commands)
