@@ -132,8 +132,9 @@ def merge(maps: Sequence[GlobalMap], associate: bool = False, *, min_common: int
             if not found.sure:
                 raise JoinError(
                     f"{other.name}: no sure overlap with {names}: the best transform found matches {found.best} "
-                    f"features (at least {min_common} needed) and the best different one {found.runner_up} "
-                    f"(at most half as many allowed); the overlap is too small or too self-similar to tell")
+                    f"features; needed: at least {min_common}, twice the {found.runner_up} of the best different "
+                    f"transform, and well above the {found.chance:.3g} that chance gives (the overlap is too small, "
+                    f"the features' variances too wide for their spacing, or the maps too self-similar)")
             in_a, in_b = found.a, found.b
         else:
             _, in_a, in_b = np.intersect1d(merged.feature_ids, other.feature_ids, return_indices=True)
@@ -183,11 +184,12 @@ def merge(maps: Sequence[GlobalMap], associate: bool = False, *, min_common: int
         for kind, old, clash, ids in (("feature", other.feature_ids[new], feature_clash, feature_ids),
                                       ("pose", other.pose_ids, pose_clash, pose_ids)):
             renamed += [Renaming(other.name, kind, o, n) for o, n in zip(old[clash].tolist(), ids[clash].tolist())]
-            if clash.any():
+            clashes = int(clash.sum())
+            if clashes:
                 log.warning("%s: %d %s id%s taken in %s by a different %s: given new ids (%s)", other.name,
-                            clash.sum(), kind, "s" * (clash.sum() != 1), names, kind,
+                            clashes, kind, "s" * (clashes != 1), names, kind,
                             ", ".join(f"{o} -> {n}" for o, n in zip(old[clash][:3].tolist(), ids[clash][:3].tolist()))
-                            + (", ..." if clash.sum() > 3 else ""))
+                            + (", ..." if clashes > 3 else ""))
         report.append(MergeRecord(number, other.name, solution.phi, t.real, t.imag, len(in_a), int(new.sum()),
                                   solution.cost, int(feature_clash.sum()), int(pose_clash.sum())))
     return MergeResult(merged, tuple(report), tuple(renamed))

@@ -13,17 +13,32 @@ variances) are related by an unknown SE(2) transform. The search is a consensus 
 3. **Votes.** The candidates vote in a grid over ``(phi, u)``, ``u = t + R(phi) c_B`` the
    image of B's centroid (so that a small error of phi moves u by at most phi's error times
    B's radius); two grids shifted by half a cell, so that no cluster is cut in two.
-4. **Verification.** The ``HYPOTHESES`` fullest cells seed a transform each; B's features
-   are placed with it and matched to the nearest A feature within the gate (Mahalanobis,
+4. **Verification.** The ``HYPOTHESES`` fullest cells seed a hypothesis each: the
+   correspondences its candidates stand for (a feature given two partners left out) give a
+   first transform (the chi = 0 solution below); B's features are placed with it and matched to the nearest A feature within the gate (Mahalanobis,
    the variances of both features and of the transform). A B feature with two A features
    in its gate, or an A feature claimed twice, is left unmatched (ambiguous). The chi = 0
    one-step problem over the matches (closed form, Theorem 1 with phi* = phi0) gives the
-   next transform and its variances; this repeats until the matches stop changing.
+   next transform and its variances; this repeats until the matches stop changing. When
+   the matches' residuals show the variances too wide (their median squared normalised
+   residual below its chi-square expectation ``2 ln 2``), the gates shrink by that ratio
+   (at most 10^4 times): chance neighbours inside a gate far wider than the true errors
+   would otherwise be matched. They never widen.
 
-**When the answer is sure** (:func:`consensus`): the best hypothesis has at least
-``min_common`` matches and at least twice as many as the best hypothesis that differs from
-it (shares fewer than half its matches). Otherwise the caller must refuse: the overlap is
-too small, or the maps are too self-similar, to tell the transform.
+**When the answer is sure** (:func:`consensus`): the best hypothesis has
+
+- at least ``min_common`` matches,
+- at least twice as many as the best hypothesis that differs from it (turns B by more than
+  three vote cells in phi, or moves the mean of the best's matched B features by more than
+  three cells in u: closer hypotheses are the same transform, refitted to another part of
+  two maps that drift apart), and
+- at least ``chance + 4 sqrt(chance)`` of them, where ``chance`` is how many matches chance
+  alone would give: the sum over B's features of the probability that one of A's features,
+  spread uniformly over A's bounding box, falls in the feature's gate (A's density times the
+  gate's area, at most 1). Wide gates in a dense map match anything; this says so.
+
+Otherwise the caller must refuse: the overlap is too small, the gates too wide for the
+features' spacing, or the maps too self-similar, to tell the transform.
 
 Everything is vectorised over features, pairs and candidates; the only loop is over the
 few hypotheses and their iterations. ``scipy.spatial`` (k-d trees) is imported here only.
@@ -36,8 +51,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .covariance import placed_variances, squared_norm, translation_variance
-from .onestep import OneStepProblem, OneStepSolution, as_complex, solve
+from .covariance import squared_norm, translation_variance
+from .onestep import OneStepProblem, OneStepSolution, solve
+from .se2 import wrap
 
 __all__ = ["A_NEIGHBOURS", "B_NEIGHBOURS", "GATE_PROBABILITY", "HYPOTHESES", "MIN_COMMON", "Consensus",
            "chi_square_2", "consensus", "registration_problem", "transform_variances"]
@@ -48,6 +64,7 @@ HYPOTHESES = 8        # cells of each vote grid verified
 MIN_COMMON = 5        # fewest matches a found transform needs
 GATE_PROBABILITY = 0.999
 _ITERATIONS = 10
+_SAME_CELLS = 3       # hypotheses closer than this many vote cells are one transform
 
 
 def chi_square_2(probability: float) -> float:
@@ -72,13 +89,15 @@ def transform_variances(solution: OneStepSolution) -> tuple[float, float]:
 @dataclass(frozen=True)
 class Consensus:
     """The outcome of the search: the matches ``(index in A, index in B)`` of the best hypothesis, its
-    solution, how many matches it and the best different hypothesis have, and whether that is sure."""
+    solution, how many matches it and the best different hypothesis have, how many chance would give,
+    and whether that is sure."""
 
     a: np.ndarray
     b: np.ndarray
     solution: OneStepSolution | None
     best: int
     runner_up: int
+    chance: float
     sure: bool
 
 
@@ -92,8 +111,9 @@ def _neighbour_pairs(tree, points: np.ndarray, count: int) -> np.ndarray:
 
 
 def _candidates(za: np.ndarray, va: np.ndarray, pairs_a: np.ndarray, zb: np.ndarray, vb: np.ndarray,
-                pairs_b: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
-    """Transforms ``(phi, t)`` (t complex) of every A pair and B pair whose lengths agree, both ways round."""
+                pairs_b: np.ndarray, gate: float) -> tuple[np.ndarray, ...]:
+    """Transforms ``(phi, t)`` (t complex) of every A pair and B pair whose lengths agree, both ways round,
+    and the two correspondences each stands for (``ends_a[c, i]`` is ``ends_b[c, i]``)."""
     vec_a = za[pairs_a[:, 1]] - za[pairs_a[:, 0]]
     vec_b = zb[pairs_b[:, 1]] - zb[pairs_b[:, 0]]
     length_a, length_b = np.abs(vec_a), np.abs(vec_b)
@@ -114,25 +134,54 @@ def _candidates(za: np.ndarray, va: np.ndarray, pairs_a: np.ndarray, zb: np.ndar
     middle_b = zb[pairs_b[which_b]].mean(axis=1)
     turns = np.concatenate([turn, -turn])  # straight, crossed
     t = np.concatenate([middle_a, middle_a]) - turns * np.concatenate([middle_b, middle_b])
-    return np.angle(turns), t
+    ends_a = np.concatenate([pairs_a[which_a], pairs_a[which_a][:, ::-1]])
+    ends_b = np.concatenate([pairs_b[which_b], pairs_b[which_b]])
+    return np.angle(turns), t, ends_a, ends_b
 
 
-def _seeds(phi: np.ndarray, t: np.ndarray, centre: complex, phi_cell: float, xy_cell: float
-           ) -> list[tuple[float, complex]]:
-    """The ``HYPOTHESES`` fullest cells of two shifted (phi, u) grids, each as its candidates' mean transform."""
+def _seeds(phi: np.ndarray, t: np.ndarray, centre: complex, phi_cell: float, xy_cell: float) -> list[np.ndarray]:
+    """The candidates (indices) of the ``HYPOTHESES`` fullest cells of two shifted (phi, u) grids."""
     u = t + np.exp(1j * phi) * centre
     seeds = []
     for shift in (0.0, 0.5):
         key = np.stack([np.floor(phi / phi_cell + shift), np.floor(u.real / xy_cell + shift),
                         np.floor(u.imag / xy_cell + shift)], axis=1).astype(np.int64)
-        cells, cell_of, votes = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        _, cell_of, votes = np.unique(key, axis=0, return_inverse=True, return_counts=True)
         cell_of = cell_of.ravel()
+        order = np.argsort(cell_of, kind="stable")
+        starts = np.concatenate([[0], np.cumsum(votes)])
         for cell in np.argsort(-votes, kind="stable")[:HYPOTHESES]:
-            members = cell_of == cell
-            mean_phi = float(np.angle(np.exp(1j * phi[members]).sum()))
-            mean_u = complex(u[members].mean())
-            seeds.append((mean_phi, mean_u - np.exp(1j * mean_phi) * centre))
+            seeds.append(order[starts[cell]:starts[cell + 1]])
     return seeds
+
+
+def _voted(ends_a: np.ndarray, ends_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The correspondences that a cell's candidates stand for, each once; a feature given two partners by
+    different candidates is left out (as :func:`_matches` leaves out ambiguous ones)."""
+    pairs = np.unique(np.column_stack([ends_a.ravel(), ends_b.ravel()]), axis=0)
+    once_a = np.bincount(pairs[:, 0])[pairs[:, 0]] == 1
+    once_b = np.bincount(pairs[:, 1])[pairs[:, 1]] == 1
+    keep = once_a & once_b
+    return pairs[keep, 0], pairs[keep, 1]
+
+
+def _placement_variances(solution: OneStepSolution, zb: np.ndarray) -> np.ndarray:
+    """The spherical variance that the transform's uncertainty adds to each placed point ``t + R(phi) z``, to
+    first order: ``1/W + |z - m1|^2 var_phi / 2`` (docs/method.md#variance-propagation; about the matched
+    points' mean ``m1``, where t and phi are uncorrelated)."""
+    k = solution.constants
+    return 1.0 / k.weight + squared_norm(zb - complex(k.mean1[0], k.mean1[1])) / (2 * solution.phi_information)
+
+
+def _variance_scale(residuals: np.ndarray, variances: np.ndarray) -> float:
+    """How much narrower the gates may be than the variances say: the median squared normalised residual of the
+    matches over its expected value ``2 ln 2`` (chi-square, 2 degrees of freedom), within [1e-4, 1]; 1 (the
+    variances as declared) below ``MIN_COMMON`` matches. Never wider: matches that disagree more than their
+    variances say are not let in more easily."""
+    if len(residuals) < MIN_COMMON:
+        return 1.0
+    normalised = squared_norm(residuals) / variances
+    return min(1.0, max(1e-4, float(np.median(normalised)) / (2 * math.log(2))))
 
 
 def _matches(tree, va: np.ndarray, zb: np.ndarray, gate_variances: np.ndarray, gate: float
@@ -162,15 +211,15 @@ def consensus(za: np.ndarray, va: np.ndarray, zb: np.ndarray, vb: np.ndarray, *,
 
     empty = np.zeros(0, dtype=np.intp)
     if len(za) < 2 or len(zb) < 2:
-        return Consensus(empty, empty, None, 0, 0, False)
+        return Consensus(empty, empty, None, 0, 0, math.inf, False)
     gate = chi_square_2(probability)
     xy_a, xy_b = np.column_stack([za.real, za.imag]), np.column_stack([zb.real, zb.imag])
     tree_a, tree_b = cKDTree(xy_a), cKDTree(xy_b)
     pairs_a = _neighbour_pairs(tree_a, xy_a, A_NEIGHBOURS)
     pairs_b = _neighbour_pairs(tree_b, xy_b, B_NEIGHBOURS)
-    phi, t = _candidates(za, va, pairs_a, zb, vb, pairs_b, gate)
+    phi, t, ends_a, ends_b = _candidates(za, va, pairs_a, zb, vb, pairs_b, gate)
     if not len(phi):
-        return Consensus(empty, empty, None, 0, 0, False)
+        return Consensus(empty, empty, None, 0, 0, math.inf, False)
     # cells: a candidate's phi is good to ~ its pair's position error over its length; u to that error
     # plus phi's error times B's radius
     sigma = math.sqrt(float(np.median(va)) + float(np.median(vb)))
@@ -180,12 +229,11 @@ def consensus(za: np.ndarray, va: np.ndarray, zb: np.ndarray, vb: np.ndarray, *,
     phi_cell = min(max(4 * sigma / length, 0.01), 0.5)
     xy_cell = 4 * sigma + phi_cell * radius
     found = []
-    for seed_phi, seed_t in _seeds(phi, t, centre, phi_cell, xy_cell):
-        # the seed's own uncertainty: half a cell in u, and in phi about B's centroid
-        spread = (xy_cell / 2) ** 2 + squared_norm(zb - centre) * (phi_cell / 2) ** 2
-        turn, shift, previous, solution = np.exp(1j * seed_phi), seed_t, None, None
+    for members in _seeds(phi, t, centre, phi_cell, xy_cell):
+        # the first matches: the correspondences the cell's votes stand for
+        a, b = _voted(ends_a[members], ends_b[members])
+        previous, solution, scale = None, None, 1.0
         for _ in range(_ITERATIONS):
-            a, b = _matches(tree_a, va, turn * zb + shift, vb + spread, gate)
             if len(a) < 2 or (previous is not None and np.array_equal(previous, b)):
                 break
             previous = b
@@ -193,21 +241,36 @@ def consensus(za: np.ndarray, va: np.ndarray, zb: np.ndarray, vb: np.ndarray, *,
             if candidate.constants.a0 == 0.0:
                 break
             solution = candidate
-            t_variance, phi_variance = transform_variances(solution)
             turn, shift = np.exp(1j * solution.phi), complex(solution.t[0], solution.t[1])
-            spread = placed_variances(t_variance, phi_variance, 0.0, squared_norm(zb))
-        if solution is not None and previous is not None:
-            a, b = _matches(tree_a, va, turn * zb + shift, vb + spread, gate)
-            found.append((len(b), -solution.cost, a, b, solution))
+            spread = _placement_variances(solution, zb)
+            scale = _variance_scale(za[a] - (turn * zb[b] + shift), va[a] + vb[b] + spread[b])
+            a, b = _matches(tree_a, va, turn * zb + shift, vb + spread, gate * scale)
+        if solution is not None:
+            a, b = _matches(tree_a, va, turn * zb + shift, vb + spread, gate * scale)
+            found.append((len(b), -solution.cost, a, b, solution, vb + spread, gate * scale))
     if not found:
-        return Consensus(empty, empty, None, 0, 0, False)
+        return Consensus(empty, empty, None, 0, 0, math.inf, False)
     found.sort(key=lambda entry: entry[:2], reverse=True)
-    count, _, a, b, _ = found[0]
+    count, _, a, b, solution, gate_variances, best_gate = found[0]
     if count >= 2:
         solution = solve(registration_problem(xy_a[a], va[a], xy_b[b], vb[b]))
-    else:
-        solution = found[0][4]
-    best_b = set(b.tolist())
-    runner_up = max((entry[0] for entry in found[1:] if len(best_b & set(entry[3].tolist())) * 2 < entry[0]),
-                    default=0)
-    return Consensus(a, b, solution, count, runner_up, count >= min_common and count >= 2 * runner_up)
+    centre = complex(solution.constants.mean1[0], solution.constants.mean1[1])
+
+    def image(s: OneStepSolution) -> complex:  # where a hypothesis puts the best's matched B features' mean
+        return np.exp(1j * s.phi) * centre + complex(s.t[0], s.t[1])
+
+    runner_up = max((entry[0] for entry in found[1:]
+                     if abs(wrap(entry[4].phi - solution.phi)) > _SAME_CELLS * phi_cell
+                     or abs(image(entry[4]) - image(solution)) > _SAME_CELLS * xy_cell), default=0)
+    chance = _chance(xy_a, float(np.median(va)), gate_variances, best_gate)
+    sure = count >= min_common and count >= 2 * runner_up and count >= chance + 4 * math.sqrt(chance)
+    return Consensus(a, b, solution, count, runner_up, chance, sure)
+
+
+def _chance(xy_a: np.ndarray, typical_va: float, gate_variances: np.ndarray, gate: float) -> float:
+    """Matches expected by chance: A's features spread uniformly over A's bounding box, the probability that
+    one falls in each B feature's gate (area ``pi gate (var_a + var_b)``), at most 1 each, summed."""
+    extent = xy_a.max(axis=0) - xy_a.min(axis=0)
+    area = float(extent[0] * extent[1])
+    density = len(xy_a) / area if area > 0 else math.inf
+    return float(np.minimum(1.0, density * math.pi * gate * (typical_va + gate_variances)).sum())
