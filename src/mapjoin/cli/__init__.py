@@ -85,6 +85,7 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
       mapjoin join ../shared/data/VicPark_200_local_maps --refine -o exact.yaml
       mapjoin check-minima --a 203570 --c-phi -0.0028
       mapjoin evaluate global.csv --truth ../shared/data/535_data_5_local_maps
+      mapjoin merge robot1.csv robot2.csv -o merged.csv --associate
       mapjoin plot global.csv exact.yaml -o maps.png
       mapjoin build raw.g2o -o maps/ --maps 100
       mapjoin datasets fetch vicpark-200
