@@ -4,7 +4,8 @@ Two point sets A and B (features of two maps, each in its own frame, with spheri
 variances) are related by an unknown SE(2) transform. The search is a consensus over pairs:
 
 1. **Pairs.** Each feature is paired with its nearest neighbours (``A_NEIGHBOURS`` in A,
-   ``B_NEIGHBOURS`` in B). The distance within a pair does not change under SE(2), so a
+   ``B_NEIGHBOURS`` in B; at most ``B_PAIRS`` of B's pairs, taken evenly, so that the
+   candidates grow with A's size, not with the product of both). The distance within a pair does not change under SE(2), so a
    B pair can only be an A pair whose distance agrees within the gate
    ``|d_A - d_B|^2 <= gate (var_i + var_j + var_k + var_l)``.
 2. **Candidates.** Each agreeing (A pair, B pair) fixes a transform in two ways (the B
@@ -55,11 +56,12 @@ from .covariance import squared_norm, translation_variance
 from .onestep import OneStepProblem, OneStepSolution, solve
 from .se2 import wrap
 
-__all__ = ["A_NEIGHBOURS", "B_NEIGHBOURS", "GATE_PROBABILITY", "HYPOTHESES", "MIN_COMMON", "Consensus",
+__all__ = ["A_NEIGHBOURS", "B_NEIGHBOURS", "B_PAIRS", "GATE_PROBABILITY", "HYPOTHESES", "MIN_COMMON", "Consensus",
            "chi_square_2", "consensus", "registration_problem", "transform_variances"]
 
 A_NEIGHBOURS = 8      # pairs per A feature (A may hold features B did not see among B's neighbours)
 B_NEIGHBOURS = 4      # pairs per B feature
+B_PAIRS = 512         # at most this many B pairs vote (evenly taken): the candidates grow with A, not A x B
 HYPOTHESES = 8        # cells of each vote grid verified
 MIN_COMMON = 5        # fewest matches a found transform needs
 GATE_PROBABILITY = 0.999
@@ -217,6 +219,8 @@ def consensus(za: np.ndarray, va: np.ndarray, zb: np.ndarray, vb: np.ndarray, *,
     tree_a, tree_b = cKDTree(xy_a), cKDTree(xy_b)
     pairs_a = _neighbour_pairs(tree_a, xy_a, A_NEIGHBOURS)
     pairs_b = _neighbour_pairs(tree_b, xy_b, B_NEIGHBOURS)
+    if len(pairs_b) > B_PAIRS:
+        pairs_b = pairs_b[np.linspace(0, len(pairs_b) - 1, B_PAIRS).astype(np.intp)]
     phi, t, ends_a, ends_b = _candidates(za, va, pairs_a, zb, vb, pairs_b, gate)
     if not len(phi):
         return Consensus(empty, empty, None, 0, 0, math.inf, False)
