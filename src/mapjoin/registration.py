@@ -146,12 +146,15 @@ def _seeds(phi: np.ndarray, t: np.ndarray, centre: complex, phi_cell: float, xy_
     u = t + np.exp(1j * phi) * centre
     seeds = []
     for shift in (0.0, 0.5):
-        key = np.stack([np.floor(phi / phi_cell + shift), np.floor(u.real / xy_cell + shift),
-                        np.floor(u.imag / xy_cell + shift)], axis=1).astype(np.int64)
-        _, cell_of, votes = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        cell_of = cell_of.ravel()
-        order = np.argsort(cell_of, kind="stable")
-        starts = np.concatenate([[0], np.cumsum(votes)])
+        keys = (np.floor(u.imag / xy_cell + shift), np.floor(u.real / xy_cell + shift),
+                np.floor(phi / phi_cell + shift))
+        order = np.lexsort(keys)  # candidates sorted by cell; a cell is a run of equal keys
+        new_cell = np.zeros(len(order), dtype=bool)
+        new_cell[0] = True
+        for key in keys:
+            new_cell[1:] |= key[order[1:]] != key[order[:-1]]
+        starts = np.append(np.flatnonzero(new_cell), len(order))
+        votes = np.diff(starts)
         for cell in np.argsort(-votes, kind="stable")[:HYPOTHESES]:
             seeds.append(order[starts[cell]:starts[cell + 1]])
     return seeds
