@@ -8,6 +8,7 @@ import io
 import json
 import logging
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -455,3 +456,20 @@ def test_simulate_robots_needs_a_directory(tmp_path):
     result = run("simulate", "-o", str(tmp_path / "maps.csv"), "--robots", "2")
     assert result.exit_code == 2 and "directory" in result.stderr
     assert not (tmp_path / "maps.csv").exists()
+
+
+def test_results_beyond_the_global_ranges_and_coincident_points_are_errors_naming_the_map():
+    """Huge variances that the merge would push past 1e40, and maps of coincident points (no pair has a
+    direction), end in a JoinError naming the map, with no numpy warning on the way."""
+    big_a = GlobalMap([1, 2, 3], [[1e16, 0], [0, 1e16], [-1e16, 0]], [1e40, 1e-40, 1], [1], [[0, 0, 0]],
+                      [[1, 1]], name="A")
+    big_b = GlobalMap([1, 2, 3], [[1e16, 1], [0, -1e16], [-1e16, 0]], [1e-40, 1e40, 1], [2], [[0, 0, 1]],
+                      [[1e40, 1e40]], name="B")
+    same_a = GlobalMap([1, 2, 3, 4], [[0, 0], [0, 0], [0, 0], [1, 1]], [1, 1, 1, 1], [1], [[0, 0, 0]], [[1, 1]],
+                       name="A")
+    same_b = dataclasses.replace(same_a, feature_ids=np.array([5, 6, 7, 8]), pose_ids=np.array([2]), name="B")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for maps, associate in (([big_a, big_b], False), ([same_a, same_b], True)):
+            with pytest.raises(JoinError, match="^B: "):
+                mapjoin.merge(maps, associate=associate)

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .covariance import fuse, placed_variances, squared_norm
-from .errors import JoinError
+from .errors import InputError, JoinError
 from .maps import GlobalMap, Provenance
 from .onestep import as_complex, solve
 from .registration import GATE_PROBABILITY, MIN_COMMON, consensus, registration_problem, transform_variances
@@ -106,6 +106,15 @@ def _fresh(ids: np.ndarray, taken: np.ndarray, start: int) -> tuple[np.ndarray, 
     return renamed, clash, start + int(clash.sum())
 
 
+def _merged_map(name: str, **fields) -> GlobalMap:
+    """The map after merging map ``name`` in; a value outside the global ranges (a variance beyond 1e40, say)
+    is an error about that map."""
+    try:
+        return GlobalMap(**fields, name="merged map")
+    except InputError as error:
+        raise JoinError(f"{name}: merging it gives {error}") from None
+
+
 def merge(maps: Sequence[GlobalMap], associate: bool = False, *, min_common: int = MIN_COMMON,
           probability: float = GATE_PROBABILITY) -> MergeResult:
     """Merge global maps, each in its own frame, into the frame of the first (see the module docstring).
@@ -171,7 +180,8 @@ def merge(maps: Sequence[GlobalMap], associate: bool = False, *, min_common: int
         variances = merged.feature_variances.copy()
         features[in_a] = np.column_stack([fused.real, fused.imag])
         variances[in_a] = fused_variances
-        merged = GlobalMap(
+        merged = _merged_map(
+            other.name,
             feature_ids=np.concatenate([merged.feature_ids, feature_ids]),
             features=np.concatenate([features, np.column_stack([placed.real, placed.imag])]),
             feature_variances=np.concatenate([variances, placed_var]),
@@ -179,8 +189,7 @@ def merge(maps: Sequence[GlobalMap], associate: bool = False, *, min_common: int
             poses=np.concatenate([merged.poses, poses]),
             pose_variances=np.concatenate([merged.pose_variances, pose_variances]),
             provenance=Provenance(merged.provenance.maps + other.provenance.maps, merged.provenance.covariance,
-                                  merged.provenance.solver, "merge"),
-            name="merged map")
+                                  merged.provenance.solver, "merge"))
         for kind, old, clash, ids in (("feature", other.feature_ids[new], feature_clash, feature_ids),
                                       ("pose", other.pose_ids, pose_clash, pose_ids)):
             renamed += [Renaming(other.name, kind, o, n) for o, n in zip(old[clash].tolist(), ids[clash].tolist())]

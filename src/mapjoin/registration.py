@@ -5,8 +5,9 @@ variances) are related by an unknown SE(2) transform. The search is a consensus 
 
 1. **Pairs.** Each feature is paired with its nearest neighbours (``A_NEIGHBOURS`` in A,
    ``B_NEIGHBOURS`` in B; at most ``B_PAIRS`` of B's pairs, taken evenly, so that the
-   candidates grow with A's size, not with the product of both). The distance within a pair does not change under SE(2), so a
-   B pair can only be an A pair whose distance agrees within the gate
+   candidates grow with A's size, not with the product of both). The distance within a
+   pair does not change under SE(2), so a B pair can only be an A pair whose distance
+   agrees within the gate
    ``|d_A - d_B|^2 <= gate (var_i + var_j + var_k + var_l)``.
 2. **Candidates.** Each agreeing (A pair, B pair) fixes a transform in two ways (the B
    pair's ends matched straight or crossed): ``phi = arg(v_A conj(v_B))`` from the pairs'
@@ -16,9 +17,10 @@ variances) are related by an unknown SE(2) transform. The search is a consensus 
    B's radius); two grids shifted by half a cell, so that no cluster is cut in two.
 4. **Verification.** The ``HYPOTHESES`` fullest cells seed a hypothesis each: the
    correspondences its candidates stand for (a feature given two partners left out) give a
-   first transform (the chi = 0 solution below); B's features are placed with it and matched to the nearest A feature within the gate (Mahalanobis,
-   the variances of both features and of the transform). A B feature with two A features
-   in its gate, or an A feature claimed twice, is left unmatched (ambiguous). The chi = 0
+   first transform (the chi = 0 solution below); B's features are placed with it and
+   matched to the nearest A feature within the gate (Mahalanobis, the variances of both
+   features and of the transform). A B feature with two A features in its gate, or an A
+   feature claimed twice, is left unmatched (ambiguous). The chi = 0
    one-step problem over the matches (closed form, Theorem 1 with phi* = phi0) gives the
    next transform and its variances; this repeats until the matches stop changing. When
    the matches' residuals show the variances too wide (their median squared normalised
@@ -42,7 +44,15 @@ Otherwise the caller must refuse: the overlap is too small, the gates too wide f
 features' spacing, or the maps too self-similar, to tell the transform.
 
 Everything is vectorised over features, pairs and candidates; the only loop is over the
-few hypotheses and their iterations. ``scipy.spatial`` (k-d trees) is imported here only.
+few hypotheses and their iterations.
+
+**Limits.** Maps that drift apart beyond their variances (long simulated runs) fit one
+rigid transform only in part: the search then matches that part, and a B feature whose
+true partner has drifted metres away can be matched to another A feature that happens to
+lie inside its (narrow) gate (benchmarks/README.md, "Merge"). The test for sureness
+assumes maps consistent with their variances.
+
+``scipy.spatial`` (k-d trees) is imported here only, on use.
 """
 
 from __future__ import annotations
@@ -128,7 +138,8 @@ def _candidates(za: np.ndarray, va: np.ndarray, pairs_a: np.ndarray, zb: np.ndar
     count = high - low
     which_b = np.repeat(np.arange(len(pairs_b)), count)
     which_a = order[np.repeat(low, count) + np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)]
-    agree = (length_a[which_a] - length_b[which_b]) ** 2 <= gate * (spread_a[which_a] + spread_b[which_b])
+    agree = ((length_a[which_a] - length_b[which_b]) ** 2 <= gate * (spread_a[which_a] + spread_b[which_b])) \
+        & (length_a[which_a] > 0) & (length_b[which_b] > 0)  # a pair of coincident points has no direction
     which_a, which_b = which_a[agree], which_b[agree]
     turn = vec_a[which_a] * vec_b[which_b].conj()
     turn = turn / np.abs(turn)
@@ -233,7 +244,7 @@ def consensus(za: np.ndarray, va: np.ndarray, zb: np.ndarray, vb: np.ndarray, *,
     length = float(np.median(np.abs(zb[pairs_b[:, 1]] - zb[pairs_b[:, 0]])))
     centre = complex(zb.mean())
     radius = math.sqrt(float(squared_norm(zb - centre).mean()))
-    phi_cell = min(max(4 * sigma / length, 0.01), 0.5)
+    phi_cell = min(max(4 * sigma / length, 0.01), 0.5) if length > 0 else 0.5
     xy_cell = 4 * sigma + phi_cell * radius
     found = []
     for members in _seeds(phi, t, centre, phi_cell, xy_cell):
