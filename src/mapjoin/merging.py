@@ -106,6 +106,28 @@ def _fresh(ids: np.ndarray, taken: np.ndarray, start: int) -> tuple[np.ndarray, 
     return renamed, clash, start + int(clash.sum())
 
 
+def _correspondences(merged: GlobalMap, other: GlobalMap, names: str, associate: bool, min_common: int,
+                     probability: float) -> tuple[np.ndarray, np.ndarray]:
+    """The common features (indices in ``merged``, in ``other``): by id, or found by the search (``associate``);
+    JoinError naming ``other`` when there are fewer than two, or the search is not sure."""
+    if associate:
+        found = consensus(as_complex(merged.features), merged.feature_variances, as_complex(other.features),
+                          other.feature_variances, min_common=min_common, probability=probability)
+        if not found.sure:
+            raise JoinError(
+                f"{other.name}: no sure overlap with {names}: the best transform found matches {found.best} "
+                f"features; needed: at least {min_common}, twice the {found.runner_up} of the best different "
+                f"transform, and well above the {found.chance:.3g} that chance gives (the overlap is too small, "
+                f"the features' variances too wide for their spacing, or the maps too self-similar)")
+        return found.a, found.b
+    _, in_a, in_b = np.intersect1d(merged.feature_ids, other.feature_ids, return_indices=True)
+    if len(in_a) < 2:
+        raise JoinError(f"{other.name}: shares {len(in_a)} feature id{'s' * (len(in_a) != 1)} with {names}; "
+                        f"merging needs at least two common features (one leaves the rotation free), "
+                        f"or associate the features without ids")
+    return in_a, in_b
+
+
 def _merged_map(name: str, **fields) -> GlobalMap:
     """The map after merging map ``name`` in; a value outside the global ranges (a variance beyond 1e40, say)
     is an error about that map."""
@@ -135,22 +157,7 @@ def merge(maps: Sequence[GlobalMap], associate: bool = False, *, min_common: int
         names = maps[0].name if number == 1 else f"the merge of {maps[0].name} to {maps[number - 1].name}"
         _check_other_frame(merged, other, names)
         za, zb = as_complex(merged.features), as_complex(other.features)
-        if associate:
-            found = consensus(za, merged.feature_variances, zb, other.feature_variances,
-                              min_common=min_common, probability=probability)
-            if not found.sure:
-                raise JoinError(
-                    f"{other.name}: no sure overlap with {names}: the best transform found matches {found.best} "
-                    f"features; needed: at least {min_common}, twice the {found.runner_up} of the best different "
-                    f"transform, and well above the {found.chance:.3g} that chance gives (the overlap is too small, "
-                    f"the features' variances too wide for their spacing, or the maps too self-similar)")
-            in_a, in_b = found.a, found.b
-        else:
-            _, in_a, in_b = np.intersect1d(merged.feature_ids, other.feature_ids, return_indices=True)
-            if len(in_a) < 2:
-                raise JoinError(f"{other.name}: shares {len(in_a)} feature id{'s' * (len(in_a) != 1)} with {names}; "
-                                f"merging needs at least two common features (one leaves the rotation free), "
-                                f"or associate the features without ids")
+        in_a, in_b = _correspondences(merged, other, names, associate, min_common, probability)
         try:
             solution = solve(registration_problem(merged.features[in_a], merged.feature_variances[in_a],
                                                   other.features[in_b], other.feature_variances[in_b]))
