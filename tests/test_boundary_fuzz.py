@@ -243,6 +243,8 @@ GLOBAL_MAP_COMMANDS: list[Callable[[str], list[str]]] = [
     lambda f: ["compare", f, "ref.csv", "--json"],
     lambda f: ["evaluate", f, "--truth", "truth.yaml", "--json"],
     lambda f: ["evaluate", f, "--truth", "truth.yaml", "--align", "rigid"],
+    lambda f: ["merge", "ref.csv", f, "-o", "out.csv", "--report", "report.csv"],
+    lambda f: ["merge", "ref.csv", f, "--associate", "-o", "out.yaml"],
 ]
 
 

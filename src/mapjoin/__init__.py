@@ -53,6 +53,8 @@ _LAZY: dict[str, tuple[str, str]] = {
     "JoinRecord": ("joining", "JoinRecord"),
     "check_minima": ("onestep", "summarise_minima"),
     "certify_pair": ("joining", "certify_pair"),
+    "merge": ("merging", "merge"),
+    "MergeResult": ("merging", "MergeResult"),
     "refine": ("refine", "refine"),
     "join_and_refine": ("refine", "join_and_refine"),
     "RefineResult": ("refine", "RefineResult"),

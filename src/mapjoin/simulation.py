@@ -67,7 +67,7 @@ import numpy as np
 from .maps import GroundTruth, LocalMap, locate
 from .se2 import relative, to_frame, wrap
 
-__all__ = ["Simulation", "simulate"]
+__all__ = ["Robots", "Simulation", "simulate", "simulate_robots"]
 
 _MIN_LAP_STEPS = 32   # smallest figure-eight: 16 steps per circle, 22.5 degrees per step
 _CHUNK = 512          # maps processed together (bounds memory; results do not depend on it)
@@ -176,6 +176,45 @@ def simulate(maps: int = 20, *, seed: int = 0, features: int | None = None,
         local_maps.extend(_chunk_maps(chunk, n, lap, step_length, true_features, visible, sigmas,
                                       None if noiseless else rng, odometry_xi, full_covariance))
     return Simulation(tuple(local_maps), truth)
+
+
+@dataclass(frozen=True)
+class Robots:
+    """Several robots in one world (:func:`simulate_robots`): each robot's run, in its own frame, and the
+    world's truth in the frame of the first robot's start (the frame a merge of their maps lands in)."""
+
+    robots: tuple[Simulation, ...]
+    truth: GroundTruth
+
+
+def simulate_robots(robots: int, maps: int = 20, *, laps: float = 1.25, **options) -> Robots:
+    """``robots`` robots, ``maps`` local maps each, on one figure-eight: maps to join per robot, then merge.
+
+    The robots drive one after another, each ``laps`` times around the figure-eight (so their
+    areas overlap), robot r starting where robot r-1 stopped: one :func:`simulate` run of
+    ``robots * maps`` maps (``options`` as there), cut into ``robots`` chains. Each chain is in
+    its own frame, its start pose; local maps are relative to their start pose, so they are
+    the run's maps as they are, and robot r's truth is the run's truth seen from its start
+    (its poses ``(r-1)*maps .. r*maps``, with the ids of the run, and the features its maps
+    hold). Feature ids are the world's, shared by all robots; pose ids never repeat.
+    """
+    _check_int(robots, "robots", 1)
+    _check_int(maps, "maps", 1)
+    _check_positive(laps, "laps")
+    whole = simulate(robots * maps, laps=laps * robots, **options)
+    truth = whole.truth
+    runs = []
+    for r in range(robots):
+        chain = whole.maps[r * maps:(r + 1) * maps]
+        start = truth.poses[r * maps]
+        poses = relative(start, truth.poses[r * maps:(r + 1) * maps + 1])
+        poses[:, 2] = wrap(poses[:, 2])
+        seen = np.unique(np.concatenate([m.feature_ids for m in chain]))
+        where = locate(truth.feature_ids, seen)[0]
+        runs.append(Simulation(chain, GroundTruth(seen, to_frame(start, truth.features[where]),
+                                                  truth.pose_ids[r * maps:(r + 1) * maps + 1], poses,
+                                                  name=f"robot {r + 1} truth")))
+    return Robots(tuple(runs), truth)
 
 
 # --- argument checks -------------------------------------------------------------------

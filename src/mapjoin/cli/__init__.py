@@ -80,6 +80,7 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
       mapjoin join ../shared/data/VicPark_200_local_maps --refine -o exact.yaml
       mapjoin check-minima --a 203570 --c-phi -0.0028
       mapjoin evaluate global.csv --truth ../shared/data/535_data_5_local_maps
+      mapjoin merge robot1.csv robot2.csv -o merged.csv --associate
       mapjoin plot global.csv exact.yaml -o maps.png
       mapjoin build raw.g2o -o maps/ --maps 100
       mapjoin datasets fetch vicpark-200
@@ -100,4 +101,4 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
 
 
 from .messages import StderrHandler  # noqa: E402
-from . import build, check_minima, compare, convert, datasets, evaluate, join, plot, refine, simulate  # noqa: E402,F401  (registers the commands)
+from . import build, check_minima, compare, convert, datasets, evaluate, join, merge, plot, refine, simulate  # noqa: E402,F401  (registers the commands)

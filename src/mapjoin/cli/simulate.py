@@ -8,7 +8,7 @@ import click
 
 from .. import io as mapio
 from ..io.registry import LOCAL_MAPS, TRUTH, by_name, names
-from ..simulation import simulate as run_simulation
+from ..simulation import simulate as run_simulation, simulate_robots
 from . import common, main
 from .common import say
 
@@ -30,9 +30,13 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
               help=f"Format of the local maps (default: a stream file's extension, else {LOCAL_MAPS.default}).")
 @click.option("--truth", "truth_path", metavar="FILE",
               help="Where to write the ground truth (default: truth.<format> in the directory).")
+@click.option("--robots", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Robots in one world, --maps maps each, their areas overlapping: the directory gets one "
+                   "folder robot<r> per robot (its maps and truth, in its own frame) and the world's truth in "
+                   "the first robot's frame (README, 'Merging maps').")
 @click.pass_context
 def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_map: int,
-             output_format: str, truth_path: str | None) -> None:
+             output_format: str, truth_path: str | None, robots: int) -> None:
     """Simulate a robot run, with ground truth, as local maps.
 
     The maps' estimates are drawn from their declared full covariances, so joins can be
@@ -43,11 +47,17 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
       mapjoin simulate -o sim/ --maps 50 --seed 7
       mapjoin simulate -o - --maps 20 | mapjoin join - > global.csv
       mapjoin simulate -o maps.csv --maps 1000 --truth truth.csv
+      mapjoin simulate -o world/ --robots 3 --maps 30
     """
     stream = mapio.is_special(output) or (os.path.splitext(output)[1].lower() in _STREAM_EXTENSIONS
                                           and not os.path.isdir(output))
     output_format = output_format or (common.output_format(output, None, LOCAL_MAPS) if stream
                                       else LOCAL_MAPS.default)
+    if robots > 1:
+        if stream:
+            raise click.UsageError("--robots writes one folder per robot: give -o a directory")
+        _simulate_robots(ctx, output, robots, count, seed, steps_per_map, output_format, truth_path)
+        return
     if not stream:
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--truth": truth_path},
@@ -59,3 +69,20 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
             mapio.write_truth(simulation.truth, truth_path)
     say(ctx, f"simulated {common.counted(count, 'local map')} (seed {seed})"
              + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))
+
+
+def _simulate_robots(ctx: click.Context, output: str, robots: int, count: int, seed: int, steps_per_map: int,
+                     output_format: str, truth_path: str | None) -> None:
+    """``--robots``: ``output/robot<r>/`` (localmap files, truth.<format>) per robot, the world's truth beside."""
+    truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
+    folders = [os.path.join(output, f"robot{r}") for r in range(1, robots + 1)]
+    outputs = mapio.Outputs(files={"--truth": truth_path}, folders={"-o": output})
+    world = simulate_robots(robots, count, seed=seed, steps_per_map=steps_per_map)
+    with outputs:
+        for folder, run in zip(folders, world.robots):
+            outputs.folder(folder)
+            mapio.write_maps(run.maps, os.path.join(folder, ""), output_format)
+            mapio.write_truth(run.truth, os.path.join(folder, f"truth.{output_format}"))
+        mapio.write_truth(world.truth, truth_path)
+    say(ctx, f"simulated {robots} robots, {count} local map{'s' * (count != 1)} each (seed {seed}) -> "
+             f"{os.path.join(output, 'robot<r>')}, world truth -> {truth_path}")

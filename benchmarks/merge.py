@@ -1,0 +1,85 @@
+"""Merging maps: accuracy and speed on VicPark 200 cut in two halves, and on simulated robots of growing size.
+
+    python benchmarks/merge.py [--repeat N] [--data DIR]
+
+VicPark 200: the first 100 and the last 100 local maps are joined separately (sequential),
+each half in its own frame (the second half's starts at the end pose of map 100); the second
+is merged into the first with the shared ids, and with ``associate=True`` after its feature
+ids are replaced by fresh ones. The recovered transform is compared with the first half's
+end pose (the true relation of the frames, as joined), and the correspondences the search
+found with the true ones (ids). Then ``simulate_robots(2, maps)`` (quiet odometry, so that
+the joined maps stay consistent with their variances) for growing ``maps``: merge times
+with ids and without, the transform's error against the truth, false matches. Times are
+medians of ``--repeat`` library calls (the search imports scipy.spatial once, before).
+Results are printed and written between the ``merge`` markers of benchmarks/README.md, with
+the machine's load (``uptime``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import subprocess
+
+import numpy as np
+from common import dataset_arguments, median_seconds, write_section
+
+import mapjoin
+from mapjoin import io as mapio
+from mapjoin.joining import join
+from mapjoin.onestep import as_complex
+from mapjoin.registration import consensus
+from mapjoin.simulation import simulate_robots
+
+FRESH = 10**9
+SIZES = (25, 100, 400)
+
+
+def _errors(record, pose) -> tuple[float, float]:
+    return (math.hypot(record.x - pose[0], record.y - pose[1]),
+            abs((record.phi - pose[2] + math.pi) % (2 * math.pi) - math.pi))
+
+
+def _case(name: str, first, second, truth_pose, repeat: int) -> list[str]:
+    """Rows of one pair: shared ids and without ids."""
+    rows = []
+    fresh = dataclasses.replace(second, feature_ids=second.feature_ids + FRESH)
+    shared = len(np.intersect1d(first.feature_ids, second.feature_ids))
+    for label, other, associate in (("ids", second, False), ("search", fresh, True)):
+        seconds, result = median_seconds(lambda: mapjoin.merge([first, other], associate=associate), repeat)
+        record = result.report[0]
+        distance, angle = _errors(record, truth_pose)
+        false = "-"
+        if associate:
+            found = consensus(as_complex(first.features), first.feature_variances, as_complex(fresh.features),
+                              fresh.feature_variances)
+            false = str(int(np.sum(first.feature_ids[found.a] != fresh.feature_ids[found.b] - FRESH)))
+        rows.append(f"| {name} | {len(first.feature_ids)} + {len(second.feature_ids)} | {label} | {shared} | "
+                    f"{record.common} | {false} | {distance:.3f} | {angle:.4f} | {seconds * 1000:.1f} |")
+    return rows
+
+
+def main() -> None:
+    args = dataset_arguments(__doc__, ("VicPark_200_local_maps",))
+    from scipy.spatial import cKDTree  # noqa: F401  (imported once, outside the timings)
+
+    rows = ["| maps | features (A + B) | common by | true common | matched | false matches | "
+            "transform error (m) | (rad) | merge (ms) |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]
+    maps = mapio.read_maps([str(args.data / "VicPark_200_local_maps")])
+    first, second = join(maps[:100]).global_map, join(maps[100:]).global_map
+    end = first.poses[first.pose_ids == 100][0]
+    rows += _case("VicPark 200 halves", first, second, end, args.repeat)
+    for size in SIZES:
+        world = simulate_robots(2, size, seed=1, odometry_noise=(0.01, 0.005, 0.002), full_covariance=False)
+        a, b = (join(run.maps).global_map for run in world.robots)
+        rows += _case(f"2 robots x {size}", a, b, world.truth.poses[size], args.repeat)
+    load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    text = "\n".join([f"`python benchmarks/merge.py --repeat {args.repeat}`; load: {load}", "", *rows, "",
+                      "Transform error: against the first half's end pose as joined (VicPark), against the "
+                      "truth (robots). 'false matches': correspondences the search found that the ids deny."])
+    print(text)
+    write_section("merge", text)
+
+
+if __name__ == "__main__":
+    main()
