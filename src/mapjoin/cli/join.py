@@ -11,7 +11,8 @@ from ..io.registry import GLOBAL_MAP, TABLE
 from ..joining import STRATEGIES, join as join_maps
 from . import common, main
 from .common import (TABLE_EXTENSIONS, covariance_option, global_map_format_option, global_map_output_option,
-                     input_format_option, inputs_argument, progress_bar, say, solver_option)
+                     input_format_option, inputs_argument, json_option, progress_bar, say, solver_option,
+                     trajectory_option)
 
 
 @main.command()
@@ -30,10 +31,12 @@ from .common import (TABLE_EXTENSIONS, covariance_option, global_map_format_opti
 @click.option("--refine", "exact", is_flag=True,
               help="Then refine to the exact least-squares join (as `mapjoin refine`), with covariances.")
 @input_format_option
+@trajectory_option
+@json_option
 @click.pass_context
 def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
          report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, exact: bool,
-         input_format: str | None) -> None:
+         input_format: str | None, trajectory_path: str | None) -> None:
     """Join a chain of local maps into one global map.
 
     Map k must start at the end pose of map k-1; the global frame is the start pose of
@@ -50,7 +53,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     """
     if jobs > 1 and strategy != "tree":
         raise click.UsageError("--jobs runs the tree's independent joins in parallel; add --strategy tree")
-    outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
+    outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path})
     paths = outputs.guard(mapio.resolve_inputs(inputs))
     start = time.perf_counter()
     with common.options_for(format="--input-format"):
@@ -75,6 +78,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
         mapio.write_global_map(global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
         if report_path:
             mapio.write_table(result.report, report_path, common.output_format(report_path, None, TABLE))
+        common.write_trajectory(global_map, maps[0].start_id, trajectory_path)
     if ctx.obj["verbose"]:
         for r in result.report:
             second = f", other minimum at {r.phi2:+.4f} rad" if r.minima == 2 else ""
@@ -82,8 +86,14 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                      f"C_phi={r.c_phi:+.4f}, minima={r.minima}, phi*={r.phi:+.6f}{second}")
     two = sum(r.minima == 2 for r in result.report)
     g = global_map
-    say(ctx, f"joined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{len(result.report)} joins ({two} with two minima), covariance {covariance}, {strategy}, "
-             f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}")
+    common.summary(ctx, f"joined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
+                        f"{len(result.report)} joins ({two} with two minima), covariance {covariance}, {strategy}, "
+                        f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}",
+                   {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids),
+                    "joins": len(result.report), "two_minima": two, "covariance": covariance, "strategy": strategy,
+                    **({"chi2_initial": refined.costs[0], "chi2": refined.cost, "iterations": refined.iterations,
+                        "converged": refined.converged} if exact else {}),
+                    "read_seconds": read, "join_seconds": elapsed - read, "output": output},
+                   data_on_stdout=output == "-" or trajectory_path == "-")
     if exact:
         common.exit_if_not_converged(ctx, refined, output)

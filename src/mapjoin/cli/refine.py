@@ -12,7 +12,7 @@ from ..joining import STRATEGIES
 from ..maps import Range
 from . import common, main
 from .common import (global_map_format_option, global_map_output_option, input_format_option, inputs_argument,
-                     progress_bar, say)
+                     json_option, progress_bar, say, trajectory_option)
 
 
 def _default_tolerance() -> float:
@@ -42,10 +42,12 @@ TOLERANCE_RANGE = Range("tolerance", 0.0, 1.0)  # relative: beyond 1, every step
 @click.option("--no-covariances", is_flag=True,
               help="Skip the marginal covariances (faster): no cov columns, the fast join's variances.")
 @input_format_option
+@trajectory_option
+@json_option
 @click.pass_context
 def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
            max_iterations: int, tolerance: float, strategy: str, no_covariances: bool,
-           input_format: str | None) -> None:
+           input_format: str | None, trajectory_path: str | None) -> None:
     """Join local maps exactly: the least-squares optimum.
 
     Solves the problem I-SLSJF solves: all end poses and features at once, each local
@@ -66,7 +68,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     """
     from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
-    outputs = mapio.Outputs(files={"-o": output})
+    outputs = mapio.Outputs(files={"-o": output, "--trajectory": trajectory_path})
     paths = outputs.guard(mapio.resolve_inputs(inputs))
     start = time.perf_counter()
     with common.options_for(format="--input-format"):
@@ -83,12 +85,18 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     elapsed = time.perf_counter() - start
     with outputs, common.options_for(format="--format"):
         mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
+        common.write_trajectory(result.global_map, maps[0].start_id, trajectory_path)
     common.warn_if_doubtful(result)
     g, joins = result.global_map, result.fast_join.report
     two = sum(r.minima == 2 for r in joins)
-    say(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
+    common.summary(ctx, f"refined {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
              f"{len(joins)} joins ({two} with two minima), {result.iterations} iterations, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
-             f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")
+             f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}",
+                   {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids), "joins": len(joins),
+                    "two_minima": two, "iterations": result.iterations, "chi2_initial": result.costs[0],
+                    "chi2": result.cost, "reason": result.reason, "converged": result.converged,
+                    "degrees_of_freedom": result.degrees_of_freedom, "seconds": elapsed, "read_seconds": read,
+                    "output": output}, data_on_stdout=output == "-" or trajectory_path == "-")
     common.exit_if_not_converged(ctx, result, output)

@@ -55,6 +55,7 @@ from .outputs import Outputs, check_not_overwriting, is_special, transaction, wr
 from .paths import STDIN, Source, is_path, read_file, read_text, source_name
 from .registry import MAP_FORMATS, TABLE_FORMATS, Codec, Format, Kind, detect_format, map_file_name
 from .tables import MinimaTable, read_minima_csv, read_minima_records
+from .trajectory import Trajectory
 from .truth import read_truth_folder
 
 __all__ = [
@@ -62,6 +63,7 @@ __all__ = [
     "STAB_NOISE",
     "TABLE_FORMATS",
     "MinimaTable",
+    "Trajectory",
     "Outputs",
     "check_not_overwriting",
     "detect_format",
@@ -82,6 +84,7 @@ __all__ = [
     "write_maps",
     "write_table",
     "write_output",
+    "write_trajectory",
     "write_truth",
 ]
 
@@ -250,6 +253,12 @@ def read_truth(source: Source, format: str | None = None) -> GroundTruth:
 def write_table(rows: Sequence[Any], target: Source, format: str | None = None) -> None:
     """Write dataclass instances (all of one type) as a CSV, YAML or JSON table."""
     _write_data(rows, target, format, registry.TABLE)
+
+
+def write_trajectory(global_map: GlobalMap, origin_id: int, target: Source, format: str | None = None) -> None:
+    """Write the trajectory of a global map whose first map starts at pose ``origin_id`` (:class:`Trajectory`:
+    the origin, then every end pose) as TUM, CSV or JSON (format from ``format`` or the extension)."""
+    _write_data(Trajectory.of(global_map, origin_id), target, format, registry.TRAJECTORY)
 
 
 def read_minima_table(source: Source) -> MinimaTable:
