@@ -110,11 +110,6 @@ def read_names(source: str, maps: list[LocalMap]) -> list[str]:
     return [f"{source}#{local_map.name or number}" for number, local_map in enumerate(maps, 1)]
 
 
-def spherical(local_map: LocalMap) -> LocalMap:
-    """What CSV keeps of a map: everything but the full covariance."""
-    return dataclasses.replace(local_map, covariance=None)
-
-
 def written(write, value, fmt: str) -> str:
     buffer = io.StringIO()
     write(value, buffer, fmt)
@@ -224,7 +219,7 @@ def flipped(data: bytes, offset: int, value: int) -> bytes:
 def test_single_local_map_round_trips_through_a_stream(local_map, fmt):
     [back] = mapio.read_map_file(io.StringIO(written(mapio.write_maps, [local_map], fmt)), fmt)
     assert back.name == "<stream>"
-    assert_same(back, local_map if fmt == "yaml" else spherical(local_map), skip=("name",))
+    assert_same(back, local_map, skip=("name",))
 
 
 @settings(deadline=None)
@@ -234,7 +229,7 @@ def test_local_map_streams_round_trip(maps, fmt, sniff):
     back = mapio.read_map_file(io.StringIO(written(mapio.write_maps, maps, fmt)), None if sniff else fmt)
     assert [m.name for m in back] == read_names("<stream>", maps)
     for actual, expected in zip(back, maps, strict=True):
-        assert_same(actual, expected if fmt == "yaml" else spherical(expected), skip=("name",))
+        assert_same(actual, expected, skip=("name",))
 
 
 @settings(max_examples=25, deadline=None)
@@ -246,7 +241,7 @@ def test_local_maps_round_trip_through_files(scratch, maps, fmt):
     back = mapio.read_maps([str(path)])
     assert [m.name for m in back] == read_names(str(path), maps)
     for actual, expected in zip(back, maps, strict=True):
-        assert_same(actual, expected if fmt == "yaml" else spherical(expected), skip=("name",))
+        assert_same(actual, expected, skip=("name",))
 
 
 @settings(max_examples=10, deadline=None)
@@ -407,14 +402,11 @@ def test_csv_accepts_crlf_a_bom_and_interleaved_maps(tmp_path):
     assert first.feature_ids.tolist() == [12, 14] and second.feature_ids.tolist() == [12]
 
 
-def test_csv_drops_full_covariances_with_one_warning(mapjoin_log):
-    maps = [LocalMap.from_covariance(name, 0, 1, [0, 0, 0], [3], [[1, 2]], np.eye(5)) for name in "ab"]
+def test_csv_keeps_full_covariances_without_a_warning(mapjoin_log):
+    maps = [LocalMap.from_covariance(name, 0, 1, [0, 0, 0], [3], [[1, 2]], np.eye(5) + 0.1) for name in "ab"]
     text = written(mapio.write_maps, maps, "csv")
-    [warning] = warnings_of(mapjoin_log)
-    assert "dropped the full covariances of 2 map(s)" in warning
-    assert all(m.covariance is None for m in mapio.read_map_file(io.StringIO(text), "csv"))
-    written(mapio.write_maps, maps, "yaml")
-    assert len(warnings_of(mapjoin_log)) == 1
+    assert warnings_of(mapjoin_log) == []
+    assert all(np.array_equal(m.covariance, np.eye(5) + 0.1) for m in mapio.read_map_file(io.StringIO(text), "csv"))
 
 
 def test_write_maps_targets(tmp_path, monkeypatch):
@@ -745,9 +737,9 @@ BAD_INPUTS = [
     pytest.param("localmap_1.yaml", VALID_YAML.replace("start_id: 0", "start_id: 1"), read_one,
                  ["line 5, field end_id: end pose id equals start pose id (1)"], id="yaml-start-is-end"),
     pytest.param("maps.csv", VALID_CSV.replace("feature,14", "landmark,14"), read_one,
-                 ["line 4, column kind: expected feature or pose, got 'landmark'"], id="csv-bad-kind"),
+                 ["line 4, column kind: expected feature, pose or cov, got 'landmark'"], id="csv-bad-kind"),
     pytest.param("maps.csv", VALID_CSV.replace("var_phi", "var_theta"), read_one,
-                 ["line 1: expected the header map,start_id"], id="csv-bad-header"),
+                 ["line 2, column var_phi: missing; expected a positive finite number"], id="csv-bad-header"),
     pytest.param("maps.csv", "", read_one, ["line 1: expected the header"], id="csv-empty"),
     pytest.param("maps.csv", VALID_CSV.splitlines()[0] + "\n", read_one,
                  ["expected at least one local map"], id="csv-no-maps"),

@@ -44,6 +44,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from ..covariance import marginal_variances
 from ..errors import InputError
 from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate
 from . import registry
@@ -206,17 +207,32 @@ def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[st
     """
     name = source_name(target, "<stdout>")
     fmt, codec = registry.codec(detect_format(name, format), registry.LOCAL_MAPS, name, writing=True)
-    if fmt.spherical_only:
-        dropped = [local_map.name for local_map in maps if local_map.covariance is not None]
-        if dropped:
-            log.warning("%s holds spherical variances only: dropped the full covariances of %d map(s) "
-                        "(first: %s)", format, len(dropped), dropped[0])
+    if fmt.covariance_only:
+        _warn_dropped_variances(maps, fmt)
     if isinstance(target, (str, os.PathLike)) and (
             os.path.isdir(target) or os.fspath(target).endswith(("/", os.sep))):
         return _write_map_folder(maps, os.fspath(target), fmt, codec)
     if fmt.one_map_per_file:
         _check_single_map_file(maps, target, fmt)
     return _write(fmt, codec.dump(maps), target)
+
+
+def _warn_dropped_variances(maps: Sequence[LocalMap], fmt: Format) -> None:
+    """One warning when ``fmt`` stores a map by its full covariance alone and some map's spherical variances
+    are not the covariance's marginal ones (which reading gives back): those variances are lost."""
+    dropped = [local_map.name for local_map in maps if local_map.covariance is not None
+               and not _marginal(local_map)]
+    if dropped:
+        log.warning("%s stores a map's full covariance, not its spherical variances: the variances of %d map(s) "
+                    "differ from their covariance's marginal ones, which they read back as (first: %s; the joins "
+                    "use the covariance either way)", fmt.name, len(dropped), dropped[0])
+
+
+def _marginal(local_map: LocalMap) -> bool:
+    """Whether a map's spherical variances are its covariance's marginal ones, up to rounding."""
+    features, poses = marginal_variances(local_map.covariance[np.newaxis])
+    return bool(np.allclose(features[0], local_map.feature_variances, rtol=1e-12, atol=0)
+                and np.allclose(poses[0], local_map.pose_variances, rtol=1e-12, atol=0))
 
 
 def write_global_map(global_map: GlobalMap, target: Source, format: str | None = None) -> None:

@@ -68,7 +68,7 @@ class Format:
     truth: Codec | None = None
     table: Codec | None = None
     trajectory: Codec | None = None
-    spherical_only: bool = False  # local maps: full covariances are dropped on writing
+    covariance_only: bool = False  # local maps: a map's full covariance is stored alone, not its spherical variances
     one_map_per_file: bool = False  # local maps: a file holds exactly one map
     map_number: Callable[[str], int | None] | None = None  # local maps: the end id k a file's name must give
 
@@ -84,15 +84,16 @@ FORMATS: tuple[Format, ...] = (
            global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_yaml),
            truth=Codec(global_maps.read_truth_yaml, global_maps.dump_truth_yaml), table=Codec(None, tables.dump_yaml)),
     Format("csv", "CSV", (".csv",), sniff=csvtable.names_kind_column, sniff_text="a CSV header naming a kind column",
-           local_maps=Codec(csv_maps.read, csv_maps.dump), spherical_only=True,
+           local_maps=Codec(csv_maps.read, csv_maps.dump),
            global_map=Codec(global_maps.read_global_csv, global_maps.dump_global_csv),
            truth=Codec(global_maps.read_truth_csv, global_maps.dump_truth_csv), table=Codec(None, tables.dump_csv),
            trajectory=Codec(None, trajectory.dump_csv)),
     Format("mat", "I-SLSJF .mat", (".mat",), binary=True,
-           local_maps=Codec(mat_maps.read, mat_maps.dump, mat_maps.read_files), one_map_per_file=True,
+           local_maps=Codec(mat_maps.read, mat_maps.dump, mat_maps.read_files), one_map_per_file=True, covariance_only=True,
            map_number=mat_maps.map_number),
     Format("linearslam", "Linear SLAM", (".txt",), named_only=True, sniff=linearslam.looks_like_linearslam,
-           sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump), one_map_per_file=True),
+           sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump), one_map_per_file=True,
+           covariance_only=True),
     Format("json", "JSON", (".json",), table=Codec(None, tables.dump_json),
            global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_json),  # JSON is read as YAML
            trajectory=Codec(None, trajectory.dump_json)),
