@@ -50,7 +50,7 @@ from ..covariance import marginal_variances
 from ..errors import InputError, shown
 from ..maps import LocalMap, StackedMaps, first_duplicate, first_invalid_map, size_groups, unstack
 from . import csvtable
-from .fields import ignored_fields, warn_ignored
+from .fields import filled_variances, ignored_fields, warn_ignored
 from .paths import map_name
 
 __all__ = ["dump", "read"]
@@ -136,8 +136,8 @@ def read(text: str, source: str) -> list[LocalMap]:
         matrices = covariance.stack(in_order[places], 3 + 2 * int(sizes[places[0]])) if given[places[0]] else None
         if matrices is not None:  # the variances left out: the covariance's marginal ones
             marginal_features, marginal_poses = marginal_variances(matrices)
-            feature_variances = np.where(np.isnan(feature_variances), marginal_features, feature_variances)
-            pose_variances = np.where(np.isnan(pose_variances), marginal_poses, pose_variances)
+            feature_variances = filled_variances(feature_variances, marginal_features)
+            pose_variances = filled_variances(pose_variances, marginal_poses)
         stacks.append((places, StackedMaps([labels[i] for i in places], np.column_stack(
             [xy[pose_rows[places]], orientation[pose_rows[places]]]), feature_ids[among],
             xy[rows], feature_variances, pose_variances, matrices)))
