@@ -129,3 +129,30 @@ def test_trajectory_in_an_unknown_format_writes_nothing(tmp_path, data_dir):
                  "--trajectory", str(tmp_path / "path.yaml"))
     assert result.exit_code == 1 and "cannot write a trajectory as yaml" in result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_every_command_but_datasets_takes_json():
+    """``datasets`` prints data on stdout (the list, the fetched folders); every other command prints a summary or a
+    result that --json gives as JSON."""
+    from mapjoin.cli import main
+
+    lacking = [name for name, command in main.commands.items()
+               if not any("--json" in parameter.opts for parameter in command.params)]
+    assert lacking == ["datasets"]
+
+
+@pytest.mark.parametrize(("command", "fields"), [
+    (["simulate", "-o", "{tmp}/s.yaml", "--maps", "3"], {"maps": 3, "seed": 0}),
+    (["convert", "{tmp}/maps.yaml", "-o", "{tmp}/c.csv"], {"maps": 4, "format": "csv"}),
+    (["join", "{tmp}/maps.yaml", "-o", "{tmp}/g.csv", "--refine"], {"maps": 4, "joins": 3, "converged": True}),
+    (["refine", "{tmp}/maps.yaml", "-o", "{tmp}/g.csv"], {"maps": 4, "joins": 3, "converged": True}),
+    (["plot-join", "{tmp}/maps.yaml", "--join", "2", "-o", "{tmp}/j.svg"], {"join": 2}),
+])
+def test_json_summary_of_each_command_is_one_object(tmp_path, command, fields):
+    simulation = mapjoin.simulate(4, seed=5)
+    mapjoin.write_maps(simulation.maps, str(tmp_path / "maps.yaml"), "yaml")
+    result = run("-q", *[part.format(tmp=tmp_path) for part in command], "--json")
+    assert result.exit_code == 0, result.output
+    [line] = result.stdout.splitlines()
+    summary = json.loads(line)
+    assert summary["command"] == command[0] and fields.items() <= summary.items()

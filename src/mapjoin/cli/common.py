@@ -119,7 +119,8 @@ def summary(ctx: click.Context, message: str, fields: dict[str, object], *, data
 
     plain = {key: None if isinstance(value, float) and not math.isfinite(value) else value
              for key, value in fields.items()}  # JSON has no NaN
-    click.echo(json.dumps({"command": ctx.info_name, **plain}), err=data_on_stdout)
+    click.echo(json.dumps({"command": ctx.info_name, **plain}, default=lambda value: value.tolist()),  # numpy values
+               err=data_on_stdout)
 
 
 def say(ctx: click.Context, message: str) -> None:

@@ -9,7 +9,7 @@ import click
 from .. import io as mapio
 from ..io.registry import LOCAL_MAPS
 from . import common, main
-from .common import format_option, input_format_option, inputs_argument, say
+from .common import format_option, input_format_option, inputs_argument
 
 
 @main.command()
@@ -20,6 +20,7 @@ from .common import format_option, input_format_option, inputs_argument, say
 @format_option(LOCAL_MAPS, f"Output format (default: from the -o name; {common.default_title(LOCAL_MAPS)} for a "
                "directory or stdout).", "--to", "to_format")
 @input_format_option
+@common.json_option
 @click.pass_context
 def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format: str | None,
             input_format: str | None) -> None:
@@ -27,8 +28,9 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
 
     YAML, .mat and Linear SLAM text keep each map's full covariance (Linear SLAM text
     stores its inverse, the information matrix: converting inverts it, exact up to
-    rounding). CSV keeps spherical variances only. A .mat file holds map k, from pose
-    k-1 to pose k, and takes k from its name.
+    rounding). CSV keeps them too (cov rows; README, "Formats"). A .mat file holds map
+    k, from pose k-1 to pose k, and takes k from its name. A conversion that drops
+    something says so in one warning.
 
     \b
     Examples:
@@ -47,5 +49,7 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
         maps = mapio.read_map_paths(paths, format=input_format)
     with outputs:
         written = mapio.write_maps(maps, output, to_format)
-    say(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
-             if output != "-" else f"converted {len(maps)} maps to {to_format}")
+    common.summary(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
+                   if output != "-" else f"converted {len(maps)} maps to {to_format}",
+                   {"maps": len(maps), "format": to_format, "files": written, "output": output},
+                   data_on_stdout=output == "-")

@@ -10,7 +10,6 @@ from .. import io as mapio
 from ..io.registry import LOCAL_MAPS, TRUTH, by_name, names
 from ..simulation import simulate as run_simulation
 from . import common, main
-from .common import say
 
 #: formats that write both the maps and the truth beside them
 _FORMATS = tuple(name for name in names(LOCAL_MAPS, writing=True) if name in names(TRUTH, writing=True))
@@ -30,6 +29,7 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
               help=f"Format of the local maps (default: a stream file's extension, else {LOCAL_MAPS.default}).")
 @click.option("--truth", "truth_path", metavar="FILE",
               help="Where to write the ground truth (default: truth.<format> in the directory).")
+@common.json_option
 @click.pass_context
 def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_map: int,
              output_format: str, truth_path: str | None) -> None:
@@ -57,5 +57,7 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
         mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format)
         if truth_path:
             mapio.write_truth(simulation.truth, truth_path)
-    say(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
-             + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))
+    common.summary(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
+                   + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""),
+                   {"maps": count, "seed": seed, "output": output, "truth": truth_path},
+                   data_on_stdout="-" in (output, truth_path))
