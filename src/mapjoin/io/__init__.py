@@ -13,9 +13,11 @@ them); a stream without a format is recognised by its start (YAML, CSV with a ``
 column, Linear SLAM text). The formats, one module each: :mod:`.yaml_maps`,
 :mod:`.csv_maps`, :mod:`.mat_maps` (I-SLSJF), :mod:`.linearslam` (local maps);
 :mod:`.global_maps` (global maps and ground truth, YAML and CSV), :mod:`.g2o` (global map
-export); :mod:`.tables` (reports, minima tables). Beside them: :mod:`.paths` (reading
+export); :mod:`.tables` (reports, minima tables); :mod:`.trajectory` (the trajectory: TUM,
+CSV, JSON). Beside them: :mod:`.paths` (reading
 files and streams), :mod:`.outputs` (writing: checked up front, all or nothing), :mod:`.inputs` (input arguments to files), :mod:`.yamldoc`
-and :mod:`.csvtable` (the YAML and CSV layers), :mod:`.matfile` (MAT v5), :mod:`.truth`
+and :mod:`.csvtable` (the YAML and CSV layers), :mod:`.fields` (what a person may add to or
+leave out of a local map), :mod:`.matfile` (MAT v5), :mod:`.truth`
 (I-SLSJF simulation folders).
 
 A format module provides, for each kind of data it holds, ``read(text, source)`` (bytes for
