@@ -12,7 +12,6 @@ wins: every covariance mode and the refinement use it, the variances are kept as
 
 from __future__ import annotations
 
-import difflib
 import logging
 from collections.abc import Iterable, Sequence
 
@@ -39,7 +38,9 @@ def ignored_fields(names: Iterable[str], known: Sequence[str], source: str, wher
 
 
 def typo_of(name: object, known: Sequence[str]) -> str | None:
-    """The known name that ``name`` looks like a typo of, if any."""
+    """The known name that ``name`` looks like a typo of, if any (difflib is imported only for unknown names)."""
+    import difflib
+
     close = difflib.get_close_matches(str(name), known, n=1, cutoff=_TYPO_CUTOFF)
     return close[0] if close else None
 
