@@ -168,7 +168,7 @@ def _local_map_from_yaml(document: yamldoc.Document, number: int | None) -> Loca
     feature_variances = features["var"]
     if covariance is None:
         _require_variances(document, pose_variances, feature_variances)
-    else:
+    elif np.isnan(pose_variances).any() or np.isnan(feature_variances).any():
         marginal_features, marginal_pose = marginal_variances(covariance[np.newaxis])
         pose_variances = filled_variances(pose_variances, marginal_pose[0])
         feature_variances = filled_variances(feature_variances, marginal_features[0])
