@@ -156,3 +156,12 @@ def test_json_summary_of_each_command_is_one_object(tmp_path, command, fields):
     [line] = result.stdout.splitlines()
     summary = json.loads(line)
     assert summary["command"] == command[0] and fields.items() <= summary.items()
+
+
+def test_json_global_map_is_recognised_on_stdin(tmp_path, data_dir):
+    assert run("join", str(data_dir / "535_data_5_local_maps"), "-o", str(tmp_path / "g.json")).exit_code == 0
+    assert run("join", str(data_dir / "535_data_5_local_maps"), "-o", str(tmp_path / "g.csv")).exit_code == 0
+    result = run("compare", "-", str(tmp_path / "g.csv"), "--json", input=(tmp_path / "g.json").read_text())
+    assert result.exit_code == 0, result.output
+    comparison = json.loads(result.stdout)
+    assert comparison["features"] == 28 and comparison["max_xy"] == 0.0 and comparison["max_phi"] == 0.0

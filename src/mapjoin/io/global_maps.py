@@ -42,8 +42,8 @@ from ..maps import GlobalMap, GroundTruth, Provenance
 from . import csvtable, yamldoc
 from .csvtable import COV_ENTRIES
 
-__all__ = ["dump_global_csv", "dump_global_json", "dump_global_yaml", "dump_truth_csv", "dump_truth_yaml", "read_global_csv",
-           "read_global_yaml", "read_truth_csv", "read_truth_yaml"]
+__all__ = ["dump_global_csv", "dump_global_json", "dump_global_yaml", "dump_truth_csv", "dump_truth_yaml",
+           "looks_like_json", "read_global_csv", "read_global_yaml", "read_truth_csv", "read_truth_yaml"]
 
 _GLOBAL_MAP_FORMAT = "mapjoin/global-map"
 _TRUTH_FORMAT = "mapjoin/ground-truth"
@@ -108,6 +108,11 @@ def _global_document(global_map: GlobalMap) -> dict[str, Any]:
                                 "var_xy": global_map.pose_variances[:, 0],
                                 "var_phi": global_map.pose_variances[:, 1], "cov": global_map.pose_covariances}),
     }
+
+
+def looks_like_json(text: str) -> bool:
+    """Whether a stream without a named format is JSON: it starts with ``{`` (YAML and CSV never do here)."""
+    return text.lstrip().startswith("{")
 
 
 def read_global_csv(text: str, source: str) -> GlobalMap:

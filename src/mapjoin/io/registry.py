@@ -94,7 +94,8 @@ FORMATS: tuple[Format, ...] = (
     Format("linearslam", "Linear SLAM", (".txt",), named_only=True, sniff=linearslam.looks_like_linearslam,
            sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump), one_map_per_file=True,
            covariance_only=True),
-    Format("json", "JSON", (".json",), table=Codec(None, tables.dump_json),
+    Format("json", "JSON", (".json",), sniff=global_maps.looks_like_json, sniff_text="JSON starting with {",
+           table=Codec(None, tables.dump_json),
            global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_json),  # JSON is read as YAML
            trajectory=Codec(None, trajectory.dump_json)),
     Format("tum", "TUM trajectory", (".tum",), note="timestamp (the pose id) tx ty tz qx qy qz qw, as evo reads it",
