@@ -50,7 +50,9 @@ class FiniteFloat(click.FloatRange):
 inputs_argument = click.argument("inputs", nargs=-1, required=True, metavar="INPUTS...")
 input_format_option = click.option(
     "--input-format", type=click.Choice(names(LOCAL_MAPS)),
-    help="Format of the inputs when their names do not tell it (e.g. stdin).")
+    help="Format of the inputs when their names do not tell it (e.g. stdin). In YAML and CSV local maps, fields and "
+         "columns mapjoin does not know are ignored with one warning per file; a near miss of a known one "
+         "(covarience) is an error.")
 covariance_option = click.option(
     "--covariance", type=click.Choice(COVARIANCE_MODES), default=DEFAULT_COVARIANCE, show_default=True,
     help="How each local map's covariance is made spherical (see README, 'Covariance modes').")

@@ -78,7 +78,8 @@ def read(text: str, source: str) -> list[LocalMap]:
     names = table.text("map") if named else ids[:, 1]
     _, first, group = np.unique(names, return_index=True, return_inverse=True)
     group = group.reshape(-1)
-    names = names if named else np.array([f"ending at {k}" for k in names.tolist()], dtype=object)
+    if not named:  # how messages name a map: by its end id
+        names = np.array([f"ending at {k}" for k in ids[first, 1].tolist()], dtype=object)[group]
     feature_ids = table.ids(features, group[features], " in this map")
     pose_ids = table.values(("id",), poses, "id")[:, 0]
     xy = np.empty((len(kinds), 2))
