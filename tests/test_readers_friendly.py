@@ -268,3 +268,20 @@ def test_a_conversion_that_drops_variances_says_so_once(tmp_path):
     assert np.allclose(back[0].feature_variances, [(0.06 + 0.08) / 2], rtol=1e-9)
     result = run("convert", str(tmp_path / "txt"), "-o", str(tmp_path / "again") + "/", "--to", "mat")
     assert result.exit_code == 0 and "warning" not in result.stderr  # nothing more to drop
+
+
+@pytest.mark.parametrize("command", [["simulate", "-o", "{tmp}/out.csv", "--maps", "3"],
+                                     ["convert", "{tmp}/maps.yaml", "-o", "{tmp}/out.csv"]])
+def test_no_covariances_writes_spherical_variances_only_and_says_so(tmp_path, command):
+    simulation = mapjoin.simulate(3, seed=0)
+    mapjoin.write_maps(simulation.maps, str(tmp_path / "maps.yaml"), "yaml")
+    result = run(*[part.format(tmp=tmp_path) for part in command], "--no-covariances")
+    assert result.exit_code == 0, result.output
+    assert [line for line in result.stderr.splitlines() if "warning" in line] == [
+        "mapjoin: warning: dropped the full covariances of 3 map(s) as asked: only their spherical variances are written"]
+    back = mapjoin.read_maps(str(tmp_path / "out.csv"))
+    assert all(m.covariance is None for m in back)
+    for written, original in zip(back, simulation.maps):
+        assert np.array_equal(written.feature_variances, original.feature_variances)
+        assert np.array_equal(written.features, original.features)
+    assert "cov" not in (tmp_path / "out.csv").read_text().splitlines()[0]

@@ -93,6 +93,13 @@ trajectory_option = click.option(
          "qx qy qz qw' with the pose id as the timestamp, as evo reads them.")
 
 
+#: --no-covariances of a command writing local maps (convert, simulate)
+no_covariances_option = click.option(
+    "--no-covariances", is_flag=True,
+    help="Write the spherical variances only, not the maps' full covariances (smaller files; a warning says how "
+         "many were dropped).")
+
+
 def write_trajectory(global_map: GlobalMap, origin_id: int, path: str | None) -> None:
     """Write ``--trajectory`` when given (inside the command's ``with outputs`` block)."""
     if path:

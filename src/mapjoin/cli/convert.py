@@ -20,10 +20,11 @@ from .common import format_option, input_format_option, inputs_argument
 @format_option(LOCAL_MAPS, f"Output format (default: from the -o name; {common.default_title(LOCAL_MAPS)} for a "
                "directory or stdout).", "--to", "to_format")
 @input_format_option
+@common.no_covariances_option
 @common.json_option
 @click.pass_context
 def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format: str | None,
-            input_format: str | None) -> None:
+            input_format: str | None, no_covariances: bool) -> None:
     """Convert local maps: I-SLSJF .mat, Linear SLAM, YAML, CSV.
 
     YAML, .mat and Linear SLAM text keep each map's full covariance (Linear SLAM text
@@ -48,7 +49,7 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
     with common.options_for(format="--input-format"):
         maps = mapio.read_map_paths(paths, format=input_format)
     with outputs:
-        written = mapio.write_maps(maps, output, to_format)
+        written = mapio.write_maps(maps, output, to_format, covariances=not no_covariances)
     common.summary(ctx, f"converted {len(maps)} maps to {to_format}: {len(written)} file(s) in {output}"
                    if output != "-" else f"converted {len(maps)} maps to {to_format}",
                    {"maps": len(maps), "format": to_format, "files": written, "output": output},

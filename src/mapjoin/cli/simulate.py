@@ -29,10 +29,11 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
               help=f"Format of the local maps (default: a stream file's extension, else {LOCAL_MAPS.default}).")
 @click.option("--truth", "truth_path", metavar="FILE",
               help="Where to write the ground truth (default: truth.<format> in the directory).")
+@common.no_covariances_option
 @common.json_option
 @click.pass_context
 def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_map: int,
-             output_format: str, truth_path: str | None) -> None:
+             output_format: str, truth_path: str | None, no_covariances: bool) -> None:
     """Simulate a robot run, with ground truth, as local maps.
 
     The maps' estimates are drawn from their declared full covariances, so joins can be
@@ -54,7 +55,8 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
                             folders={} if stream else {"-o": output})
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
     with outputs:
-        mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format)
+        mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format,
+                         covariances=not no_covariances)
         if truth_path:
             mapio.write_truth(simulation.truth, truth_path)
     common.summary(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"

@@ -199,8 +199,9 @@ def _head_lines(lines: Iterator[str]) -> list[str]:
     return head
 
 
-def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[str]:
-    """Write ``maps`` as ``format`` and return the paths written (none for a stream).
+def write_maps(maps: Sequence[LocalMap], target: Source, format: str, *, covariances: bool = True) -> list[str]:
+    """Write ``maps`` as ``format`` and return the paths written (none for a stream); ``covariances=False``
+    writes their spherical variances only (smaller files; one warning says how many covariances were dropped).
 
     A folder target (an existing folder, or a path ending in ``/``, created if its parent exists) gets
     one file per map, :func:`map_file_name`; a file path or stream gets one stream, which
@@ -209,6 +210,8 @@ def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[st
     """
     name = source_name(target, "<stdout>")
     fmt, codec = registry.codec(detect_format(name, format), registry.LOCAL_MAPS, name, writing=True)
+    if not covariances:
+        maps = _spherical(maps)
     if fmt.covariance_only:
         _warn_dropped_variances(maps, fmt)
     if isinstance(target, (str, os.PathLike)) and (
@@ -217,6 +220,21 @@ def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[st
     if fmt.one_map_per_file:
         _check_single_map_file(maps, target, fmt)
     return _write(fmt, codec.dump(maps), target)
+
+
+def _spherical(maps: Sequence[LocalMap]) -> list[LocalMap]:
+    """The maps without their full covariances (already checked: not checked again), with one warning."""
+    dropped = sum(local_map.covariance is not None for local_map in maps)
+    if dropped:
+        log.warning("dropped the full covariances of %d map(s) as asked: only their spherical variances are "
+                    "written", dropped)
+    return [local_map if local_map.covariance is None else
+            LocalMap(*(getattr(local_map, key) for key in _LOCAL_MAP_FIELDS), None, checked=True)
+            for local_map in maps]
+
+
+_LOCAL_MAP_FIELDS = ("name", "start_id", "end_id", "end_pose", "feature_ids", "features", "feature_variances",
+                     "pose_variances")
 
 
 def _warn_dropped_variances(maps: Sequence[LocalMap], fmt: Format) -> None:

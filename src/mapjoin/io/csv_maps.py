@@ -23,8 +23,8 @@ required; the others are optional:
   use it, the variances only round-trip.
 
 Each map has exactly one ``pose`` row (its end pose, ``id`` = ``end_id``); ``feature`` rows leave
-``phi`` and ``var_phi`` empty, ``cov`` rows every column but the map's, ``kind``, ``i``, ``j``,
-``cov``. Other columns (a timestamp) are ignored, with one warning per file; a column
+``phi`` and ``var_phi`` empty, ``cov`` rows every column but ``map``, ``start_id``, ``end_id``,
+``kind``, ``i``, ``j``, ``cov``. Other columns (a timestamp) are ignored, with one warning per file; a column
 whose name is close to one of these (``var_pih``) is refused as a typo.
 Example with a covariance (one feature: a 5x5 matrix, 15 entries)::
 
