@@ -22,7 +22,7 @@ loads them, so its memory is its own:
   shares copy-on-write with the parent it was forked from.
 
 Whole commands (sizes up to ``--command-max``): the maps are written once as one CSV
-stream (``mapjoin simulate -o - --format csv``, spherical variances only: YAML with the full
+stream (``mapjoin simulate -o - --format csv --no-covariances``, spherical variances only: YAML with the full
 covariances is about 45 MB per 1000 maps), and ``mapjoin -q join FILE -o OUT`` is timed as a
 subprocess, with its parts timed beside it in fresh interpreters: start-up (``mapjoin join
 --help``), reading the file, joining the read maps, writing the global map.
@@ -216,7 +216,7 @@ def command_rows(size: int, runs: int, folder: Path) -> list[str]:
     stream, target = folder / f"maps-{size}.csv", folder / "global.csv"
     with open(stream, "w") as out:
         subprocess.run([*mapjoin, "-q", "simulate", "-o", "-", "--maps", str(size), "--seed", str(SEED),
-                        "--format", "csv"], stdout=out, check=True)
+                        "--format", "csv", "--no-covariances"], stdout=out, check=True)
     startup, _ = median_seconds(
         partial(subprocess.run, [*mapjoin, "join", "--help"], capture_output=True, check=True), runs)
     measured = [run_child(stream, "parts") for _ in range(runs)]
@@ -410,8 +410,8 @@ def report(results: Results) -> str:
     if results.command_rows:
         lines += [
             "", "### Whole command: `mapjoin -q join maps.csv -o global.csv --strategy S --jobs J`", "",
-            ("The maps as one CSV stream from `mapjoin simulate -o - --format csv` (spherical variances "
-             "only: CSV carries no full covariances; YAML with them is about 45 MB per 1000 maps), the "
+            ("The maps as one CSV stream from `mapjoin simulate -o - --format csv --no-covariances` (spherical variances "
+             "only; YAML with the full covariances is about 45 MB per 1000 maps), the "
              "command timed as a subprocess (mapjoin's bytecode compiled beforehand, as an installed "
              "package's is); its parts timed beside it in fresh interpreters (one per run, "
              "each reading the file, joining it with every strategy and writing the result once), medians "

@@ -122,7 +122,7 @@ def simulated_stream(simulated_folder):
     ("format: mapjoin/local-map", "format: other"),
     ("- [", "- [1.0, "),                          # a covariance row too long
     ("covariance:\n", "covariance:\n- [1.0]\n"),  # a row too many
-    ("phi: ", "phi: 1e-3, extra: "),              # an unknown field
+    ("phi: ", "phi: 1e-3, var_pih: "),            # an unknown field close to a known one (a typo)
 ])
 def test_errors_of_fast_documents_name_the_line_as_before(old, new):
     text = written_stream()

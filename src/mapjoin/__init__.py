@@ -46,6 +46,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "write_maps": ("io", "write_maps"),
     "read_global_map": ("io", "read_global_map"),
     "write_global_map": ("io", "write_global_map"),
+    "write_trajectory": ("io", "write_trajectory"),
     "read_truth": ("io", "read_truth"),
     "write_truth": ("io", "write_truth"),
     "join": ("joining", "join"),

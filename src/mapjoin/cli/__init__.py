@@ -97,7 +97,7 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
         logger.handlers[:], logger.propagate, logger.level = saved
 
     ctx.call_on_close(restore)
-    ctx.obj = {"quiet": quiet, "verbose": verbose}
+    ctx.obj = {"quiet": quiet, "verbose": verbose, "warnings": handler}
 
 
 from .messages import StderrHandler  # noqa: E402

@@ -45,6 +45,7 @@ DEFAULT_MAPS = 200
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
               help="Worker processes: the maps are cut into this many runs of consecutive maps, built in parallel "
                    "(the same maps, to rounding).")
+@common.json_option
 @click.pass_context
 def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None, poses_per_map: int | None,
           output_format: str | None, raw_format: str | None, global_path: str | None, jobs: int) -> None:
@@ -104,19 +105,24 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     dof = result.degrees_of_freedom
     pieces = f", from {result.pieces} pieces joined" if result.pieces else ""
     files = f" ({common.counted(len(written), 'file')})" if len(written) > 1 else ""
-    say(ctx, f"built {common.counted(len(result.maps), 'local map')} from {raw.name} ({raw.steps} steps, "
-             f"{len(raw.observations)} "
-             f"observations): chi^2 {result.cost:.6f} for {int(dof.sum())} degrees of freedom (per map "
-             f"{result.costs.min():.4g} to {result.costs.max():.4g}), "
-             f"{common.counted(result.iterations, 'iteration')}{pieces}; "
-             f"{time.perf_counter() - start:.3f} s in all (reading {reading:.3f} s, solve {result.seconds:.3f} s, "
-             f"covariances {result.covariance_seconds:.3f} s, writing {writing:.3f} s) -> "
-             f"{output if output != '-' else 'stdout'}{files}")
+    message = (f"built {common.counted(len(result.maps), 'local map')} from {raw.name} ({raw.steps} steps, {len(raw.observations)} "
+               f"observations): chi^2 {result.cost:.6f} for {int(dof.sum())} degrees of freedom (per map "
+               f"{result.costs.min():.4g} to {result.costs.max():.4g}), {common.counted(result.iterations, 'iteration')}{pieces}; "
+               f"{time.perf_counter() - start:.3f} s in all (reading {reading:.3f} s, solve {result.seconds:.3f} s, "
+               f"covariances {result.covariance_seconds:.3f} s, writing {writing:.3f} s) -> "
+               f"{output if output != '-' else 'stdout'}{files}")
+    fields: dict[str, object] = {"maps": len(result.maps), "steps": raw.steps, "observations": len(raw.observations),
+                                 "chi2": float(result.cost), "degrees_of_freedom": int(dof.sum()),
+                                 "iterations": result.iterations, "seconds": time.perf_counter() - start,
+                                 "output": output, "files": written}
     if global_path:
         solution = result.batch
-        say(ctx, f"batch solution: chi^2 {solution.cost:.6f} (half: {solution.cost / 2:.6f}) for "
-                 f"{solution.degrees_of_freedom} degrees of freedom, {common.counted(solution.iterations, 'iteration')} "
-                 f"({solution.reason}), {solution.seconds + solution.covariance_seconds:.3f} s -> {global_path}")
+        message += (f"\nbatch solution: chi^2 {solution.cost:.6f} (half: {solution.cost / 2:.6f}) for "
+                    f"{solution.degrees_of_freedom} degrees of freedom, {common.counted(solution.iterations, 'iteration')} "
+                    f"({solution.reason}), {solution.seconds + solution.covariance_seconds:.3f} s -> {global_path}")
+        fields["batch"] = {"chi2": float(solution.cost), "degrees_of_freedom": solution.degrees_of_freedom,
+                           "iterations": solution.iterations, "reason": solution.reason, "output": global_path}
+    common.summary(ctx, message, fields, data_on_stdout="-" in (output, global_path))
 
 
 def _refuse_stale_maps(folder: str, fmt: str, count: int) -> None:

@@ -16,13 +16,14 @@ from ..consistency import DEFAULT_GATE, POLICIES
 from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
 from ..errors import InputError, counted, shown
 from ..io.numbers import first_unplain
-from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, Kind, by_name, extensions_text, names
+from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, TRAJECTORY, Kind, by_name, extensions_text, names
 from ..joining import STRATEGIES
 from ..maps import LocalMap, Range
 from ..onestep import SOLVERS
 
 if TYPE_CHECKING:
     from ..joining import JoinRecord
+    from ..maps import GlobalMap
     from ..refine import RefineResult
 
 log = logging.getLogger("mapjoin")
@@ -52,7 +53,9 @@ class FiniteFloat(click.FloatRange):
 inputs_argument = click.argument("inputs", nargs=-1, required=True, metavar="INPUTS...")
 input_format_option = click.option(
     "--input-format", type=click.Choice(names(LOCAL_MAPS)),
-    help="Format of the inputs when their names do not tell it (e.g. stdin).")
+    help="Format of the inputs when their names do not tell it (e.g. stdin). In YAML and CSV local maps, fields and "
+         "columns mapjoin does not know are ignored with one warning per file; a near miss of a known one "
+         "(covarience) is an error.")
 covariance_option = click.option(
     "--covariance", type=click.Choice(COVARIANCE_MODES), default=DEFAULT_COVARIANCE, show_default=True,
     help="How each local map's covariance is made spherical (see docs/joining.md, 'Covariance modes').")
@@ -93,6 +96,55 @@ global_map_format_option = format_option(
     + ".")
 #: what a table the commands write (a report, a batch result) can be
 TABLE_EXTENSIONS = extensions_text(TABLE)
+#: --trajectory of a command writing a global map (join, refine): the origin and every end pose
+trajectory_option = click.option(
+    "--trajectory", "trajectory_path", metavar="FILE",
+    help=f"Also write the trajectory ({extensions_text(TRAJECTORY)}; - for stdout, {default_title(TRAJECTORY)}): the "
+         "origin (the first map's start pose, at 0 0 0) and every map's end pose. TUM lines are 'timestamp tx ty tz "
+         "qx qy qz qw' with the pose id as the timestamp, as evo reads them.")
+
+
+#: --no-covariances of a command writing local maps (convert, simulate)
+no_covariances_option = click.option(
+    "--no-covariances", is_flag=True,
+    help="Write the spherical variances only, not the maps' full covariances (smaller files; a warning says how "
+         "many were dropped).")
+
+
+def write_trajectory(global_map: GlobalMap, origin_id: int, path: str | None) -> None:
+    """Write ``--trajectory`` when given (inside the command's ``with outputs`` block)."""
+    if path:
+        with options_for(format="--trajectory"):
+            mapio.write_trajectory(global_map, origin_id, path, output_format(path, None, TRAJECTORY))
+
+
+def _remember_json(ctx: click.Context, _parameter: click.Parameter, value: bool) -> None:
+    ctx.meta["mapjoin.json"] = value
+
+
+#: --json of a command that prints a summary: :func:`summary` prints it as one JSON object instead
+json_option = click.option(
+    "--json", is_flag=True, expose_value=False, callback=_remember_json,
+    help="Print the summary as one JSON object on one line (even under -q): on stdout, or on stderr (its last "
+         "line) when stdout holds the data (-o -).")
+
+
+def summary(ctx: click.Context, message: str, fields: dict[str, object], *, data_on_stdout: bool = False) -> None:
+    """The command's summary: ``message`` on stderr (unless -q), or with ``--json`` the ``fields`` (plain numbers,
+    strings, lists) as one JSON object, on stdout unless ``data_on_stdout``. The counts of repeated warnings
+    held back come first, so that the summary is the last line."""
+    warnings = (ctx.obj or {}).get("warnings")
+    if warnings is not None:
+        warnings.summarise()
+    if not ctx.meta.get("mapjoin.json"):
+        say(ctx, message)
+        return
+    import json
+
+    plain = {key: None if isinstance(value, float) and not math.isfinite(value) else value
+             for key, value in fields.items()}  # JSON has no NaN
+    click.echo(json.dumps({"command": ctx.info_name, **plain}, default=lambda value: value.tolist()),  # numpy values
+               err=data_on_stdout)
 
 
 #: the order of the fast joins, which is also the start of the exact join: one option, two names

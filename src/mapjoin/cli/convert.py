@@ -9,7 +9,7 @@ import click
 from .. import io as mapio
 from ..io.registry import LOCAL_MAPS
 from . import common, main
-from .common import format_option, input_format_option, inputs_argument, say
+from .common import format_option, input_format_option, inputs_argument
 
 
 @main.command()
@@ -20,15 +20,18 @@ from .common import format_option, input_format_option, inputs_argument, say
 @format_option(LOCAL_MAPS, f"Output format (default: from the -o name; {common.default_title(LOCAL_MAPS)} for a "
                "directory or stdout).", "--to", "to_format")
 @input_format_option
+@common.no_covariances_option
+@common.json_option
 @click.pass_context
 def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format: str | None,
-            input_format: str | None) -> None:
+            input_format: str | None, no_covariances: bool) -> None:
     """Convert local maps: I-SLSJF .mat, Linear SLAM, YAML, CSV.
 
     YAML, .mat and Linear SLAM text keep each map's full covariance (Linear SLAM text
     stores its inverse, the information matrix: converting inverts it, exact up to
-    rounding). CSV keeps spherical variances only. A .mat file holds map k, from pose
-    k-1 to pose k, and takes k from its name.
+    rounding). CSV keeps them too (cov rows; README, "Formats"). A .mat file holds map
+    k, from pose k-1 to pose k, and takes k from its name. A conversion that drops
+    something says so in one warning.
 
     \b
     Examples:
@@ -44,6 +47,8 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
             to_format = LOCAL_MAPS.default if is_directory else common.output_format(output, None, LOCAL_MAPS)
     maps = common.read_local_maps(inputs, input_format, outputs)
     with outputs:
-        written = mapio.write_maps(maps, output, to_format)
-    converted = f"converted {common.counted(len(maps), 'map')} to {to_format}"
-    say(ctx, f"{converted}: {common.counted(len(written), 'file')} in {output}" if output != "-" else converted)
+        written = mapio.write_maps(maps, output, to_format, covariances=not no_covariances)
+    common.summary(ctx, f"converted {common.counted(len(maps), 'map')} to {to_format}: {common.counted(len(written), 'file')} in {output}"
+                   if output != "-" else f"converted {common.counted(len(maps), 'map')} to {to_format}",
+                   {"maps": len(maps), "format": to_format, "files": written, "output": output},
+                   data_on_stdout=output == "-")

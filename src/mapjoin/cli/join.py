@@ -11,8 +11,8 @@ from ..io.registry import GLOBAL_MAP, TABLE
 from ..joining import join as join_maps
 from . import common, main
 from .common import (covariance_option, gate_option, global_map_format_option, global_map_output_option,
-                     input_format_option, inputs_argument, on_inconsistent_option, progress_bar, say,
-                     solver_option)
+                     input_format_option, inputs_argument, json_option, on_inconsistent_option, progress_bar, say,
+                     solver_option, trajectory_option)
 
 
 @main.command()
@@ -31,11 +31,13 @@ from .common import (covariance_option, gate_option, global_map_format_option, g
 @gate_option
 @on_inconsistent_option
 @input_format_option
+@trajectory_option
+@json_option
 @click.pass_context
 def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
          report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, exact: bool,
          max_iterations: int, tolerance: float | None, no_covariances: bool, gate: float, on_inconsistent: str,
-         input_format: str | None) -> None:
+         input_format: str | None, trajectory_path: str | None) -> None:
     """Join a chain of local maps into one global map.
 
     Map k must start at the end pose of map k-1; the global frame is the start pose of
@@ -55,7 +57,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
         raise click.UsageError(f"{solve_options[0]} is an option of the exact solve; add --refine")
     if on_inconsistent == "skip" and strategy != "sequential":
         raise click.UsageError("--on-inconsistent skip re-joins the chain map by map; use --strategy sequential")
-    outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
+    outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path})
     start = time.perf_counter()
     maps = common.read_local_maps(inputs, input_format, outputs)
     read = time.perf_counter() - start
@@ -81,6 +83,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
         mapio.write_global_map(global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
         if report_path:
             mapio.write_table(result.report, report_path, common.output_format(report_path, None, TABLE))
+        common.write_trajectory(global_map, maps[0].start_id, trajectory_path)
     if ctx.obj["verbose"]:
         for r in result.report:
             second = f", other minimum at {r.phi2:+.4f} rad" if r.minima == 2 else ""
@@ -88,9 +91,18 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                      f"C_phi={r.c_phi:+.4f}, minima={r.minima}, phi*={r.phi:+.6f}{second}")
     two = sum(r.minima == 2 for r in result.report)
     g = global_map
-    say(ctx, f"joined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
-             f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
-             f"({two} with two minima, {common.inconsistency(result.report)}), covariance {covariance}, {strategy}, "
-             f"read {read:.3f} s, joined {elapsed - read:.3f} s -> {'stdout' if output == '-' else output}")
+    common.summary(ctx, f"joined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
+                        f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
+                        f"({two} with two minima, {common.inconsistency(result.report)}), covariance {covariance}, "
+                        f"{strategy}, read {read:.3f} s, joined {elapsed - read:.3f} s -> "
+                        f"{'stdout' if output == '-' else output}",
+                   {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids),
+                    "joins": len(result.report), "two_minima": two,
+                    "inconsistent": sum(bool(r.flag) for r in result.report), "covariance": covariance,
+                    "strategy": strategy,
+                    **({"chi2_initial": refined.costs[0], "chi2": refined.cost, "iterations": refined.iterations,
+                        "converged": refined.converged} if exact else {}),
+                    "read_seconds": read, "join_seconds": elapsed - read, "output": output},
+                   data_on_stdout=output == "-" or trajectory_path == "-")
     if exact:
         common.exit_if_not_converged(ctx, refined, output)

@@ -31,10 +31,11 @@ PROBABILITY_RANGE = Range("gate probability", 0.5, 1.0 - 1e-12)
 @click.option("--gate-association", "probability", type=common.FiniteFloat(PROBABILITY_RANGE),
               default=lambda: _defaults()[1], show_default="0.999",
               help="--associate: chi-square level of the distance gates.")
+@common.json_option
 @click.pass_context
 def merge(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
           report_path: str | None, associate: bool, min_common: int, probability: float) -> None:
-    """Merge global maps, each in its own frame, into the frame of the first.
+    """Merge global maps, each in its own frame, into one.
 
     A, B, ... are global maps (e.g. `mapjoin join` outputs of several robots or sessions)
     that share features but no pose. B is brought into A's frame by the one-step solution
@@ -69,9 +70,16 @@ def merge(ctx: click.Context, inputs: tuple[str, ...], output: str, output_forma
             say(ctx, f"merge {r.merge}: {r.map}: phi={r.phi:+.6f} rad, t=({r.x:.6g}, {r.y:.6g}), {r.common} common, "
                      f"{r.new} new, cost {r.cost:.6g}")
     g = result.global_map
-    say(ctx, f"merged {len(maps)} maps: {len(g.feature_ids)} features, {len(g.pose_ids)} poses, "
-             f"{sum(r.common for r in result.report)} features fused, {len(result.renamed)} ids given anew, "
-             f"{elapsed:.3f} s -> {'stdout' if output == '-' else output}")
+    fused = sum(r.common for r in result.report)
+    common.summary(ctx, f"merged {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
+                        f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(fused, 'feature')} fused, "
+                        f"{common.counted(len(result.renamed), 'id')} given anew, {elapsed:.3f} s -> "
+                        f"{'stdout' if output == '-' else output}",
+                   {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids), "fused": fused,
+                    "renamed": len(result.renamed), "seconds": elapsed, "output": output,
+                    "merges": [{"map": r.map, "phi": r.phi, "x": r.x, "y": r.y, "common": r.common, "cost": r.cost}
+                               for r in result.report]},
+                   data_on_stdout=output == "-")
 
 
 def _defaults() -> tuple[int, float]:

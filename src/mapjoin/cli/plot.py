@@ -16,7 +16,7 @@ from .. import plot as figures
 from ..errors import MapjoinError
 from ..maps import GlobalMap
 from . import common, main
-from .common import covariance_option, input_format_option, inputs_argument, say, solver_option
+from .common import covariance_option, input_format_option, inputs_argument, solver_option
 
 figure_option = click.option("-o", "--output", required=True, metavar="FILE",
                               help="Figure file; its extension chooses the format: .png, .svg or .pdf.")
@@ -33,6 +33,7 @@ figure_option = click.option("-o", "--output", required=True, metavar="FILE",
                    "covariances (refine), else circles from the spherical variances.")
 @click.option("--label", "labels", multiple=True, metavar="TEXT",
               help="Legend label of each MAP, in order (repeat; default: the file names).")
+@common.json_option
 @click.pass_context
 def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str | None, ellipses: bool,
          labels: tuple[str, ...]) -> None:
@@ -66,13 +67,15 @@ def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str
     names = labels or [global_map.name for global_map in global_maps]
     with outputs:
         figures.save(figures.map_figure(global_maps, names, truth, ellipses), output)
-    say(ctx, f"plotted {common.counted(len(global_maps), 'map')}"
-             f"{' and the ground truth' if truth else ''} -> {output}")
+    common.summary(ctx, f"plotted {common.counted(len(global_maps), 'map')}"
+                        f"{' and the ground truth' if truth else ''} -> {output}",
+                   {"maps": len(global_maps), "truth": truth is not None, "output": output}, data_on_stdout=output == "-")
 
 
 @main.command("plot-minima")
 @click.argument("report", metavar="REPORT")
 @figure_option
+@common.json_option
 @click.pass_context
 def plot_minima(ctx: click.Context, report: str, output: str) -> None:
     """Draw a report's joins on Theorem 2's minima diagram.
@@ -96,7 +99,9 @@ def plot_minima(ctx: click.Context, report: str, output: str) -> None:
     with outputs:
         figures.save(figures.minima_figure(table), output)
     what = "join" if table.join is not None else "problem"
-    say(ctx, f"plotted {common.counted(len(table.a), what)} -> {output}")
+    common.summary(ctx, f"plotted {common.counted(len(table.a), what)} -> {output}",
+                   {what + "s": len(table.a), "output": output},
+                   data_on_stdout=output == "-")
 
 
 @main.command("plot-join")
@@ -108,6 +113,7 @@ def plot_minima(ctx: click.Context, report: str, output: str) -> None:
 @covariance_option
 @solver_option
 @input_format_option
+@common.json_option
 @click.pass_context
 def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_number: int | None, covariance: str,
               solver: str, input_format: str | None) -> None:
@@ -144,8 +150,10 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
              f"({len(problem.z0)} common features, covariance {covariance})")
     with outputs:
         figures.save(figures.join_figure(curve, title), output)
-    say(ctx, f"plotted join {join_number} ({common.counted(len(curve.minima), 'minimum', 'minima')}, "
-             f"phi* = {curve.minima[0][0]:+.6f} rad) -> {output}")
+    common.summary(ctx, f"plotted join {join_number} ({common.counted(len(curve.minima), 'minimum', 'minima')}, "
+                        f"phi* = {curve.minima[0][0]:+.6f} rad) -> {output}",
+                   {"join": join_number, "minima": len(curve.minima), "phi": curve.minima[0][0], "output": output},
+                   data_on_stdout=output == "-")
 
 
 def _drawable(argument: str, ellipses: bool) -> GlobalMap:

@@ -10,8 +10,8 @@ from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE
 from . import common, main
 from .common import (covariance_option, gate_option, global_map_format_option, global_map_output_option,
-                     input_format_option, inputs_argument, on_inconsistent_option, progress_bar, say,
-                     solver_option)
+                     input_format_option, inputs_argument, json_option, on_inconsistent_option, progress_bar, say,
+                     solver_option, trajectory_option)
 
 
 @main.command()
@@ -27,11 +27,13 @@ from .common import (covariance_option, gate_option, global_map_format_option, g
 @gate_option
 @on_inconsistent_option
 @input_format_option
+@trajectory_option
+@json_option
 @click.pass_context
 def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
            report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, max_iterations: int,
            tolerance: float | None, no_covariances: bool, gate: float, on_inconsistent: str,
-           input_format: str | None) -> None:
+           input_format: str | None, trajectory_path: str | None) -> None:
     """Join local maps exactly: the least-squares optimum.
 
     Solves the problem I-SLSJF solves: all end poses and features at once, each local
@@ -56,7 +58,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
     common.check_jobs(jobs, strategy)
-    outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
+    outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path})
     if on_inconsistent == "skip" and strategy != "sequential":
         raise click.UsageError("--on-inconsistent skip re-joins the chain map by map; use --start sequential")
     start = time.perf_counter()
@@ -72,13 +74,20 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
         mapio.write_global_map(result.global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
         if report_path:
             mapio.write_table(result.fast_join.report, report_path, common.output_format(report_path, None, TABLE))
+        common.write_trajectory(result.global_map, maps[0].start_id, trajectory_path)
     common.warn_if_doubtful(result)
     g, joins = result.global_map, result.fast_join.report
     two = sum(r.minima == 2 for r in joins)
-    say(ctx, f"refined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
+    common.summary(ctx, f"refined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
              f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(joins), 'join')} ({two} with two "
              f"minima, {common.inconsistency(joins)}), {common.counted(result.iterations, 'iteration')}, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
-             f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}")
+             f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}",
+                   {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids), "joins": len(joins),
+                    "two_minima": two, "inconsistent": sum(bool(r.flag) for r in joins),
+                    "iterations": result.iterations, "chi2_initial": result.costs[0],
+                    "chi2": result.cost, "reason": result.reason, "converged": result.converged,
+                    "degrees_of_freedom": result.degrees_of_freedom, "seconds": elapsed, "read_seconds": read,
+                    "output": output}, data_on_stdout=output == "-" or trajectory_path == "-")
     common.exit_if_not_converged(ctx, result, output)

@@ -10,7 +10,6 @@ from .. import io as mapio
 from ..io.registry import LOCAL_MAPS, TRUTH, by_name, names
 from ..simulation import simulate as run_simulation, simulate_robots
 from . import common, main
-from .common import say
 
 #: formats that write both the maps and the truth beside them
 _FORMATS = tuple(name for name in names(LOCAL_MAPS, writing=True) if name in names(TRUTH, writing=True))
@@ -34,9 +33,11 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
               help="Robots in one world, --maps maps each, their areas overlapping: the directory gets one "
                    "folder robot<r> per robot (its maps and truth, in its own frame) and the world's truth in "
                    "the first robot's frame (README, 'Merging maps').")
+@common.no_covariances_option
+@common.json_option
 @click.pass_context
 def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_map: int,
-             output_format: str, truth_path: str | None, robots: int) -> None:
+             output_format: str, truth_path: str | None, robots: int, no_covariances: bool) -> None:
     """Simulate a robot run, with ground truth, as local maps.
 
     The maps' estimates are drawn from their declared full covariances, so joins can be
@@ -56,7 +57,7 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
     if robots > 1:
         if stream:
             raise click.UsageError("--robots writes one folder per robot: give -o a directory")
-        _simulate_robots(ctx, output, robots, count, seed, steps_per_map, output_format, truth_path)
+        _simulate_robots(ctx, output, robots, count, seed, steps_per_map, output_format, truth_path, no_covariances)
         return
     if not stream:
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
@@ -64,15 +65,18 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
                             folders={} if stream else {"-o": output})
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
     with outputs:
-        mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format)
+        mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format,
+                         covariances=not no_covariances)
         if truth_path:
             mapio.write_truth(simulation.truth, truth_path)
-    say(ctx, f"simulated {common.counted(count, 'local map')} (seed {seed})"
-             + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))
+    common.summary(ctx, f"simulated {common.counted(count, 'local map')} (seed {seed})"
+                   + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""),
+                   {"maps": count, "seed": seed, "output": output, "truth": truth_path},
+                   data_on_stdout="-" in (output, truth_path))
 
 
 def _simulate_robots(ctx: click.Context, output: str, robots: int, count: int, seed: int, steps_per_map: int,
-                     output_format: str, truth_path: str | None) -> None:
+                     output_format: str, truth_path: str | None, no_covariances: bool) -> None:
     """``--robots``: ``output/robot<r>/`` (localmap files, truth.<format>) per robot, the world's truth beside."""
     truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     folders = [os.path.join(output, f"robot{r}") for r in range(1, robots + 1)]
@@ -81,8 +85,9 @@ def _simulate_robots(ctx: click.Context, output: str, robots: int, count: int, s
     with outputs:
         for folder, run in zip(folders, world.robots):
             outputs.folder(folder)
-            mapio.write_maps(run.maps, os.path.join(folder, ""), output_format)
+            mapio.write_maps(run.maps, os.path.join(folder, ""), output_format, covariances=not no_covariances)
             mapio.write_truth(run.truth, os.path.join(folder, f"truth.{output_format}"))
         mapio.write_truth(world.truth, truth_path)
-    say(ctx, f"simulated {robots} robots, {count} local map{'s' * (count != 1)} each (seed {seed}) -> "
-             f"{os.path.join(output, 'robot<r>')}, world truth -> {truth_path}")
+    common.summary(ctx, f"simulated {common.counted(robots, 'robot')}, {common.counted(count, 'local map')} each (seed {seed}) -> "
+                   f"{os.path.join(output, 'robot<r>')}, world truth -> {truth_path}",
+                   {"robots": robots, "maps": count, "seed": seed, "output": output, "truth": truth_path})

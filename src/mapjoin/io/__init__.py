@@ -13,9 +13,11 @@ them); a stream without a format is recognised by its start (YAML, CSV with a ``
 column, Linear SLAM text). The formats, one module each: :mod:`.yaml_maps`,
 :mod:`.csv_maps`, :mod:`.mat_maps` (I-SLSJF), :mod:`.linearslam` (local maps);
 :mod:`.global_maps` (global maps and ground truth, YAML and CSV), :mod:`.g2o` (global map
-export); :mod:`.tables` (reports, minima tables). Beside them: :mod:`.paths` (reading
+export); :mod:`.tables` (reports, minima tables); :mod:`.trajectory` (the trajectory: TUM,
+CSV, JSON). Beside them: :mod:`.paths` (reading
 files and streams), :mod:`.outputs` (writing: checked up front, all or nothing), :mod:`.inputs` (input arguments to files), :mod:`.yamldoc`
-and :mod:`.csvtable` (the YAML and CSV layers), :mod:`.matfile` (MAT v5), :mod:`.truth`
+and :mod:`.csvtable` (the YAML and CSV layers), :mod:`.fields` (what a person may add to or
+leave out of a local map), :mod:`.matfile` (MAT v5), :mod:`.truth`
 (I-SLSJF simulation folders).
 
 A format module provides, for each kind of data it holds, ``read(text, source)`` (bytes for
@@ -44,6 +46,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from ..covariance import marginal_variances
 from ..errors import InputError, counted
 from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate
 from . import registry
@@ -55,6 +58,7 @@ from .outputs import Outputs, check_not_overwriting, is_special, transaction, wr
 from .paths import STDIN, Source, is_path, read_file, read_text, source_name
 from .registry import MAP_FORMATS, TABLE_FORMATS, Codec, Format, Kind, detect_format, map_file_name
 from .tables import MinimaTable, read_minima_csv, read_minima_records
+from .trajectory import Trajectory
 from .truth import read_truth_folder
 
 __all__ = [
@@ -62,6 +66,7 @@ __all__ = [
     "STAB_NOISE",
     "TABLE_FORMATS",
     "MinimaTable",
+    "Trajectory",
     "Outputs",
     "check_not_overwriting",
     "detect_format",
@@ -82,6 +87,7 @@ __all__ = [
     "write_maps",
     "write_table",
     "write_output",
+    "write_trajectory",
     "write_truth",
 ]
 
@@ -193,8 +199,9 @@ def _head_lines(lines: Iterator[str]) -> list[str]:
     return head
 
 
-def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[str]:
-    """Write ``maps`` as ``format`` and return the paths written (none for a stream).
+def write_maps(maps: Sequence[LocalMap], target: Source, format: str, *, covariances: bool = True) -> list[str]:
+    """Write ``maps`` as ``format`` and return the paths written (none for a stream); ``covariances=False``
+    writes their spherical variances only (smaller files; one warning says how many covariances were dropped).
 
     A folder target (an existing folder, or a path ending in ``/``, created if its parent exists) gets
     one file per map, :func:`map_file_name`; a file path or stream gets one stream, which
@@ -203,17 +210,49 @@ def write_maps(maps: Sequence[LocalMap], target: Source, format: str) -> list[st
     """
     name = source_name(target, "<stdout>")
     fmt, codec = registry.codec(detect_format(name, format), registry.LOCAL_MAPS, name, writing=True)
-    if fmt.spherical_only:
-        dropped = [local_map.name for local_map in maps if local_map.covariance is not None]
-        if dropped:
-            log.warning("%s holds spherical variances only: dropped the full covariances of %s "
-                        "(first: %s)", format, counted(len(dropped), "map"), dropped[0])
+    if not covariances:
+        maps = _spherical(maps)
+    if fmt.covariance_only:
+        _warn_dropped_variances(maps, fmt)
     if isinstance(target, (str, os.PathLike)) and (
             os.path.isdir(target) or os.fspath(target).endswith(("/", os.sep))):
         return _write_map_folder(maps, os.fspath(target), fmt, codec)
     if fmt.one_map_per_file:
         _check_single_map_file(maps, target, fmt)
     return _write(fmt, codec.dump(maps), target)
+
+
+def _spherical(maps: Sequence[LocalMap]) -> list[LocalMap]:
+    """The maps without their full covariances (already checked: not checked again), with one warning."""
+    dropped = sum(local_map.covariance is not None for local_map in maps)
+    if dropped:
+        log.warning("dropped the full covariances of %d map(s) as asked: only their spherical variances are "
+                    "written", dropped)
+    return [local_map if local_map.covariance is None else
+            LocalMap(*(getattr(local_map, key) for key in _LOCAL_MAP_FIELDS), None, checked=True)
+            for local_map in maps]
+
+
+_LOCAL_MAP_FIELDS = ("name", "start_id", "end_id", "end_pose", "feature_ids", "features", "feature_variances",
+                     "pose_variances")
+
+
+def _warn_dropped_variances(maps: Sequence[LocalMap], fmt: Format) -> None:
+    """One warning when ``fmt`` stores a map by its full covariance alone and some map's spherical variances
+    are not the covariance's marginal ones (which reading gives back): those variances are lost."""
+    dropped = [local_map.name for local_map in maps if local_map.covariance is not None
+               and not _marginal(local_map)]
+    if dropped:
+        log.warning("%s stores a map's full covariance, not its spherical variances: the variances of %d map(s) "
+                    "differ from their covariance's marginal ones, which they read back as (first: %s; the joins "
+                    "use the covariance either way)", fmt.name, len(dropped), dropped[0])
+
+
+def _marginal(local_map: LocalMap) -> bool:
+    """Whether a map's spherical variances are its covariance's marginal ones, up to rounding."""
+    features, poses = marginal_variances(local_map.covariance[np.newaxis])
+    return bool(np.allclose(features[0], local_map.feature_variances, rtol=1e-12, atol=0)
+                and np.allclose(poses[0], local_map.pose_variances, rtol=1e-12, atol=0))
 
 
 def write_global_map(global_map: GlobalMap, target: Source, format: str | None = None) -> None:
@@ -250,6 +289,12 @@ def read_truth(source: Source, format: str | None = None) -> GroundTruth:
 def write_table(rows: Sequence[Any], target: Source, format: str | None = None) -> None:
     """Write dataclass instances (all of one type), or mappings with the same keys, as a CSV, YAML or JSON table."""
     _write_data(rows, target, format, registry.TABLE)
+
+
+def write_trajectory(global_map: GlobalMap, origin_id: int, target: Source, format: str | None = None) -> None:
+    """Write the trajectory of a global map whose first map starts at pose ``origin_id`` (:class:`Trajectory`:
+    the origin, then every end pose) as TUM, CSV or JSON (format from ``format`` or the extension)."""
+    _write_data(Trajectory.of(global_map, origin_id), target, format, registry.TRAJECTORY)
 
 
 def read_minima_table(source: Source) -> MinimaTable:

@@ -3,8 +3,8 @@
 The CSV formats (local maps, global maps, ground truth, minima tables) read a file through
 :class:`Table`, which checks the header and each column's kind at once and raises
 :class:`~mapjoin.errors.InputError` naming the file, line and column of the first bad
-cell. Written CSV is standard (quoted where needed) with LF line ends; CRLF line ends are
-accepted on reading.
+cell. Spaces and tabs around a cell are ignored (``1.5, 2.0``). Written CSV is standard
+(quoted where needed) with LF line ends; CRLF line ends are accepted on reading.
 """
 
 from __future__ import annotations
@@ -48,7 +48,9 @@ class Table:
                     lines.append(reader.line_num)
         except csv.Error as error:
             raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num}") from None
-        header = tuple(cell.strip() for cell in rows[0]) if rows else ()
+        if " " in text or "\t" in text:  # spaces around separators are not part of a cell
+            rows = [[cell.strip(" \t") for cell in row] for row in rows]
+        header = tuple(rows[0]) if rows else ()
         self.header_line = lines[0] if lines else 1
         if headers is not None and header not in headers:
             expected = " or ".join(",".join(header) for header in headers)

@@ -8,7 +8,9 @@
 
 g2o has one id space, so feature ids are offset by :func:`g2o_feature_offset` (the smallest
 power of ten above every pose id, at least 10); the first line says which. Vertices only:
-the variances are not exported.
+the variances are not exported, and no edges: a local map's estimates are correlated (one
+covariance over its end pose and all its features) while g2o's 2D edges are independent,
+so edges from the maps' marginal blocks would pose another problem than the exact join.
 """
 
 from __future__ import annotations

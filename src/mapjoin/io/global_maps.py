@@ -23,6 +23,9 @@ Global map, YAML::
     ``provenance`` and each of its fields are optional; ``cov`` is on all entries of a
     list or on none. A kind with no entries reads back without covariances.
 
+Global map, JSON: the YAML document's fields as one JSON object (read back as YAML, which
+JSON is, so that errors name lines).
+
 Ground truth: the same without variances: CSV ``kind,id,x,y,phi``; YAML
 ``format: mapjoin/ground-truth``, ``version: 1``, ``features: [{id, x, y}]``,
 ``poses: [{id, x, y, phi}]``.
@@ -39,8 +42,8 @@ from ..maps import GlobalMap, GroundTruth, Provenance
 from . import csvtable, yamldoc
 from .csvtable import COV_ENTRIES
 
-__all__ = ["dump_global_csv", "dump_global_yaml", "dump_truth_csv", "dump_truth_yaml", "read_global_csv",
-           "read_global_yaml", "read_truth_csv", "read_truth_yaml"]
+__all__ = ["dump_global_csv", "dump_global_json", "dump_global_yaml", "dump_truth_csv", "dump_truth_yaml",
+           "looks_like_json", "read_global_csv", "read_global_yaml", "read_truth_csv", "read_truth_yaml"]
 
 _GLOBAL_MAP_FORMAT = "mapjoin/global-map"
 _TRUTH_FORMAT = "mapjoin/ground-truth"
@@ -80,8 +83,20 @@ def _provenance(document: yamldoc.Document) -> Provenance:
 
 def dump_global_yaml(global_map: GlobalMap) -> str:
     """A global map as one YAML document, with its provenance."""
+    return yamldoc.dump([_global_document(global_map)])
+
+
+def dump_global_json(global_map: GlobalMap) -> str:
+    """A global map as one JSON object: the fields of its YAML document."""
+    import json
+
+    return json.dumps(_global_document(global_map), indent=1) + "\n"
+
+
+def _global_document(global_map: GlobalMap) -> dict[str, Any]:
+    """The fields of a global map's document (YAML, JSON), with its provenance."""
     provenance = global_map.provenance
-    return yamldoc.dump([{
+    return {
         "format": _GLOBAL_MAP_FORMAT, "version": 1,
         "provenance": {"maps": list(provenance.maps),
                        **{key: getattr(provenance, key) for key in _PROVENANCE_FIELDS}},
@@ -92,7 +107,12 @@ def dump_global_yaml(global_map: GlobalMap) -> str:
                                 "y": global_map.poses[:, 1], "phi": global_map.poses[:, 2],
                                 "var_xy": global_map.pose_variances[:, 0],
                                 "var_phi": global_map.pose_variances[:, 1], "cov": global_map.pose_covariances}),
-    }])
+    }
+
+
+def looks_like_json(text: str) -> bool:
+    """Whether a stream without a named format is JSON: it starts with ``{`` (YAML and CSV never do here)."""
+    return text.lstrip().startswith("{")
 
 
 def read_global_csv(text: str, source: str) -> GlobalMap:

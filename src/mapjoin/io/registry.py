@@ -17,10 +17,11 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from ..errors import InputError
-from . import csv_maps, csvtable, g2o, global_maps, linearslam, mat_maps, tables, yaml_maps, yamldoc
+from . import csv_maps, csvtable, g2o, global_maps, linearslam, mat_maps, tables, trajectory, yaml_maps, yamldoc
 from .paths import STDIN
 
-__all__ = ["FORMATS", "GLOBAL_MAP", "LOCAL_MAPS", "LOCAL_MAP_FILE", "MAP_FORMATS", "TABLE", "TABLE_FORMATS", "TRUTH",
+__all__ = ["FORMATS", "GLOBAL_MAP", "LOCAL_MAPS", "LOCAL_MAP_FILE", "MAP_FORMATS", "TABLE", "TABLE_FORMATS", "TRAJECTORY",
+           "TRUTH",
            "Codec", "Format", "Kind", "by_name", "codec", "detect_format", "extension_format", "extensions_text",
            "local_map_files_text",
            "map_file_name", "names", "sniff"]
@@ -47,6 +48,7 @@ LOCAL_MAPS = Kind("local_maps", "local maps", "yaml")
 GLOBAL_MAP = Kind("global_map", "a global map", "csv")
 TRUTH = Kind("truth", "ground truth", "csv")
 TABLE = Kind("table", "a table", "csv")
+TRAJECTORY = Kind("trajectory", "a trajectory", "tum")
 
 
 @dataclass(frozen=True)
@@ -65,7 +67,8 @@ class Format:
     global_map: Codec | None = None
     truth: Codec | None = None
     table: Codec | None = None
-    spherical_only: bool = False  # local maps: full covariances are dropped on writing
+    trajectory: Codec | None = None
+    covariance_only: bool = False  # local maps: a map's full covariance is stored alone, not its spherical variances
     one_map_per_file: bool = False  # local maps: a file holds exactly one map
     map_number: Callable[[str], int | None] | None = None  # local maps: the end id k a file's name must give
 
@@ -81,15 +84,22 @@ FORMATS: tuple[Format, ...] = (
            global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_yaml),
            truth=Codec(global_maps.read_truth_yaml, global_maps.dump_truth_yaml), table=Codec(None, tables.dump_yaml)),
     Format("csv", "CSV", (".csv",), sniff=csvtable.names_kind_column, sniff_text="a CSV header naming a kind column",
-           local_maps=Codec(csv_maps.read, csv_maps.dump), spherical_only=True,
+           local_maps=Codec(csv_maps.read, csv_maps.dump),
            global_map=Codec(global_maps.read_global_csv, global_maps.dump_global_csv),
-           truth=Codec(global_maps.read_truth_csv, global_maps.dump_truth_csv), table=Codec(None, tables.dump_csv)),
+           truth=Codec(global_maps.read_truth_csv, global_maps.dump_truth_csv), table=Codec(None, tables.dump_csv),
+           trajectory=Codec(None, trajectory.dump_csv)),
     Format("mat", "I-SLSJF .mat", (".mat",), binary=True,
-           local_maps=Codec(mat_maps.read, mat_maps.dump, mat_maps.read_files), one_map_per_file=True,
+           local_maps=Codec(mat_maps.read, mat_maps.dump, mat_maps.read_files), one_map_per_file=True, covariance_only=True,
            map_number=mat_maps.map_number),
     Format("linearslam", "Linear SLAM", (".txt",), named_only=True, sniff=linearslam.looks_like_linearslam,
-           sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump), one_map_per_file=True),
-    Format("json", "JSON", (".json",), table=Codec(None, tables.dump_json)),
+           sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump), one_map_per_file=True,
+           covariance_only=True),
+    Format("json", "JSON", (".json",), sniff=global_maps.looks_like_json, sniff_text="JSON starting with {",
+           table=Codec(None, tables.dump_json),
+           global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_json),  # JSON is read as YAML
+           trajectory=Codec(None, trajectory.dump_json)),
+    Format("tum", "TUM trajectory", (".tum",), note="timestamp (the pose id) tx ty tz qx qy qz qw, as evo reads it",
+           trajectory=Codec(None, trajectory.dump_tum)),
     Format("g2o", "g2o", (".g2o",), note="VERTEX_SE2 poses and VERTEX_XY features, for g2o's viewer or GTSAM",
            global_map=Codec(None, g2o.dump)),
 )

@@ -12,7 +12,13 @@
     - {id: 12, x: 3.0, y: 4.0, var: 0.02}
     covariance: [[...], ...]       # optional: full (3+2m)x(3+2m), order x y phi f1x f1y f2x ...
 
-Unknown fields are errors. Numbers like ``1e-6`` (no dot) are read as numbers.
+Units: metres and radians; ``var`` and ``var_xy`` are the variance sigma^2 (m^2) of each of x and y
+(the covariance sigma^2 I_2), ``var_phi`` the heading's (rad^2). With ``covariance`` the variances may
+be left out (they are then its marginal ones); given both, the covariance wins (every covariance mode
+and the refinement use it; the variances are kept as written). Fields mapjoin does not know are
+ignored, with one warning per file naming them; a near miss of a known field (``covarience``)
+is an error, as is a missing ``format`` (it says what to write). Numbers like ``1e-6`` (no dot)
+are read as numbers.
 
 Documents laid out exactly as :func:`dump` writes them are parsed without PyYAML (regular
 expressions check the layout, ``float`` reads the numbers: the values PyYAML gives) and then
@@ -29,9 +35,11 @@ from typing import Any
 
 import numpy as np
 
+from ..covariance import marginal_variances
 from ..errors import InputError
 from ..maps import LocalMap
 from . import yamldoc
+from .fields import filled_variances, warn_ignored
 from .paths import map_name
 
 __all__ = ["dump", "read", "read_lines"]
@@ -40,6 +48,7 @@ _FORMAT = "mapjoin/local-map"
 _KEYS = ("format", "version", "name", "start_id", "end_id", "end_pose", "features", "covariance")
 _END_POSE_FIELDS = {"x": "number", "y": "number", "phi": "number", "var_xy": "variance", "var_phi": "variance"}
 _FEATURE_FIELDS = {"id": "id", "x": "number", "y": "number", "var": "variance"}
+_VARIANCES = ("var", "var_xy", "var_phi")  # may be left out when the map has a covariance
 
 
 _ID = r"(?:0|[1-9][0-9]*)"  # YAML 1.1 reads 012 as octal: not here
@@ -65,14 +74,15 @@ def read_lines(lines: Iterable[str], source: str) -> Iterator[LocalMap]:
     (and the next document's start, which says whether the first map is numbered: "Map names" in mapjoin.io)."""
     pending: tuple[yamldoc.Document, str] | None = None  # read, not yet made a map
     number = 0
+    ignored: list[str] = []  # the unknown fields warned about (once per stream)
     for first_line, text in yamldoc.split_documents(lines):
         for document in _documents(text, source, first_line):
             number += 1
             if pending is not None:
-                yield _local_map(*pending, number - 1)
+                yield _local_map(*pending, number - 1, ignored)
             pending = document, text
     if pending is not None:
-        yield _local_map(*pending, None if number == 1 else number)
+        yield _local_map(*pending, None if number == 1 else number, ignored)
 
 
 def _documents(text: str, source: str, first_line: int) -> list[yamldoc.Document]:
@@ -83,14 +93,20 @@ def _documents(text: str, source: str, first_line: int) -> list[yamldoc.Document
     return [yamldoc.Document(data, None, source, first_line)]
 
 
-def _local_map(document: yamldoc.Document, text: str, number: int | None) -> LocalMap:
+def _local_map(document: yamldoc.Document, text: str, number: int | None, ignored: list[str]) -> LocalMap:
     """The local map of ``document`` (parsed from ``text``); when a fast-parsed one has an error to report,
-    it is parsed again with lines, to report it naming its line."""
+    it is parsed again with lines, to report it naming its line. Unknown fields not in ``ignored`` yet are
+    warned about and added."""
     try:
-        return _local_map_from_yaml(document, number)
+        local_map = _local_map_from_yaml(document, number)
     except yamldoc.NeedsLines:
         [document] = yamldoc.documents(text, document.source, document.first_line)
-        return _local_map_from_yaml(document, number)
+        local_map = _local_map_from_yaml(document, number)
+    new = [field for field in dict.fromkeys(document.ignored or ()) if field not in ignored]
+    if new:
+        warn_ignored(document.source, "field", new)
+        ignored.extend(new)
+    return local_map
 
 
 def _fast_document(text: str) -> dict[str, Any] | None:
@@ -137,20 +153,42 @@ def _floats(tokens: Sequence[str]) -> np.ndarray:
 
 
 def _local_map_from_yaml(document: yamldoc.Document, number: int | None) -> LocalMap:
-    """The local map of one document (``number``: its position in a stream of several, else None)."""
+    """The local map of one document (``number``: its position in a stream of several, else None). Unknown
+    fields are collected in ``document.ignored``; the variances may be left out when ``covariance`` is given
+    (:mod:`.fields`)."""
+    document.ignored = []
     document.header(_FORMAT, _KEYS)
     name = map_name(document.source, document.get(("name",), "text", optional=True), number)
     start_id, end_id = (document.get((key,), "id") for key in ("start_id", "end_id"))
-    pose = document.record(("end_pose",), _END_POSE_FIELDS)
-    features = document.records(("features",), _FEATURE_FIELDS)
+    pose = document.record(("end_pose",), _END_POSE_FIELDS, optional=_VARIANCES)
+    features = document.records(("features",), _FEATURE_FIELDS, optional=_VARIANCES)
     size = 3 + 2 * len(features["id"])
     covariance = document.matrix(("covariance",), (size, size), optional=True)
+    pose_variances = np.array([np.nan if pose[key] is None else pose[key] for key in ("var_xy", "var_phi")])
+    feature_variances = features["var"]
+    if covariance is None:
+        _require_variances(document, pose_variances, feature_variances)
+    elif np.isnan(pose_variances).any() or np.isnan(feature_variances).any():
+        marginal_features, marginal_pose = marginal_variances(covariance[np.newaxis])
+        pose_variances = filled_variances(pose_variances, marginal_pose[0])
+        feature_variances = filled_variances(feature_variances, marginal_features[0])
     try:
         return LocalMap(name, start_id, end_id,
                         [pose["x"], pose["y"], pose["phi"]], features["id"], yamldoc.stack(features, "x", "y"),
-                        features["var"], [pose["var_xy"], pose["var_phi"]], covariance)
+                        feature_variances, pose_variances, covariance)
     except InputError as error:
         raise document.relocated(error) from None
+
+
+def _require_variances(document: yamldoc.Document, pose_variances: np.ndarray, feature_variances: np.ndarray) -> None:
+    """Without a covariance every variance must be given: the error names the first left out."""
+    missing = np.flatnonzero(np.isnan(pose_variances))
+    path: tuple[str | int, ...] | None = ("end_pose", ("var_xy", "var_phi")[missing[0]]) if missing.size else None
+    if path is None and np.isnan(feature_variances).any():
+        path = ("features", int(np.argmax(np.isnan(feature_variances))), "var")
+    if path is not None:
+        raise document.error(path, "missing; expected a positive finite number (it may be left out only when the "
+                                   "map gives its full covariance)")
 
 
 def dump(maps: Sequence[LocalMap]) -> str:

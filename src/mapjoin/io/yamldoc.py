@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import InputError, shown
 from ..maps import first_duplicate
+from .fields import typo_message, typo_of
 
 if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written
     import yaml
@@ -126,6 +127,9 @@ class Document:
 
     def __init__(self, data: Any, node: yaml.Node | None, source: str, first_line: int = 0):
         self.data, self.node, self.source, self.first_line = data, node, source, first_line
+        #: None: an unknown key is an error; a list: unknown keys not close to a known one are ignored, their
+        #: paths (``features[].stamp``) collected here (a near miss of a known key is still an error)
+        self.ignored: list[str] | None = None
 
     def error(self, path: _FieldPath, message: str) -> InputError:
         """The error of the field at ``path``, naming it and its line (:class:`NeedsLines` if it has none)."""
@@ -151,10 +155,15 @@ class Document:
         return value
 
     def only(self, path: _FieldPath, allowed: Sequence[str]) -> None:
-        """Reject keys of the mapping at ``path`` other than ``allowed`` (catches typos)."""
-        unknown = next((key for key in self._value(path) if key not in allowed), None)
-        if unknown is not None:
-            raise self.error(path, f"unknown field {shown(unknown)}; expected only {', '.join(allowed)}")
+        """Reject keys of the mapping at ``path`` other than ``allowed`` (catches typos); with :attr:`ignored`,
+        collect those that are no near miss of an allowed one instead."""
+        for unknown in (key for key in self._value(path) if key not in allowed):
+            if self.ignored is None:
+                raise self.error(path, f"unknown field {shown(unknown)}; expected only {', '.join(allowed)}")
+            close = typo_of(unknown, allowed)
+            if close is not None:
+                raise self.error(path, typo_message("field", unknown, close, allowed))
+            self.ignored.append(re.sub(r"\[[0-9]+\]", "[]", _render((*path, str(unknown)))))
 
     def matrix(self, path: _FieldPath, shape: tuple[int, int], *, optional: bool = False) -> np.ndarray | None:
         """The list of number lists at ``path`` as an array of ``shape``."""
@@ -181,25 +190,29 @@ class Document:
         return values
 
     def record(self, path: _FieldPath, fields: Mapping[str, str],
-               matrices: Mapping[str, tuple[int, int]] | None = None) -> dict[str, Any]:
-        """The mapping at ``path`` with exactly ``fields`` (name -> kind) and optional ``matrices``."""
+               matrices: Mapping[str, tuple[int, int]] | None = None, optional: Sequence[str] = ()) -> dict[str, Any]:
+        """The mapping at ``path`` with exactly ``fields`` (name -> kind; those in ``optional`` may be missing:
+        None) and optional ``matrices``."""
         matrices = matrices or {}
         self.get(path, "mapping")
         self.only(path, (*fields, *matrices))
-        values = {key: self.get((*path, key), kind) for key, kind in fields.items()}
+        values = {key: self.get((*path, key), kind, optional=key in optional) for key, kind in fields.items()}
         values.update({key: self.matrix((*path, key), shape, optional=True) for key, shape in matrices.items()})
         return values
 
     def records(self, path: _FieldPath, fields: Mapping[str, str],
-                matrices: Mapping[str, tuple[int, int]] | None = None) -> dict[str, np.ndarray | None]:
-        """The list of records at ``path`` as columns; ids must be unique, matrices on all records or none."""
+                matrices: Mapping[str, tuple[int, int]] | None = None,
+                optional: Sequence[str] = ()) -> dict[str, np.ndarray | None]:
+        """The list of records at ``path`` as columns; ids must be unique, matrices on all records or none; the
+        number ``fields`` in ``optional`` may be missing (NaN)."""
         matrices = matrices or {}
         if self.node is None and isinstance(parsed := self._value(path), Columns):
             return self._checked_columns(path, parsed, fields, matrices)
         count = len(self.get(path, "list"))
-        items = [self.record((*path, index), fields, matrices) for index in range(count)]
+        items = [self.record((*path, index), fields, matrices, optional) for index in range(count)]
         columns: dict[str, np.ndarray | None] = {
-            key: np.array([item[key] for item in items], dtype=np.int64 if kind == "id" else float)
+            key: np.array([math.nan if item[key] is None else item[key] for item in items],
+                          dtype=np.int64 if kind == "id" else float)
             for key, kind in fields.items()}
         for key, shape in matrices.items():
             present = [item[key] is not None for item in items]
@@ -232,6 +245,9 @@ class Document:
     def header(self, kind: str, keys: Sequence[str]) -> None:
         """Check the document is a mapping of ``format: kind``, version 1, with no keys beyond ``keys``."""
         self.get((), "mapping")
+        for key, value in (("format", kind), ("version", 1)):
+            if key not in self.data:
+                raise self.error((), f"missing field {shown(key)} (expected {shown(value)})")
         found = self.get(("format",), "text")
         if found != kind:
             raise self.error(("format",), f"expected {kind}, got {shown(found)}")
