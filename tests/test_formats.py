@@ -288,7 +288,8 @@ def test_global_map_columns(fmt, with_covariances):
     text = written(mapio.write_global_map, global_map, fmt)
     if fmt == "csv":
         header = text.splitlines()[0].split(",")
-        assert header[:7] == ["kind", "id", "x", "y", "phi", "var_xy", "var_phi"]
+        spherical = ["var_xy", "var_phi"] if with_covariances else ["weight_xy", "weight_phi"]
+        assert header[:7] == ["kind", "id", "x", "y", "phi", *spherical]
         assert len(header) == (13 if with_covariances else 7)
         assert text.splitlines()[1].startswith("feature,12,3.0,4.0,,0.02,")
     else:
@@ -296,6 +297,8 @@ def test_global_map_columns(fmt, with_covariances):
         assert document["format"] == "mapjoin/global-map" and document["version"] == 1
         assert document["provenance"]["maps"] == ["a.mat", "b.mat"]
         assert ("cov" in document["poses"][1]) == with_covariances
+        assert set(document["poses"][1]) >= ({"var_xy", "var_phi"} if with_covariances else {"weight_xy", "weight_phi"})
+        assert ("var" if with_covariances else "weight") in document["features"][0]
     assert_same(mapio.read_global_map(io.StringIO(text)), global_map, skip=("name", "provenance"))
 
 
