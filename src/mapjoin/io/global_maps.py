@@ -126,15 +126,15 @@ def dump_global_yaml(global_map: GlobalMap) -> str:
 def read_global_csv(text: str, source: str) -> GlobalMap:
     """A global map from CSV (weight_* columns, or var_* and cov_* columns, or older var_* alone)."""
     table = csvtable.Table(text, source, [_GLOBAL_WEIGHT_CSV_HEADER, _GLOBAL_COV_CSV_HEADER, _GLOBAL_CSV_HEADER])
-    xy, phi = table.header[5:7]
+    xy_column, phi_column = table.header[5:7]     # var_* or weight_*
     features, poses = table.kinds()
-    table.empty(("phi", phi), features, "a feature has no orientation")
+    table.empty(("phi", phi_column), features, "a feature has no orientation")
     with_covariances = table.header == _GLOBAL_COV_CSV_HEADER
     return GlobalMap(
         table.ids(features), table.values(("x", "y"), features, "number"),
-        table.values((xy,), features, "variance")[:, 0],
+        table.values((xy_column,), features, "variance")[:, 0],
         table.ids(poses), table.values(("x", "y", "phi"), poses, "number"),
-        table.values((xy, phi), poses, "variance"), Provenance(),
+        table.values((xy_column, phi_column), poses, "variance"), Provenance(),
         table.covariances(features, 2, "feature") if with_covariances else None,
         table.covariances(poses, 3, "pose") if with_covariances else None, name=source)
 
