@@ -143,3 +143,25 @@ def test_plot_and_evaluate_label_weights(tmp_path):
     mapio.write_truth(run_.truth, str(truth))
     result = run("evaluate", str(path), "--truth", str(truth))
     assert result.exit_code == 0 and "against the map's spherical weights (not covariances" in result.output
+    assert "verdict: none: weights are not covariances" in result.output
+
+
+@pytest.mark.parametrize("seed", [0, 4])
+def test_marginals_linearised_at_the_fast_join_equal_the_dense_inverse(seed):
+    """The benchmark's "linearised" column (benchmarks/uncertainty.py): the selected inversion of
+    the factor of J^T J at a point that is not the optimum (the fast join) gives the diagonal
+    blocks of the dense inverse there."""
+    run_ = simulate(8, seed=seed)
+    fast = join_sequential(run_.maps).global_map
+    problem = ExactProblem(run_.maps)
+    x = problem.pack(fast)
+    data, _, _ = problem.linearise(x)
+    poses, features = problem.marginals(problem.factorise(data))
+    J = problem.jacobian(x).toarray()
+    Z = np.linalg.inv(J.T @ J)
+    N = problem.n_maps
+    for k in range(N):
+        np.testing.assert_allclose(poses[k], Z[3 * k:3 * k + 3, 3 * k:3 * k + 3], rtol=1e-7, atol=1e-12)
+    for j in range(problem.n_features):
+        at = 3 * N + 2 * j
+        np.testing.assert_allclose(features[j], Z[at:at + 2, at:at + 2], rtol=1e-7, atol=1e-12)

@@ -104,5 +104,7 @@ def _human(global_map: GlobalMap, truth: GroundTruth, result: Evaluation, covari
         lines.append(f"  {label:<10}{_number(value):>12}  expected {dof}, bounds {interval:<20}"
                      f"{_verdict(value, bounds)}")
     verdict = {None: "not available", True: "consistent", False: "inconsistent"}[result.consistent]
+    if covariances == WEIGHTS_SOURCE:
+        verdict = f"none: weights are not covariances ({verdict} if they were)"
     lines.append(f"verdict: {verdict}")
     return lines
