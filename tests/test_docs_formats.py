@@ -93,7 +93,7 @@ def test_joining_the_example_recovers_the_geometry_it_was_made_from(tmp_path, na
 
 def test_the_example_joins_through_the_command_line(tmp_path):
     result = run("-q", "join", str(_write(tmp_path, "two-maps.yaml")))
-    assert result.exit_code == 0 and result.output.startswith("kind,id,x,y,phi,var_xy,var_phi\n")
+    assert result.exit_code == 0 and result.output.startswith("kind,id,x,y,phi,weight_xy,weight_phi\n")
 
 
 def test_the_covariance_wins_over_the_stored_variances(tmp_path):

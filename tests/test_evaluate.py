@@ -427,7 +427,7 @@ def test_evaluate_command_with_a_simulate_truth(simulated, truth):
     assert result.exit_code == 0
     expected = evaluate(mapio.read_global_map(global_path), mapio.read_truth(simulated / "truth.yaml"))
     assert "alignment: none: map and truth both in the frame of pose 0" in result.output
-    assert f"{expected.feature_rms:.6g}" in result.output and "spherical variances" in result.output
+    assert f"{expected.feature_rms:.6g}" in result.output and "spherical weights (not covariances" in result.output
     assert "bounds [" in result.output and "verdict: " in result.output
 
 
@@ -439,7 +439,7 @@ def test_evaluate_command_json_on_a_real_simulation_folder(data_dir, tmp_path):
     assert document["features"] == 28 and document["poses"] == 5
     assert document["alignment"].startswith("rigid")
     assert len(document["nees_bounds_features"]) == 2 and isinstance(document["consistent"], bool)
-    assert document["nees_covariances"] == "spherical variances"
+    assert document["nees_covariances"].startswith("spherical weights (not covariances")
 
 
 def test_evaluate_command_errors_are_one_line(simulated, data_dir):

@@ -217,6 +217,7 @@ def flipped(data: bytes, offset: int, value: int) -> bytes:
 @settings(deadline=None)
 @given(local_maps(), st.sampled_from(["yaml", "csv"]))
 def test_single_local_map_round_trips_through_a_stream(local_map, fmt):
+    assume(fmt != "csv" or local_map.name == local_map.name.strip(" \t"))  # refused: see below
     [back] = mapio.read_map_file(io.StringIO(written(mapio.write_maps, [local_map], fmt)), fmt)
     assert back.name == "<stream>"
     assert_same(back, local_map, skip=("name",))
@@ -294,7 +295,8 @@ def test_global_map_columns(fmt, with_covariances):
     text = written(mapio.write_global_map, global_map, fmt)
     if fmt == "csv":
         header = text.splitlines()[0].split(",")
-        assert header[:7] == ["kind", "id", "x", "y", "phi", "var_xy", "var_phi"]
+        spherical = ["var_xy", "var_phi"] if with_covariances else ["weight_xy", "weight_phi"]
+        assert header[:7] == ["kind", "id", "x", "y", "phi", *spherical]
         assert len(header) == (13 if with_covariances else 7)
         assert text.splitlines()[1].startswith("feature,12,3.0,4.0,,0.02,")
     else:
@@ -302,6 +304,8 @@ def test_global_map_columns(fmt, with_covariances):
         assert document["format"] == "mapjoin/global-map" and document["version"] == 1
         assert document["provenance"]["maps"] == ["a.mat", "b.mat"]
         assert ("cov" in document["poses"][1]) == with_covariances
+        assert set(document["poses"][1]) >= ({"var_xy", "var_phi"} if with_covariances else {"weight_xy", "weight_phi"})
+        assert ("var" if with_covariances else "weight") in document["features"][0]
     assert_same(mapio.read_global_map(io.StringIO(text)), global_map, skip=("name", "provenance"))
 
 

@@ -96,8 +96,8 @@ def test_bad_json_global_map_names_file_line_and_field(tmp_path, data_dir):
     assert run("join", str(data_dir / "535_data_5_local_maps"), "-o", str(tmp_path / "g.json")).exit_code == 0
     text = (tmp_path / "g.json").read_text()
     bad = tmp_path / "bad.json"
-    bad.write_text(text.replace('"var": ', '"var": -', 1))
-    with pytest.raises(mapjoin.InputError, match=r"bad\.json, line \d+, field features\[0\]\.var: expected a positive"):
+    bad.write_text(text.replace('"weight": ', '"weight": -', 1))
+    with pytest.raises(mapjoin.InputError, match=r"bad\.json, line \d+, field features\[0\]\.weight: expected a positive"):
         mapjoin.read_global_map(str(bad))
 
 

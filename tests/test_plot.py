@@ -106,7 +106,8 @@ def test_map_figure_draws_every_map_truth_and_the_covariances_it_has(joined, sim
                                                                                            fast.feature_ids))
     assert len(artists(figure, "truth-poses")[0].get_xydata()) == len(truth.pose_ids)
     legend = " ".join(t.get_text() for t in figure.legends[0].get_texts())
-    assert "95% circles from spherical variances" in legend and "95% ellipses from full covariances" in legend
+    assert "circles at the 95% scale of the spherical weights (not uncertainty regions)" in legend
+    assert "95% ellipses from full covariances" in legend
     # the exact map's ellipses: the axes and direction of each 2x2 block in closed form (not
     # eigh), scaled to the 95% chi-square quantile for 2 degrees of freedom
     ellipses = artists(figure, "ellipses-features")[1]

@@ -13,8 +13,11 @@ another frame; the statement in ``Evaluation.alignment`` says which was done.
 
 NEES (normalised estimation error squared) of an entity with error ``e`` and reported
 covariance ``P`` is ``e^T P^-1 e``: ``P`` is the map's full marginal block (2x2 per
-feature, 3x3 per pose) when it has them, else the spherical variances (``sigma^2 I2``;
-``diag(sigma_xy^2, sigma_xy^2, p_phi)``). The average NEES over N entities of d degrees
+feature, 3x3 per pose) when it has them, else its spherical numbers (``sigma^2 I2``;
+``diag(sigma_xy^2, sigma_xy^2, p_phi)``). A fast join's spherical numbers are the
+one-step method's weights, not covariances (:attr:`GlobalMap.has_covariances`): the NEES
+against them is computed the same way but is no consistency test (on the simulations it
+is 10^3-10^4, docs/method.md#uncertainty-columns); the CLI labels it so. The average NEES over N entities of d degrees
 of freedom is, for a consistent estimator with independent errors, distributed as
 ``chi2(d N) / N``; its two-sided 95% bounds are ``chi2.ppf(0.025, dN)/N`` and
 ``chi2.ppf(0.975, dN)/N``. Errors of one map are correlated (every entity shares the

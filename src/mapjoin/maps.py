@@ -434,7 +434,8 @@ class GlobalMap:
     Pose ``k`` is the end pose of the k-th joined local map. Variances are spherical
     (``sigma^2`` per feature; ``(sigma_xy^2, p_phi)`` per pose). ``feature_covariances``
     (n x 2 x 2) and ``pose_covariances`` (p x 3 x 3) are full marginal blocks when a
-    method computed them (exact refinement), else None.
+    method computed them (exact refinement), else None. Without them the spherical
+    numbers are the fast join's weights, not covariances (:attr:`has_covariances`).
     """
 
     feature_ids: np.ndarray
@@ -469,6 +470,13 @@ class GlobalMap:
         if self.pose_covariances is not None:
             set_("pose_covariances", _checked(self.pose_covariances, "pose_covariances", source, (p, 3, 3),
                                           ranges=GLOBAL_COVARIANCE_ENTRY))
+
+    @property
+    def has_covariances(self) -> bool:
+        """Whether the map carries marginal covariance blocks, so that its spherical numbers are
+        their summaries (written ``var*``) rather than the one-step method's propagated weights,
+        which are not covariances (written ``weight*``; docs/method.md#uncertainty-columns)."""
+        return self.feature_covariances is not None or self.pose_covariances is not None
 
 
 @dataclass(frozen=True)

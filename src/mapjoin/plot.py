@@ -55,6 +55,7 @@ INSTALL_HINT = install_hint("plot")
 #: probability inside the drawn uncertainty ellipses; for 2 degrees of freedom the
 #: chi-square quantile is -2 ln(1 - p) in closed form (5.991 for 95%)
 ELLIPSE_PROBABILITY = 0.95
+_WEIGHTS = "spherical weights"  # what a map without covariances holds (GlobalMap.has_covariances)
 DPI = 150
 #: |C_phi| below which one minimum is certain for every a (docs/method.md#the-arcsin-bound): atan(pi), 72.3 degrees
 ONE_MINIMUM_C_PHI = math.atan(math.pi)
@@ -111,7 +112,9 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
     Each trajectory starts at the origin, the first map's start pose. The truth is drawn for
     the features some map holds and for every pose. With ``ellipses`` the 95% uncertainty
     region of every feature and pose position is drawn: an ellipse from the full marginal
-    covariance when the map has one, else a circle from its spherical variance.
+    covariance when the map has one; else a circle of the same scale from its spherical
+    weight, labelled as such: a fast join's weights are not covariances, so such a circle
+    is no 95% region.
     """
     mpl = _matplotlib()
     figure = mpl.figure.Figure(layout="constrained")
@@ -178,7 +181,8 @@ def chained_local_maps(maps: Sequence[LocalMap], name: str) -> GlobalMap:
 
 
 def _draw_ellipses(ax: Axes, global_map: GlobalMap, colour: str) -> str:
-    """Draw the 95% regions of features and poses; the legend text saying what they are drawn from."""
+    """Draw the 95% regions of features and poses (circles of that scale from weights); the legend
+    text saying what they are drawn from."""
     mpl = _matplotlib()
     scale = -2.0 * math.log(1.0 - ELLIPSE_PROBABILITY)
     sources = []
@@ -195,10 +199,11 @@ def _draw_ellipses(ax: Axes, global_map: GlobalMap, colour: str) -> str:
             facecolors="none", edgecolors=colour, linewidths=0.6, alpha=0.8, gid=f"ellipses-{kind}"))
         reach = np.sqrt(scale * np.diagonal(blocks, axis1=1, axis2=2))  # half the bounding box of each
         ax.update_datalim(np.vstack([positions - reach, positions + reach]))
-        sources.append("full covariances" if full is not None else "spherical variances")
+        sources.append("full covariances" if full is not None else _WEIGHTS)
     if sources[0] == sources[1]:
-        shape = "ellipses" if sources[0] == "full covariances" else "circles"
-        return f"\n95% {shape} from {sources[0]}"
+        if sources[0] == _WEIGHTS:
+            return f"\ncircles at the 95% scale of the {_WEIGHTS} (not uncertainty regions)"
+        return f"\n95% ellipses from {sources[0]}"
     return f"\n95% regions: features from {sources[0]}, poses from {sources[1]}"
 
 

@@ -29,8 +29,10 @@ def evaluate(map_path: str, truth_path: str, align: str, as_json: bool) -> None:
 
     Features and poses are matched by id (pose k = end pose of local map k). Prints the
     RMS and maximum position and orientation errors, and the average NEES of features
-    and poses against the map's own covariances (full blocks when the map has them,
-    else its spherical variances) with two-sided 95% chi-square bounds and a verdict.
+    and poses against the map's own covariances (the full blocks of an exact join) with
+    two-sided 95% chi-square bounds and a verdict. A fast join carries spherical weights,
+    not covariances: its NEES is printed against them, labelled so, and is no consistency
+    test (join --refine gives covariances).
     For an I-SLSJF simulation folder, pose k is step round(k * steps / maps) of
     store_robotTrue.mat. MAP may be - for stdin.
 
@@ -55,14 +57,18 @@ def evaluate(map_path: str, truth_path: str, align: str, as_json: bool) -> None:
     click.echo("\n".join(_human(global_map, truth, result, covariances)))
 
 
+#: what a map without covariance blocks is evaluated against: the fast join's weights
+WEIGHTS_SOURCE = "spherical weights (not covariances; join --refine gives covariances)"
+
+
 def _covariance_source(global_map: GlobalMap) -> str:
     full = [kind for kind, blocks in (("features", global_map.feature_covariances),
                                       ("poses", global_map.pose_covariances)) if blocks is not None]
     if len(full) == 2:
         return "full marginal blocks"
     if full:
-        return f"full marginal blocks for {full[0]}, spherical variances for the rest"
-    return "spherical variances"
+        return f"full marginal blocks for {full[0]}, spherical weights for the rest"
+    return WEIGHTS_SOURCE
 
 
 def _number(value: float | None) -> str:
@@ -99,5 +105,7 @@ def _human(global_map: GlobalMap, truth: GroundTruth, result: Evaluation, covari
         lines.append(f"  {label:<10}{_number(value):>12}  expected {dof}, bounds {interval:<20}"
                      f"{_verdict(value, bounds)}")
     verdict = {None: "not available", True: "consistent", False: "inconsistent"}[result.consistent]
+    if covariances == WEIGHTS_SOURCE:
+        verdict = f"none: weights are not covariances ({verdict} if they were)"
     lines.append(f"verdict: {verdict}")
     return lines

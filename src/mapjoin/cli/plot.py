@@ -30,7 +30,8 @@ figure_option = click.option("-o", "--output", required=True, metavar="FILE",
                    "I-SLSJF simulation folder (store_robotTrue.mat, store_beaconsTrue.mat).")
 @click.option("--ellipses", is_flag=True,
               help="Draw the 95% uncertainty region of every feature and pose: ellipses from full "
-                   "covariances (refine), else circles from the spherical variances.")
+                   "covariances (refine, join --refine); a fast join has weights, not covariances: circles of "
+                   "that scale from its spherical weights, labelled so.")
 @click.option("--label", "labels", multiple=True, metavar="TEXT",
               help="Legend label of each MAP, in order (repeat; default: the file names).")
 @common.json_option

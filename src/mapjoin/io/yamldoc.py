@@ -200,6 +200,17 @@ class Document:
         values.update({key: self.matrix((*path, key), shape, optional=True) for key, shape in matrices.items()})
         return values
 
+    def first_record_keys(self, path: _FieldPath) -> tuple[str, ...]:
+        """The keys of the first record of the list at ``path`` (none when it is absent, empty or
+        not a list of mappings): for formats whose field names tell a record's meaning."""
+        parent = self._value(path[:-1])
+        value = parent.get(path[-1]) if isinstance(parent, dict) else None
+        if isinstance(value, Columns):
+            return tuple(value)
+        if isinstance(value, list) and value and isinstance(value[0], dict):
+            return tuple(str(key) for key in value[0])
+        return ()
+
     def records(self, path: _FieldPath, fields: Mapping[str, str],
                 matrices: Mapping[str, tuple[int, int]] | None = None,
                 optional: Sequence[str] = ()) -> dict[str, np.ndarray | None]:
