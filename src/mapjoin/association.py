@@ -1,0 +1,424 @@
+"""Data association: which features of an incoming map are features of the map it is joined onto.
+
+Maps whose feature ids are local to each map (a front end's submaps) cannot be joined by id.
+:func:`join_associated` joins them as :func:`mapjoin.joining.join` does, deciding before each
+join (sequential and tree) which features of the right piece are features of the left one
+(docs/method.md#data-association):
+
+1. **Prediction.** Right's features ``z`` are predicted in left's frame through left's end pose
+   ``(o, phi_o)``, the join's link: ``x = o + R(phi_o) z``. An error ``(dt, dphi)`` of the link
+   moves the prediction by ``dt + R'(phi_o) z dphi``; with the spherical variances of the link
+   ``(var_t, p_phi)``, of left's feature ``var0`` and of right's ``var1``, a pair's innovation
+   ``r = f - x`` has covariance ``S = a I + p_phi u u^T`` with ``a = var0 + var1 + var_t`` and
+   ``u = R'(phi_o) z`` (the heading error's lever is perpendicular to ``z``, so ``S`` is not
+   spherical).
+2. **Gate.** A pair is a candidate when its Mahalanobis distance ``r^T S^-1 r`` is within the
+   ``gate`` quantile of a chi-square with 2 degrees of freedom (default 0.999: a true pair is
+   refused once in a thousand).
+3. **Ambiguity, nearest neighbour.** A right feature with two or more candidates, or whose
+   candidate is also another right feature's candidate, is *ambiguous* and left new: never guessed.
+   Every other gated right feature has one candidate, its nearest neighbour.
+4. **Joint compatibility.** The pairs share the link's error, so they are tested together: the
+   joint Mahalanobis distance of all their innovations (covariance ``diag(a_j) + H P_link H^T``,
+   ``H_j = [I, u_j]``, evaluated in 3-D by the Woodbury identity) must be within the ``gate``
+   quantile of a chi-square with ``2k`` degrees of freedom. When it is not, the largest jointly
+   compatible subset is kept: by exhaustive search over every subset at once (as arrays) when at
+   most :data:`EXHAUSTIVE_PAIRS` pairs remain (the optimum branch and bound would find), after
+   removing, one at a time, the pair with the largest residual once the link is corrected
+   while more remain. Pairs removed are *rejected* and their right features left new.
+
+The accepted pairs are the join's common features; every other right feature becomes a new
+feature of the global map. The global ids are numbered from 0 in order of first sighting:
+by map, then by local id.
+
+:func:`local_ids` turns a map set with global ids into one with ids local to each map and
+returns the true correspondence (tests, benchmarks, ``simulate --local-ids``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .covariance import DEFAULT_COVARIANCE, CovarianceMode
+from .joining import JoinRecord, Strategy, join
+from .maps import GlobalMap, LocalMap, locate
+
+if TYPE_CHECKING:
+    from .joining import _Pieces
+    from .onestep import Solver
+
+__all__ = ["DEFAULT_GATE", "EXHAUSTIVE_PAIRS", "AssociatedJoinRecord", "AssociatedJoin", "FeatureAssociation",
+           "Matches", "join_associated", "local_ids", "match_features"]
+
+#: default chi-square level of the individual gate and of the joint compatibility test
+DEFAULT_GATE = 0.999
+#: the joint test searches every subset of at most this many pairs (2^10 = 1024 subsets, as arrays)
+EXHAUSTIVE_PAIRS = 10
+#: candidate pairs are found by brute force up to this many (left x right) pairs, else by a k-d tree
+BRUTE_FORCE_PAIRS = 1 << 16
+MIN_DOF = 4
+
+
+@dataclass(frozen=True)
+class Matches:
+    """One join's association: ``left[i]`` and ``right[i]`` are rows of the same feature; ``ambiguous``
+    right features had two candidates (or shared theirs), ``rejected`` ones failed the joint test."""
+
+    left: np.ndarray
+    right: np.ndarray
+    ambiguous: int
+    rejected: int
+
+
+@dataclass(frozen=True)
+class AssociatedJoinRecord(JoinRecord):
+    """A join's report row when associating: ``common`` features were matched, ``new`` were not, of which
+    ``ambiguous`` had two candidates in the gate and ``rejected`` failed the joint compatibility test."""
+
+    ambiguous: int = 0
+    rejected: int = 0
+
+
+@dataclass(frozen=True)
+class FeatureAssociation:
+    """One row of ``join --associations``: feature ``local_id`` of input map ``map`` (1-based) is ``global_id``."""
+
+    map: int
+    local_id: int
+    global_id: int
+
+
+@dataclass(frozen=True)
+class AssociatedJoin:
+    """A join with data association: the result (global ids numbered by first sighting, report rows
+    :class:`AssociatedJoinRecord`), each input feature's global id (``maps[k]``'s ``feature_ids[j]`` is
+    ``global_ids[k][j]``)."""
+
+    global_map: GlobalMap
+    report: tuple[AssociatedJoinRecord, ...]
+    global_ids: tuple[np.ndarray, ...]
+
+    def relabel(self, maps: Sequence[LocalMap]) -> tuple[LocalMap, ...]:
+        """The input ``maps`` with their features' global ids: a known-id join of them is the same join."""
+        return tuple(dataclasses.replace(m, feature_ids=ids) for m, ids in zip(maps, self.global_ids))
+
+    def rows(self, maps: Sequence[LocalMap]) -> list[FeatureAssociation]:
+        """The ``--associations`` table of the input ``maps``: one row per feature, by map then local id."""
+        return [FeatureAssociation(k + 1, int(local), int(found)) for k, m in enumerate(maps)
+                for local, found in sorted(zip(m.feature_ids.tolist(), self.global_ids[k].tolist()))]
+
+
+def chi2_quantile(level: float, dof: np.ndarray | int) -> np.ndarray:
+    """The ``level`` quantile of a chi-square with an even number ``dof = 2k`` of degrees of freedom.
+
+    For even ``dof`` the survival function is closed-form, ``P(X > x) = exp(-x/2) sum_{i<k} (x/2)^i / i!``
+    (a Poisson tail); it decreases in ``x``, so bisection on it (to float precision, as arrays) gives the
+    quantile without importing scipy. For 2 dof it is ``-2 ln(1 - level)``.
+    """
+    k = np.atleast_1d(np.asarray(dof, dtype=np.int64)) // 2
+    low, high = np.zeros(len(k)), np.full(len(k), 2.0 * k.max(initial=1) + 200.0)
+    terms = np.arange(int(k.max(initial=1)))
+    log_factorial = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1, len(terms))))])
+    for _ in range(64):
+        middle = (low + high) / 2
+        half = middle[:, None] / 2
+        with np.errstate(divide="ignore"):
+            log_terms = terms * np.log(half) - log_factorial - half
+        log_terms[terms[None, :] >= k[:, None]] = -np.inf
+        survival = np.exp(log_terms).sum(axis=1)
+        above = survival > 1.0 - level  # the quantile is above middle
+        low, high = np.where(above, middle, low), np.where(above, high, middle)
+    result = (low + high) / 2
+    return result if np.ndim(dof) else result[0]
+
+
+_QUANTILES: dict[float, np.ndarray] = {}  # level -> chi2_quantile(level, 2k) for k = 0, 1, 2, ...
+
+
+def _threshold(level: float, pairs: np.ndarray | int) -> np.ndarray:
+    """``chi2_quantile(level, 2 * pairs)`` from a table grown by doubling (the joint test asks it per join)."""
+    table = _QUANTILES.get(level, np.zeros(1))
+    largest = int(np.max(pairs, initial=0))
+    if largest >= len(table):
+        table = np.concatenate([[0.0], chi2_quantile(level, 2 * np.arange(1, 2 * largest + 2))])
+        _QUANTILES[level] = table
+    return table[pairs]
+
+
+def _check_gate(gate: float) -> None:
+    if not 0.0 < gate < 1.0:
+        raise ValueError(f"gate must be a chi-square level in (0, 1), got {gate!r}")
+
+
+def _candidates(left: np.ndarray, predicted: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (left row, right row) whose Euclidean distance is at most ``radius[right]`` (complex points):
+    all pairs at once when few, else from a k-d tree of left (scipy.spatial, imported then)."""
+    n, m = len(left), len(predicted)
+    if n * m <= BRUTE_FORCE_PAIRS:
+        near = np.abs(left[:, None] - predicted[None, :]) <= radius[None, :]
+        return np.nonzero(near)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.column_stack([left.real, left.imag]))
+    found = tree.query_ball_point(np.column_stack([predicted.real, predicted.imag]), radius)
+    counts = np.fromiter(map(len, found), np.intp, m)
+    return (np.concatenate(found).astype(np.intp) if counts.sum() else np.zeros(0, np.intp),
+            np.repeat(np.arange(m), counts))
+
+
+def _joint_terms(r: np.ndarray, a: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pair's share of the joint test: ``|r|^2 / a``, ``H^T r / a`` (k x 3) and ``H^T H / a`` (k x 9),
+    ``H = [I, u]`` (complex ``r``, ``u``)."""
+    ur = (np.conj(u) * r).real
+    g = np.column_stack([r.real, r.imag, ur]) / a[:, None]
+    ux, uy = u.real, u.imag
+    h = np.column_stack([np.ones_like(ux), np.zeros_like(ux), ux, np.zeros_like(ux), np.ones_like(ux), uy,
+                         ux, uy, ux * ux + uy * uy]) / a[:, None]
+    return (r.real**2 + r.imag**2) / a, g, h
+
+
+def _joint_distances(masks: np.ndarray, terms, link_information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The joint Mahalanobis distance of each subset of pairs (``masks``, s x k, 0/1) and the link correction
+    that explains it best: ``D^2 = sum |r|^2/a - g^T M^-1 g`` with ``M = P_link^-1 + sum H^T H / a``
+    (Woodbury: the pairs' covariance ``diag(a) + H P_link H^T`` inverted through the 3-D link)."""
+    c, g, h = terms
+    big_g = masks @ g
+    big_m = (masks @ h).reshape(-1, 3, 3) + link_information
+    correction = np.linalg.solve(big_m, big_g[..., None])[..., 0]
+    return masks @ c - np.einsum("si,si->s", big_g, correction), correction
+
+
+def _jointly_compatible(r: np.ndarray, a: np.ndarray, u: np.ndarray, prior: np.ndarray, gate: float) -> np.ndarray:
+    """The pairs kept by the joint compatibility test (a boolean mask over the k pairs): all of them when
+    compatible, else the largest compatible subset (ties: the smallest joint distance)."""
+    k = len(r)
+    keep = np.ones(k, dtype=bool)
+    if not k:
+        return keep
+    link_information = np.linalg.inv(prior)
+    terms = _joint_terms(r, a, u)
+    c, g, h = terms
+    while True:  # remove the worst pair while too many remain for the exhaustive search
+        distance, correction = _joint_distances(keep[None].astype(float), terms, link_information)
+        if distance[0] <= _threshold(gate, int(keep.sum())):
+            return keep
+        if keep.sum() <= EXHAUSTIVE_PAIRS:
+            break
+        ux, uy = u.real, u.imag
+        dx, dy, dphi = correction[0]
+        residual = np.abs(r - (dx + 1j * dy) - (ux + 1j * uy) * dphi) ** 2 / a
+        keep[np.flatnonzero(keep)[np.argmax(residual[keep])]] = False
+    rows = np.flatnonzero(keep)
+    count = len(rows)
+    masks = ((np.arange(1, 2**count)[:, None] >> np.arange(count)) & 1).astype(float)  # every non-empty subset
+    sub = (c[rows], g[rows], h[rows])
+    distance, _ = _joint_distances(masks, sub, link_information)
+    sizes = masks.sum(axis=1)
+    compatible = distance <= _threshold(gate, sizes.astype(np.intp))
+    keep[:] = False
+    if compatible.any():
+        best = np.lexsort((distance, -sizes, ~compatible))[0]
+        keep[rows[masks[best] > 0]] = True
+    return keep
+
+
+def _link_estimate(r: np.ndarray, a: np.ndarray, u: np.ndarray, prior: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The link's correction ``(dx, dy, dphi)`` that the pairs explain best, and its posterior covariance
+    ``M^-1`` (``M = P_link^-1 + sum H^T H / a``)."""
+    _, g, h = _joint_terms(r, a, u)
+    information = np.linalg.inv(prior) + h.sum(axis=0).reshape(3, 3)
+    posterior = np.linalg.inv(information)
+    return posterior @ g.sum(axis=0), posterior
+
+
+def _gate(left: np.ndarray, left_variances: np.ndarray, predicted: np.ndarray, lever: np.ndarray,
+          right_variances: np.ndarray, link: np.ndarray, g2: float
+          ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The unambiguous candidate pairs (left rows, right rows) and the number of ambiguous right features.
+
+    A pair's innovation ``r = f - x`` has covariance ``S = (var0 + var1) I + H link H^T`` with ``H = [I, u]``
+    (``link``: the 3 x 3 covariance of the link's error); it is a candidate when ``r^T S^-1 r <= g2``."""
+    ux, uy = lever.real, lever.imag
+    # H link H^T = link_tt + u link_phi,t + link_t,phi u^T + link_phiphi u u^T, per right feature
+    sxx = link[0, 0] + 2 * ux * link[0, 2] + link[2, 2] * ux * ux
+    syy = link[1, 1] + 2 * uy * link[1, 2] + link[2, 2] * uy * uy
+    sxy = link[0, 1] + ux * link[1, 2] + uy * link[0, 2] + link[2, 2] * ux * uy
+    largest = float(left_variances.max(initial=0.0))
+    radius = np.sqrt(g2 * (2 * largest + 2 * right_variances + sxx + syy))  # >= sqrt(g2 * largest eigenvalue)
+    i, j = _candidates(left, predicted, radius)
+    r = left[i] - predicted[j]
+    base = left_variances[i] + right_variances[j]
+    a, b, c = base + sxx[j], sxy[j], base + syy[j]
+    d2 = (c * r.real**2 - 2 * b * r.real * r.imag + a * r.imag**2) / (a * c - b * b)
+    gated = d2 <= g2
+    i, j = i[gated], j[gated]
+    per_right = np.bincount(j, minlength=len(predicted))
+    per_left = np.bincount(i, minlength=len(left))
+    single = (per_right[j] == 1) & (per_left[i] == 1)
+    return i[single], j[single], int((per_right > 0).sum() - single.sum())
+
+
+def match_features(left: np.ndarray, left_variances: np.ndarray, link_xy: complex, link_phi: float,
+                   link_variances: tuple[float, float], right: np.ndarray, right_variances: np.ndarray,
+                   gate: float = DEFAULT_GATE) -> Matches:
+    """Associate right's features with left's (complex points, spherical variances; see the module
+    docstring): predict through the link ``(link_xy, link_phi)`` with variances ``(var_t, p_phi)``, gate,
+    leave ambiguous features new, test the rest jointly; then once more with the link corrected by the
+    pairs found (its posterior covariance in the gate), which finds the pairs the link's error had hidden."""
+    _check_gate(gate)
+    turn = complex(math.cos(link_phi), math.sin(link_phi))
+    predicted = link_xy + turn * right
+    lever = 1j * turn * right  # R'(phi_o) z
+    var_t, p_phi = link_variances
+    prior = np.diag([var_t, var_t, p_phi])
+    g2 = float(_threshold(gate, 1))
+    link, scale = prior, 1.0
+    for _ in range(2):
+        i, j, ambiguous = _gate(left, scale * left_variances, predicted, lever, scale * right_variances, link, g2)
+        r = left[i] - (link_xy + turn * right[j])
+        a = scale * (left_variances[i] + right_variances[j])
+        keep = _jointly_compatible(r, a, lever[j], scale * prior, gate)
+        if not keep.any():
+            break
+        correction, link = _link_estimate(r[keep], a[keep], lever[j][keep], scale * prior)
+        predicted = link_xy + turn * right + (correction[0] + 1j * correction[1]) + lever * correction[2]
+        residual = r[keep] - (correction[0] + 1j * correction[1]) - lever[j][keep] * correction[2]
+        dof = 2 * keep.sum() - 3
+        if dof >= MIN_DOF:  # the a-posteriori variance factor
+            scale = max(1.0, float((np.abs(residual) ** 2 / a[keep]).sum()) / dof)
+    return Matches(i[keep], j[keep], ambiguous, int((~keep).sum()))
+
+
+class _Associator:
+    """The hooks :mod:`mapjoin.joining` calls before each join (``associate=``), numbering features as they are
+    matched. Compact ids (indices of the joins' arrays) are handed out in order of first sighting; the
+    tree renames a right piece's features to the left piece's ids, so each input row's current id is kept."""
+
+    def __init__(self, sizes: Sequence[int], gate: float):
+        self.gate = gate
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+        self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
+        self.count = 0
+        self.counts: list[tuple[int, int]] = []  # (ambiguous, rejected) per join, in the report's order
+
+    def _fresh(self, number: int) -> np.ndarray:
+        ids = np.arange(self.count, self.count + number)
+        self.count += number
+        return ids
+
+    # sequential strategy -----------------------------------------------------------------
+    def first(self, size: int) -> np.ndarray:
+        """Compact ids of the first map's rows: all new."""
+        ids = self._fresh(size)
+        self.row_ids[:size] = ids
+        return ids
+
+    def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
+             link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Map ``k`` (rows ``z``, ``var``) against the global map so far (compact ids 0 .. count-1): the order of
+        its rows (matched first, then new, each in input order), their compact ids in that order, and how many
+        are matched."""
+        used = self.count
+        found = match_features(positions[:used], variances[:used], link_xy, link_phi, link_variances, z, var,
+                               self.gate)
+        self.counts.append((found.ambiguous, found.rejected))
+        matched = np.zeros(len(z), dtype=bool)
+        matched[found.right] = True
+        order = np.concatenate([np.sort(found.right), np.flatnonzero(~matched)])
+        ids = np.empty(len(z), dtype=np.int64)
+        sorted_right = np.argsort(found.right, kind="stable")
+        ids[:len(found.right)] = found.left[sorted_right]
+        ids[len(found.right):] = self._fresh(len(z) - len(found.right))
+        self.row_ids[self.offsets[k] + order] = ids
+        return order, ids, len(found.right)
+
+    # tree strategy -----------------------------------------------------------------------
+    def level(self, pieces: _Pieces, level: int) -> _Pieces:
+        """Before a level of the tree: each right piece's features renamed to the ids of their matches in the left
+        piece, the others to new ids (``level`` joins have merged pieces of ``2^(level-1)`` maps)."""
+        if self.count == 0:  # the maps' own (compact local) ids are not global: every row new
+            ids = self.first(len(pieces.feature_ids))
+            self.row_ids[:] = ids
+            pieces = dataclasses.replace(pieces, feature_ids=ids)
+        count = pieces.count // 2
+        bounds = np.searchsorted(pieces.feature_piece, np.arange(pieces.count + 1)).tolist()
+        ends = (np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1).tolist()
+        ids = pieces.feature_ids.copy()
+        for join in range(count):
+            left = slice(bounds[2 * join], bounds[2 * join + 1])
+            right = slice(bounds[2 * join + 1], bounds[2 * join + 2])
+            end = ends[2 * join]
+            found = match_features(pieces.features[left], pieces.feature_variances[left], pieces.pose_xy[end],
+                                   float(pieces.pose_phi[end]), tuple(pieces.pose_variances[end].tolist()),
+                                   pieces.features[right], pieces.feature_variances[right], self.gate)
+            self.counts.append((found.ambiguous, found.rejected))
+            renamed = self._fresh(right.stop - right.start)
+            renamed[found.right] = ids[left][found.left]
+            ids[right] = renamed
+        # every input row of a right piece follows its feature's new id
+        shift = level - 1
+        piece_of_row = np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets)) >> shift
+        moved = np.flatnonzero((piece_of_row % 2 == 1) & (piece_of_row // 2 < count))
+        span = int(max(self.count, 1))
+        keys = pieces.feature_piece.astype(np.int64) * span + pieces.feature_ids
+        position, found_all = locate(keys, piece_of_row[moved].astype(np.int64) * span + self.row_ids[moved])
+        assert found_all.all()
+        self.row_ids[moved] = ids[position]
+        return dataclasses.replace(pieces, feature_ids=ids)
+
+    def global_ids(self) -> tuple[np.ndarray, np.ndarray]:
+        """Global ids numbered by first sighting: for each compact id (-1 if unused) and for each input row."""
+        final = self.row_ids
+        unique, first = np.unique(final, return_index=True)
+        numbering = np.full(self.count, -1, dtype=np.int64)
+        numbering[unique[np.argsort(first)]] = np.arange(len(unique))
+        return numbering, numbering[final]
+
+
+def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
+                    solver: Solver = "bisection", strategy: Strategy = "sequential", *,
+                    gate: float = DEFAULT_GATE, progress: Callable[[int], None] | None = None) -> AssociatedJoin:
+    """Join ``maps`` whose feature ids are local to each map, associating their features before each join
+    (see the module docstring; ``gate`` is the chi-square level of the gate and of the joint test). The
+    tree runs in one process."""
+    _check_gate(gate)
+    associator = _Associator([m.size for m in maps], gate)
+    result = join(maps, covariance, solver, strategy, 1, progress, associate=associator)
+    numbering, row_global = associator.global_ids()
+    global_map = result.global_map
+    relabelled = numbering[global_map.feature_ids]
+    order = np.argsort(relabelled, kind="stable")
+    global_map = dataclasses.replace(global_map, feature_ids=relabelled[order], features=global_map.features[order],
+                                     feature_variances=global_map.feature_variances[order])
+    report = tuple(AssociatedJoinRecord(**{f.name: getattr(record, f.name) for f in dataclasses.fields(record)},
+                                        ambiguous=ambiguous, rejected=rejected)
+                   for record, (ambiguous, rejected) in zip(result.report, associator.counts))
+    offsets = associator.offsets.tolist()
+    per_map = []
+    for k, local_map in enumerate(maps):  # rows in _prepare's order: each map's ids sorted
+        order_ids = np.argsort(local_map.feature_ids, kind="stable")
+        ids = np.empty(local_map.size, dtype=np.int64)
+        ids[order_ids] = row_global[offsets[k]:offsets[k + 1]]
+        per_map.append(ids)
+    return AssociatedJoin(global_map, report, tuple(per_map))
+
+
+def local_ids(maps: Sequence[LocalMap]) -> tuple[tuple[LocalMap, ...], tuple[np.ndarray, ...]]:
+    """``maps`` with each map's feature ids replaced by ids local to it (0 .. m-1, in the order of the global
+    ids), and the truth: ``truth[k][local_id]`` is the global id of map k's feature ``local_id``."""
+    relabelled, truth = [], []
+    for local_map in maps:
+        order = np.argsort(local_map.feature_ids, kind="stable")
+        ranks = np.empty(local_map.size, dtype=np.int64)
+        ranks[order] = np.arange(local_map.size)
+        relabelled.append(dataclasses.replace(local_map, feature_ids=ranks))
+        truth.append(local_map.feature_ids[order].copy())
+    return tuple(relabelled), tuple(truth)
