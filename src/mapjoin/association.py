@@ -26,6 +26,9 @@ join (sequential and tree) which features of the right piece are features of the
    most :data:`EXHAUSTIVE_PAIRS` pairs remain (the optimum branch and bound would find), after
    removing, one at a time, the pair with the largest residual once the link is corrected
    while more remain. Pairs removed are *rejected* and their right features left new.
+5. **Second pass.** Gate, ambiguity and joint test once more around the prediction corrected by the
+   link error the pairs explain, with its posterior covariance, the variances scaled by the first
+   pass's a-posteriori variance factor (when it is above 1).
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -54,7 +57,7 @@ if TYPE_CHECKING:
     from .onestep import Solver
 
 __all__ = ["DEFAULT_GATE", "EXHAUSTIVE_PAIRS", "AssociatedJoinRecord", "AssociatedJoin", "FeatureAssociation",
-           "Matches", "join_associated", "local_ids", "match_features"]
+           "Matches", "correspondence_rows", "join_associated", "local_ids", "match_features"]
 
 #: default chi-square level of the individual gate and of the joint compatibility test
 DEFAULT_GATE = 0.999
@@ -117,25 +120,27 @@ class AssociatedJoin:
 def chi2_quantile(level: float, dof: np.ndarray | int) -> np.ndarray:
     """The ``level`` quantile of a chi-square with an even number ``dof = 2k`` of degrees of freedom.
 
-    For even ``dof`` the survival function is closed-form, ``P(X > x) = exp(-x/2) sum_{i<k} (x/2)^i / i!``
-    (a Poisson tail); it decreases in ``x``, so bisection on it (to float precision, as arrays) gives the
-    quantile without importing scipy. For 2 dof it is ``-2 ln(1 - level)``.
+    For even ``dof`` the survival function is closed-form, ``Q(x) = exp(-x/2) sum_{i<k} (x/2)^i / i!`` (a
+    Poisson tail), with derivative ``-exp(-x/2) (x/2)^(k-1) / (2 (k-1)!)``; Newton's method on it from the
+    Wilson-Hilferty approximation converges in a few steps (as arrays, without scipy). For 2 dof the
+    quantile is ``-2 ln(1 - level)``.
     """
+    from statistics import NormalDist
+
     k = np.atleast_1d(np.asarray(dof, dtype=np.int64)) // 2
-    low, high = np.zeros(len(k)), np.full(len(k), 2.0 * k.max(initial=1) + 200.0)
+    n = 2.0 * k
+    x = n * (1 - 2 / (9 * n) + NormalDist().inv_cdf(level) * np.sqrt(2 / (9 * n))) ** 3
     terms = np.arange(int(k.max(initial=1)))
     log_factorial = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1, len(terms))))])
-    for _ in range(64):
-        middle = (low + high) / 2
-        half = middle[:, None] / 2
-        with np.errstate(divide="ignore"):
-            log_terms = terms * np.log(half) - log_factorial - half
-        log_terms[terms[None, :] >= k[:, None]] = -np.inf
+    outside = terms[None, :] >= k[:, None]
+    for _ in range(12):
+        x = np.maximum(x, 1e-3 * n)  # Newton from above converges monotonically; keep it positive
+        half = x[:, None] / 2
+        log_terms = np.where(outside, -np.inf, terms * np.log(half) - log_factorial - half)
         survival = np.exp(log_terms).sum(axis=1)
-        above = survival > 1.0 - level  # the quantile is above middle
-        low, high = np.where(above, middle, low), np.where(above, high, middle)
-    result = (low + high) / 2
-    return result if np.ndim(dof) else result[0]
+        density = np.exp((k - 1) * np.log(x / 2) - log_factorial[k - 1] - x / 2) / 2
+        x = x + (survival - (1.0 - level)) / density
+    return x if np.ndim(dof) else x[0]
 
 
 _QUANTILES: dict[float, np.ndarray] = {}  # level -> chi2_quantile(level, 2k) for k = 0, 1, 2, ...
@@ -146,7 +151,7 @@ def _threshold(level: float, pairs: np.ndarray | int) -> np.ndarray:
     table = _QUANTILES.get(level, np.zeros(1))
     largest = int(np.max(pairs, initial=0))
     if largest >= len(table):
-        table = np.concatenate([[0.0], chi2_quantile(level, 2 * np.arange(1, 2 * largest + 2))])
+        table = np.concatenate([[0.0], chi2_quantile(level, 2 * np.arange(1, max(2 * len(table), largest + 1)))])
         _QUANTILES[level] = table
     return table[pairs]
 
@@ -175,12 +180,12 @@ def _candidates(left: np.ndarray, predicted: np.ndarray, radius: np.ndarray) -> 
 def _joint_terms(r: np.ndarray, a: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each pair's share of the joint test: ``|r|^2 / a``, ``H^T r / a`` (k x 3) and ``H^T H / a`` (k x 9),
     ``H = [I, u]`` (complex ``r``, ``u``)."""
-    ur = (np.conj(u) * r).real
-    g = np.column_stack([r.real, r.imag, ur]) / a[:, None]
-    ux, uy = u.real, u.imag
-    h = np.column_stack([np.ones_like(ux), np.zeros_like(ux), ux, np.zeros_like(ux), np.ones_like(ux), uy,
-                         ux, uy, ux * ux + uy * uy]) / a[:, None]
-    return (r.real**2 + r.imag**2) / a, g, h
+    weight = 1.0 / a
+    ux, uy = u.real * weight, u.imag * weight
+    g = np.stack([r.real * weight, r.imag * weight, (np.conj(u) * r).real * weight], axis=1)
+    zero = np.zeros_like(weight)
+    h = np.stack([weight, zero, ux, zero, weight, uy, ux, uy, ux * u.real + uy * u.imag], axis=1)
+    return (r.real**2 + r.imag**2) * weight, g, h
 
 
 def _joint_distances(masks: np.ndarray, terms, link_information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -194,15 +199,15 @@ def _joint_distances(masks: np.ndarray, terms, link_information: np.ndarray) -> 
     return masks @ c - np.einsum("si,si->s", big_g, correction), correction
 
 
-def _jointly_compatible(r: np.ndarray, a: np.ndarray, u: np.ndarray, prior: np.ndarray, gate: float) -> np.ndarray:
-    """The pairs kept by the joint compatibility test (a boolean mask over the k pairs): all of them when
-    compatible, else the largest compatible subset (ties: the smallest joint distance)."""
+def _jointly_compatible(terms, r: np.ndarray, a: np.ndarray, u: np.ndarray, link_information: np.ndarray,
+                        gate: float) -> np.ndarray:
+    """The pairs kept by the joint compatibility test (a boolean mask over the k pairs, whose
+    :func:`_joint_terms` are ``terms``): all of them when compatible, else the largest compatible subset
+    (ties: the smallest joint distance)."""
     k = len(r)
     keep = np.ones(k, dtype=bool)
     if not k:
         return keep
-    link_information = np.linalg.inv(prior)
-    terms = _joint_terms(r, a, u)
     c, g, h = terms
     while True:  # remove the worst pair while too many remain for the exhaustive search
         distance, correction = _joint_distances(keep[None].astype(float), terms, link_information)
@@ -228,13 +233,10 @@ def _jointly_compatible(r: np.ndarray, a: np.ndarray, u: np.ndarray, prior: np.n
     return keep
 
 
-def _link_estimate(r: np.ndarray, a: np.ndarray, u: np.ndarray, prior: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The link's correction ``(dx, dy, dphi)`` that the pairs explain best, and its posterior covariance
-    ``M^-1`` (``M = P_link^-1 + sum H^T H / a``)."""
-    _, g, h = _joint_terms(r, a, u)
-    information = np.linalg.inv(prior) + h.sum(axis=0).reshape(3, 3)
-    posterior = np.linalg.inv(information)
+def _link_estimate(g: np.ndarray, h: np.ndarray, link_information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The link's correction ``(dx, dy, dphi)`` that pairs with :func:`_joint_terms` ``g``, ``h`` explain best,
+    and its posterior covariance ``M^-1`` (``M = P_link^-1 + sum H^T H / a``)."""
+    posterior = np.linalg.inv(link_information + h.sum(axis=0).reshape(3, 3))
     return posterior @ g.sum(axis=0), posterior
 
 
@@ -284,10 +286,12 @@ def match_features(left: np.ndarray, left_variances: np.ndarray, link_xy: comple
         i, j, ambiguous = _gate(left, scale * left_variances, predicted, lever, scale * right_variances, link, g2)
         r = left[i] - (link_xy + turn * right[j])
         a = scale * (left_variances[i] + right_variances[j])
-        keep = _jointly_compatible(r, a, lever[j], scale * prior, gate)
+        terms = _joint_terms(r, a, lever[j])
+        link_information = np.diag([1 / var_t, 1 / var_t, 1 / p_phi]) / scale
+        keep = _jointly_compatible(terms, r, a, lever[j], link_information, gate)
         if not keep.any():
             break
-        correction, link = _link_estimate(r[keep], a[keep], lever[j][keep], scale * prior)
+        correction, link = _link_estimate(terms[1][keep], terms[2][keep], link_information)
         predicted = link_xy + turn * right + (correction[0] + 1j * correction[1]) + lever * correction[2]
         residual = r[keep] - (correction[0] + 1j * correction[1]) - lever[j][keep] * correction[2]
         dof = 2 * keep.sum() - 3
@@ -422,3 +426,9 @@ def local_ids(maps: Sequence[LocalMap]) -> tuple[tuple[LocalMap, ...], tuple[np.
         relabelled.append(dataclasses.replace(local_map, feature_ids=ranks))
         truth.append(local_map.feature_ids[order].copy())
     return tuple(relabelled), tuple(truth)
+
+
+def correspondence_rows(truth: Sequence[np.ndarray]) -> list[FeatureAssociation]:
+    """:func:`local_ids`' truth as the rows ``join --associations`` writes (map 1-based, by local id)."""
+    return [FeatureAssociation(k + 1, local, int(found)) for k, ids in enumerate(truth)
+            for local, found in enumerate(ids.tolist())]

@@ -30,9 +30,12 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
               help=f"Format of the local maps (default: a stream file's extension, else {LOCAL_MAPS.default}).")
 @click.option("--truth", "truth_path", metavar="FILE",
               help="Where to write the ground truth (default: truth.<format> in the directory).")
+@click.option("--local-ids", is_flag=True,
+              help="Number each map's features from 0 (ids local to the map, for `join --associate`); a folder "
+                   "output also gets the true correspondence, associations.csv (map,local_id,global_id).")
 @click.pass_context
 def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_map: int,
-             output_format: str, truth_path: str | None) -> None:
+             output_format: str, truth_path: str | None, local_ids: bool) -> None:
     """Simulate a robot run, with ground truth, as local maps.
 
     The maps' estimates are drawn from their declared full covariances, so joins can be
@@ -53,9 +56,16 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
     outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--truth": truth_path},
                             folders={} if stream else {"-o": output})
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
+    maps = simulation.maps
+    if local_ids:
+        from ..association import correspondence_rows, local_ids as localise
+
+        maps, correspondence = localise(maps)
     with outputs:
-        mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format)
+        mapio.write_maps(maps, output if stream else os.path.join(output, ""), output_format)
         if truth_path:
             mapio.write_truth(simulation.truth, truth_path)
+        if local_ids and not stream:
+            mapio.write_table(correspondence_rows(correspondence), os.path.join(output, "associations.csv"), "csv")
     say(ctx, f"simulated {count} local map{'s' * (count != 1)} (seed {seed})"
              + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""))
