@@ -57,7 +57,7 @@ if TYPE_CHECKING:
     from .onestep import Solver
 
 __all__ = ["DEFAULT_GATE", "EXHAUSTIVE_PAIRS", "AssociatedJoinRecord", "AssociatedJoin", "FeatureAssociation",
-           "Matches", "correspondence_rows", "join_associated", "local_ids", "match_features"]
+           "Matches", "chi2_quantile", "correspondence_rows", "join_associated", "local_ids", "match_features"]
 
 #: default chi-square level of the individual gate and of the joint compatibility test
 DEFAULT_GATE = 0.999
@@ -395,9 +395,14 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     tree runs in one process."""
     _check_gate(gate)
     associator = _Associator([m.size for m in maps], gate)
-    result = join(maps, covariance, solver, strategy, 1, progress, associate=associator)
+    # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
+    result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
+                  associate=associator)
     numbering, row_global = associator.global_ids()
     global_map = result.global_map
+    if global_map.provenance.strategy != strategy:
+        global_map = dataclasses.replace(global_map, provenance=dataclasses.replace(global_map.provenance,
+                                                                                    strategy=strategy))
     relabelled = numbering[global_map.feature_ids]
     order = np.argsort(relabelled, kind="stable")
     global_map = dataclasses.replace(global_map, feature_ids=relabelled[order], features=global_map.features[order],
