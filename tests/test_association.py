@@ -72,7 +72,8 @@ def test_gate_equals_the_dense_pairwise_test():
     right_var = rng.uniform(0.01, 1, 25)
     link = np.array([[0.2, 0.05, 0.01], [0.05, 0.3, -0.02], [0.01, -0.02, 0.004]])
     g2 = -2 * math.log(0.001)
-    i, j, ambiguous = _gate(left, left_var, predicted, lever, right_var, link, g2)
+    i, j, ambiguous = _gate(left, left_var, np.zeros(40, np.intp), predicted, lever, right_var, np.zeros(25, np.intp),
+                            link[None], g2)
     gated = np.zeros((40, 25), dtype=bool)
     for a in range(40):
         for b in range(25):
@@ -82,15 +83,48 @@ def test_gate_equals_the_dense_pairwise_test():
             gated[a, b] = r @ np.linalg.solve(s, r) <= g2
     single = gated & (gated.sum(axis=0) == 1)[None] & (gated.sum(axis=1) == 1)[:, None]
     assert sorted(zip(i.tolist(), j.tolist())) == sorted(zip(*np.nonzero(single)))
-    assert ambiguous == int((gated.sum(axis=0) > 0).sum() - single.sum())
+    assert ambiguous.tolist() == [int((gated.sum(axis=0) > 0).sum() - single.sum())]
+
+
+def match_one(left, left_variances, link_xy, link_phi, link_variances, right, right_variances):
+    """match_features for one join."""
+    return match_features(left, left_variances, np.zeros(len(left), np.intp), np.array([link_xy]),
+                          np.array([link_phi]), np.array([link_variances]), right, right_variances,
+                          np.zeros(len(right), np.intp))
+
+
+@pytest.mark.parametrize("brute_force", [True, False])
+def test_joins_matched_together_match_as_alone(brute_force, monkeypatch):
+    """Three joins in one call (as a tree level) give each join's own association, whether the candidates
+    come from all pairs or from the k-d tree."""
+    monkeypatch.setattr("mapjoin.association.BRUTE_FORCE_PAIRS", 1 << 30 if brute_force else 0)
+    rng = np.random.default_rng(8)
+    problems = []
+    for _ in range(3):
+        left = rng.uniform(-30, 30, 30) + 1j * rng.uniform(-30, 30, 30)
+        phi = rng.uniform(-3, 3)
+        link = complex(*rng.uniform(-5, 5, 2))
+        right = (left[:12] - link) * np.exp(-1j * phi) + rng.normal(scale=0.05, size=12)
+        right = np.concatenate([right, rng.uniform(-30, 30, 5) + 1j * rng.uniform(-30, 30, 5)])
+        problems.append((left, np.full(30, 0.01), link, phi, (0.05, 1e-4), right, np.full(17, 0.01)))
+    alone = [match_one(*problem) for problem in problems]
+    together = match_features(np.concatenate([p[0] for p in problems]), np.full(90, 0.01), np.repeat(np.arange(3), 30),
+                              np.array([p[2] for p in problems]), np.array([p[3] for p in problems]),
+                              np.array([p[4] for p in problems]), np.concatenate([p[5] for p in problems]),
+                              np.full(51, 0.01), np.repeat(np.arange(3), 17))
+    expected = [(30 * k + i, 17 * k + j) for k, found in enumerate(alone)
+                for i, j in zip(found.left.tolist(), found.right.tolist())]
+    assert sorted(zip(together.left.tolist(), together.right.tolist())) == sorted(expected)
+    assert all(len(found.left) >= 11 for found in alone)
+    assert together.ambiguous.tolist() == [int(found.ambiguous[0]) for found in alone]
 
 
 def test_two_candidates_in_the_gate_leave_a_feature_new():
     left = np.array([0.0 + 0j, 0.3 + 0j, 10 + 0j, 0 + 10j])
     right = np.array([0.15 + 0j, 10 + 0j, 0 + 10j])
-    found = match_features(left, np.full(4, 0.05), 0j, 0.0, (0.01, 1e-6), right, np.full(3, 0.05))
+    found = match_one(left, np.full(4, 0.05), 0j, 0.0, (0.01, 1e-6), right, np.full(3, 0.05))
     assert sorted(zip(found.left.tolist(), found.right.tolist())) == [(2, 1), (3, 2)]
-    assert found.ambiguous == 1
+    assert found.ambiguous.tolist() == [1]
 
 
 def test_the_joint_test_rejects_a_pair_inconsistent_with_the_others():
@@ -100,7 +134,7 @@ def test_the_joint_test_rejects_a_pair_inconsistent_with_the_others():
     left = rng.uniform(-30, 30, 7) + 1j * rng.uniform(-30, 30, 7)
     right = left + 0.5 + rng.normal(scale=0.02, size=7)  # the link is off by 0.5 m
     right[6] += 0.9
-    found = match_features(left, np.full(7, 1e-3), 0j, 0.0, (1.0, 1e-8), right - 0.5 + 0.5, np.full(7, 1e-3))
+    found = match_one(left, np.full(7, 1e-3), 0j, 0.0, (1.0, 1e-8), right, np.full(7, 1e-3))
     assert 6 not in found.right.tolist() and len(found.right) == 6
 
 

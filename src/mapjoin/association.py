@@ -70,13 +70,14 @@ MIN_DOF = 4
 
 @dataclass(frozen=True)
 class Matches:
-    """One join's association: ``left[i]`` and ``right[i]`` are rows of the same feature; ``ambiguous``
-    right features had two candidates (or shared theirs), ``rejected`` ones failed the joint test."""
+    """The association of one or more joins: ``left[i]`` and ``right[i]`` are rows of the same feature (sorted
+    by right row); per join, ``ambiguous`` right features had two candidates (or shared theirs) and
+    ``rejected`` ones failed the joint test."""
 
     left: np.ndarray
     right: np.ndarray
-    ambiguous: int
-    rejected: int
+    ambiguous: np.ndarray
+    rejected: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -161,20 +162,37 @@ def _check_gate(gate: float) -> None:
         raise ValueError(f"gate must be a chi-square level in (0, 1), got {gate!r}")
 
 
-def _candidates(left: np.ndarray, predicted: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (left row, right row) whose Euclidean distance is at most ``radius[right]`` (complex points):
-    all pairs at once when few, else from a k-d tree of left (scipy.spatial, imported then)."""
-    n, m = len(left), len(predicted)
-    if n * m <= BRUTE_FORCE_PAIRS:
-        near = np.abs(left[:, None] - predicted[None, :]) <= radius[None, :]
-        return np.nonzero(near)
+def _segments(group: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows grouped by ``group`` (non-decreasing, values < ``count``): each group's first row and size."""
+    sizes = np.bincount(group, minlength=count)
+    return np.cumsum(sizes) - sizes, sizes
+
+
+def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, right_join: np.ndarray,
+                radius: np.ndarray, joins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (left row, right row) of the same join whose Euclidean distance is at most ``radius[right]``
+    (complex points; rows grouped by join): every pair of a join at once when there are few in all, else
+    from a k-d tree (scipy.spatial, imported then) of the points lifted to 3-D, the join as the third
+    coordinate, far apart, so that one tree serves every join."""
+    left_start, left_size = _segments(left_join, joins)
+    right_start, right_size = _segments(right_join, joins)
+    per_join = left_size * right_size
+    total = int(per_join.sum())
+    if total <= BRUTE_FORCE_PAIRS:
+        join = np.repeat(np.arange(joins), per_join)
+        q = np.arange(total) - np.repeat(np.cumsum(per_join) - per_join, per_join)
+        i = left_start[join] + q // right_size[join]
+        j = right_start[join] + q % right_size[join]
+        near = np.abs(left[i] - predicted[j]) <= radius[j]
+        return i[near], j[near]
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(np.column_stack([left.real, left.imag]))
-    found = tree.query_ball_point(np.column_stack([predicted.real, predicted.imag]), radius)
-    counts = np.fromiter(map(len, found), np.intp, m)
-    return (np.concatenate(found).astype(np.intp) if counts.sum() else np.zeros(0, np.intp),
-            np.repeat(np.arange(m), counts))
+    apart = 2.0 ** math.ceil(math.log2(4 * float(radius.max(initial=1.0)) + 1))
+    tree = cKDTree(np.column_stack([left.real, left.imag, left_join * apart]))
+    found = tree.query_ball_point(np.column_stack([predicted.real, predicted.imag, right_join * apart]), radius)
+    counts = np.fromiter(map(len, found), np.intp, len(predicted))
+    i = np.concatenate(found).astype(np.intp) if counts.sum() else np.zeros(0, np.intp)
+    return i, np.repeat(np.arange(len(predicted)), counts)
 
 
 def _joint_terms(r: np.ndarray, a: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -233,28 +251,32 @@ def _jointly_compatible(terms, r: np.ndarray, a: np.ndarray, u: np.ndarray, link
     return keep
 
 
-def _link_estimate(g: np.ndarray, h: np.ndarray, link_information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The link's correction ``(dx, dy, dphi)`` that pairs with :func:`_joint_terms` ``g``, ``h`` explain best,
-    and its posterior covariance ``M^-1`` (``M = P_link^-1 + sum H^T H / a``)."""
-    posterior = np.linalg.inv(link_information + h.sum(axis=0).reshape(3, 3))
-    return posterior @ g.sum(axis=0), posterior
+def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarray:
+    """Sums of the rows of ``values`` (p x c) by ``group`` (count x c)."""
+    return np.stack([np.bincount(group, values[:, column], minlength=count) for column in range(values.shape[1])],
+                    axis=1)
 
 
-def _gate(left: np.ndarray, left_variances: np.ndarray, predicted: np.ndarray, lever: np.ndarray,
-          right_variances: np.ndarray, link: np.ndarray, g2: float
-          ) -> tuple[np.ndarray, np.ndarray, int]:
-    """The unambiguous candidate pairs (left rows, right rows) and the number of ambiguous right features.
+def _gate(left: np.ndarray, left_variances: np.ndarray, left_join: np.ndarray, predicted: np.ndarray,
+          lever: np.ndarray, right_variances: np.ndarray, right_join: np.ndarray, link: np.ndarray, g2: float
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unambiguous candidate pairs (left rows, right rows) of every join, and each join's number of
+    ambiguous right features.
 
     A pair's innovation ``r = f - x`` has covariance ``S = (var0 + var1) I + H link H^T`` with ``H = [I, u]``
-    (``link``: the 3 x 3 covariance of the link's error); it is a candidate when ``r^T S^-1 r <= g2``."""
+    (``link[join]``: the 3 x 3 covariance of the join's link error); it is a candidate when ``r^T S^-1 r <= g2``.
+    """
+    joins = len(link)
     ux, uy = lever.real, lever.imag
+    own = link[right_join]
     # H link H^T = link_tt + u link_phi,t + link_t,phi u^T + link_phiphi u u^T, per right feature
-    sxx = link[0, 0] + 2 * ux * link[0, 2] + link[2, 2] * ux * ux
-    syy = link[1, 1] + 2 * uy * link[1, 2] + link[2, 2] * uy * uy
-    sxy = link[0, 1] + ux * link[1, 2] + uy * link[0, 2] + link[2, 2] * ux * uy
-    largest = float(left_variances.max(initial=0.0))
-    radius = np.sqrt(g2 * (2 * largest + 2 * right_variances + sxx + syy))  # >= sqrt(g2 * largest eigenvalue)
-    i, j = _candidates(left, predicted, radius)
+    sxx = own[:, 0, 0] + 2 * ux * own[:, 0, 2] + own[:, 2, 2] * ux * ux
+    syy = own[:, 1, 1] + 2 * uy * own[:, 1, 2] + own[:, 2, 2] * uy * uy
+    sxy = own[:, 0, 1] + ux * own[:, 1, 2] + uy * own[:, 0, 2] + own[:, 2, 2] * ux * uy
+    largest = np.zeros(joins)
+    np.maximum.at(largest, left_join, left_variances)
+    radius = np.sqrt(g2 * (2 * largest[right_join] + 2 * right_variances + sxx + syy))  # >= the largest eigenvalue's
+    i, j = _candidates(left, left_join, predicted, right_join, radius, joins)
     r = left[i] - predicted[j]
     base = left_variances[i] + right_variances[j]
     a, b, c = base + sxx[j], sxy[j], base + syy[j]
@@ -264,40 +286,92 @@ def _gate(left: np.ndarray, left_variances: np.ndarray, predicted: np.ndarray, l
     per_right = np.bincount(j, minlength=len(predicted))
     per_left = np.bincount(i, minlength=len(left))
     single = (per_right[j] == 1) & (per_left[i] == 1)
-    return i[single], j[single], int((per_right > 0).sum() - single.sum())
+    ambiguous = (np.bincount(right_join[per_right > 0], minlength=joins)
+                 - np.bincount(right_join[j[single]], minlength=joins))
+    return i[single], j[single], ambiguous
 
 
-def match_features(left: np.ndarray, left_variances: np.ndarray, link_xy: complex, link_phi: float,
-                   link_variances: tuple[float, float], right: np.ndarray, right_variances: np.ndarray,
-                   gate: float = DEFAULT_GATE) -> Matches:
-    """Associate right's features with left's (complex points, spherical variances; see the module
-    docstring): predict through the link ``(link_xy, link_phi)`` with variances ``(var_t, p_phi)``, gate,
-    leave ambiguous features new, test the rest jointly; then once more with the link corrected by the
-    pairs found (its posterior covariance in the gate), which finds the pairs the link's error had hidden."""
+def match_features(left: np.ndarray, left_variances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
+                   link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
+                   right_variances: np.ndarray, right_join: np.ndarray, gate: float = DEFAULT_GATE) -> Matches:
+    """Associate right's features with left's in several independent joins at once (complex points, spherical
+    variances, rows grouped by join; see the module docstring): predict through each join's link
+    ``(link_xy, link_phi)`` with variances ``link_variances`` (joins x 2: var_t, p_phi), gate, leave ambiguous
+    features new, test the rest jointly; then once more with each link corrected by the pairs found (its
+    posterior covariance in the gate), which finds the pairs the link's error had hidden.
+
+    Every step is array operations over all joins; only a join whose pairs fail the joint test is searched
+    on its own (:func:`_jointly_compatible`).
+    """
     _check_gate(gate)
-    turn = complex(math.cos(link_phi), math.sin(link_phi))
-    predicted = link_xy + turn * right
-    lever = 1j * turn * right  # R'(phi_o) z
-    var_t, p_phi = link_variances
-    prior = np.diag([var_t, var_t, p_phi])
+    joins = len(link_xy)
+    turn = np.exp(1j * link_phi)
+    predicted = link_xy[right_join] + turn[right_join] * right
+    lever = 1j * turn[right_join] * right  # R'(phi_o) z
+    var_t, p_phi = link_variances[:, 0], link_variances[:, 1]
+    prior_information = np.zeros((joins, 3, 3))
+    prior_information[:, 0, 0] = prior_information[:, 1, 1] = 1.0 / var_t
+    prior_information[:, 2, 2] = 1.0 / p_phi
+    link = np.zeros((joins, 3, 3))
+    link[:, 0, 0] = link[:, 1, 1] = var_t
+    link[:, 2, 2] = p_phi
     g2 = float(_threshold(gate, 1))
-    link, scale = prior, 1.0
+    scale = np.ones(joins)
+    done = np.zeros(joins, dtype=bool)  # joins whose first pass found no pair keep its outcome
+    outcome = None
     for _ in range(2):
-        i, j, ambiguous = _gate(left, scale * left_variances, predicted, lever, scale * right_variances, link, g2)
-        r = left[i] - (link_xy + turn * right[j])
-        a = scale * (left_variances[i] + right_variances[j])
+        i, j, ambiguous = _gate(left, scale[left_join] * left_variances, left_join, predicted, lever,
+                                scale[right_join] * right_variances, right_join, link, g2)
+        pair_join = right_join[j]
+        r = left[i] - (link_xy[pair_join] + turn[pair_join] * right[j])
+        a = scale[pair_join] * (left_variances[i] + right_variances[j])
         terms = _joint_terms(r, a, lever[j])
-        link_information = np.diag([1 / var_t, 1 / var_t, 1 / p_phi]) / scale
-        keep = _jointly_compatible(terms, r, a, lever[j], link_information, gate)
-        if not keep.any():
+        information = prior_information / scale[:, None, None]
+        keep = _joint_test(terms, r, a, lever[j], pair_join, information, gate, joins)
+        rejected = np.bincount(pair_join[~keep], minlength=joins)
+        if outcome is None:
+            outcome = (i[keep], j[keep], ambiguous, rejected)
+        else:
+            kept = keep & ~done[pair_join]
+            old_i, old_j, old_ambiguous, old_rejected = outcome
+            stay = done[right_join[old_j]]
+            outcome = (np.concatenate([old_i[stay], i[kept]]), np.concatenate([old_j[stay], j[kept]]),
+                       np.where(done, old_ambiguous, ambiguous), np.where(done, old_rejected, rejected))
             break
-        correction, link = _link_estimate(terms[1][keep], terms[2][keep], link_information)
-        predicted = link_xy + turn * right + (correction[0] + 1j * correction[1]) + lever * correction[2]
-        residual = r[keep] - (correction[0] + 1j * correction[1]) - lever[j][keep] * correction[2]
-        dof = 2 * keep.sum() - 3
-        if dof >= MIN_DOF:  # the a-posteriori variance factor
-            scale = max(1.0, float((np.abs(residual) ** 2 / a[keep]).sum()) / dof)
-    return Matches(i[keep], j[keep], ambiguous, int((~keep).sum()))
+        done = np.bincount(pair_join[keep], minlength=joins) == 0
+        # each link's correction and posterior covariance from its kept pairs; the a-posteriori variance factor
+        c, g, h = (term[keep] for term in terms)
+        kept_join = pair_join[keep]
+        posterior = np.linalg.inv(information + _segment_sums(h, kept_join, joins).reshape(joins, 3, 3))
+        correction = np.einsum("jab,jb->ja", posterior, _segment_sums(g, kept_join, joins))
+        shift = correction[:, 0] + 1j * correction[:, 1]
+        residual = r[keep] - shift[kept_join] - lever[j[keep]] * correction[kept_join, 2]
+        dof = 2 * np.bincount(kept_join, minlength=joins) - 3
+        factor = np.bincount(kept_join, np.abs(residual) ** 2 / a[keep], minlength=joins) / np.maximum(dof, 1)
+        scale = np.where(dof >= MIN_DOF, np.maximum(1.0, factor), scale)
+        link = posterior  # a join without pairs: its prior, uncorrected
+        predicted = predicted + shift[right_join] + lever * correction[right_join, 2]
+    order = np.argsort(outcome[1], kind="stable")
+    return Matches(outcome[0][order], outcome[1][order], outcome[2], outcome[3])
+
+
+def _joint_test(terms, r: np.ndarray, a: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
+                information: np.ndarray, gate: float, joins: int) -> np.ndarray:
+    """The pairs kept by the joint compatibility test of every join (a mask over the pairs, grouped by join):
+    each join's joint distance at once; a join that fails is searched alone by :func:`_jointly_compatible`."""
+    c, g, h = terms
+    sizes = np.bincount(pair_join, minlength=joins)
+    big_g = _segment_sums(g, pair_join, joins)
+    big_m = _segment_sums(h, pair_join, joins).reshape(joins, 3, 3) + information
+    distance = np.bincount(pair_join, c, minlength=joins) - np.einsum(
+        "ji,ji->j", big_g, np.linalg.solve(big_m, big_g[..., None])[..., 0])
+    keep = np.ones(len(r), dtype=bool)
+    starts = np.cumsum(sizes) - sizes
+    for join in np.flatnonzero((sizes > 0) & (distance > _threshold(gate, sizes))).tolist():
+        rows = slice(starts[join], starts[join] + sizes[join])
+        keep[rows] = _jointly_compatible((c[rows], g[rows], h[rows]), r[rows], a[rows], u[rows],
+                                         information[join], gate)
+    return keep
 
 
 class _Associator:
@@ -331,15 +405,15 @@ class _Associator:
         its rows (matched first, then new, each in input order), their compact ids in that order, and how many
         are matched."""
         used = self.count
-        found = match_features(positions[:used], variances[:used], link_xy, link_phi, link_variances, z, var,
-                               self.gate)
-        self.counts.append((found.ambiguous, found.rejected))
+        found = match_features(positions[:used], variances[:used], np.zeros(used, np.intp), np.array([link_xy]),
+                               np.array([link_phi]), np.array([link_variances]), z, var,
+                               np.zeros(len(z), np.intp), self.gate)
+        self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
-        order = np.concatenate([np.sort(found.right), np.flatnonzero(~matched)])
+        order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
         ids = np.empty(len(z), dtype=np.int64)
-        sorted_right = np.argsort(found.right, kind="stable")
-        ids[:len(found.right)] = found.left[sorted_right]
+        ids[:len(found.right)] = found.left
         ids[len(found.right):] = self._fresh(len(z) - len(found.right))
         self.row_ids[self.offsets[k] + order] = ids
         return order, ids, len(found.right)
@@ -353,20 +427,20 @@ class _Associator:
             self.row_ids[:] = ids
             pieces = dataclasses.replace(pieces, feature_ids=ids)
         count = pieces.count // 2
-        bounds = np.searchsorted(pieces.feature_piece, np.arange(pieces.count + 1)).tolist()
-        ends = (np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1).tolist()
+        ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1
+        link = ends[0:2 * count:2]  # each left piece's end pose
+        joined = pieces.feature_piece < 2 * count
+        left = np.flatnonzero(joined & (pieces.feature_piece % 2 == 0))
+        right = np.flatnonzero(joined & (pieces.feature_piece % 2 == 1))
+        found = match_features(pieces.features[left], pieces.feature_variances[left], pieces.feature_piece[left] // 2,
+                               pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
+                               pieces.features[right], pieces.feature_variances[right],
+                               pieces.feature_piece[right] // 2, self.gate)
+        self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
         ids = pieces.feature_ids.copy()
-        for join in range(count):
-            left = slice(bounds[2 * join], bounds[2 * join + 1])
-            right = slice(bounds[2 * join + 1], bounds[2 * join + 2])
-            end = ends[2 * join]
-            found = match_features(pieces.features[left], pieces.feature_variances[left], pieces.pose_xy[end],
-                                   float(pieces.pose_phi[end]), tuple(pieces.pose_variances[end].tolist()),
-                                   pieces.features[right], pieces.feature_variances[right], self.gate)
-            self.counts.append((found.ambiguous, found.rejected))
-            renamed = self._fresh(right.stop - right.start)
-            renamed[found.right] = ids[left][found.left]
-            ids[right] = renamed
+        renamed = self._fresh(len(right))
+        renamed[found.right] = ids[left[found.left]]
+        ids[right] = renamed
         # every input row of a right piece follows its feature's new id
         shift = level - 1
         piece_of_row = np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets)) >> shift
