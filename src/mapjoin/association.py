@@ -174,6 +174,8 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
     (complex points; rows grouped by join): every pair of a join at once when there are few in all, else
     from a k-d tree (scipy.spatial, imported then) of the points lifted to 3-D, the join as the third
     coordinate, far apart, so that one tree serves every join."""
+    if joins == 1 and len(left) * len(predicted) <= BRUTE_FORCE_PAIRS:  # one join: the outer difference
+        return np.nonzero(np.abs(left[:, None] - predicted[None, :]) <= radius[None, :])
     left_start, left_size = _segments(left_join, joins)
     right_start, right_size = _segments(right_join, joins)
     per_join = left_size * right_size
@@ -253,6 +255,8 @@ def _jointly_compatible(terms, r: np.ndarray, a: np.ndarray, u: np.ndarray, link
 
 def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarray:
     """Sums of the rows of ``values`` (p x c) by ``group`` (count x c)."""
+    if count == 1:
+        return values.sum(axis=0)[None]
     return np.stack([np.bincount(group, values[:, column], minlength=count) for column in range(values.shape[1])],
                     axis=1)
 
