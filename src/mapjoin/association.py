@@ -34,6 +34,11 @@ The accepted pairs are the join's common features; every other right feature bec
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
 by map, then by local id.
 
+Cost: :func:`match_features` associates all the joins of a tree level at once (as the tree joins
+them), and the sequential join is a batch of one; candidates are all pairs of a join up to
+:data:`BRUTE_FORCE_PAIRS`, else found with a k-d tree. Only a join whose pairs fail the joint test
+is searched on its own.
+
 :func:`local_ids` turns a map set with global ids into one with ids local to each map and
 returns the true correspondence (tests, benchmarks, ``simulate --local-ids``).
 """
@@ -65,6 +70,7 @@ DEFAULT_GATE = 0.999
 EXHAUSTIVE_PAIRS = 10
 #: candidate pairs are found by brute force up to this many (left x right) pairs, else by a k-d tree
 BRUTE_FORCE_PAIRS = 1 << 16
+#: the variance factor of the second pass needs at least this many degrees of freedom (2k - 3 for k pairs)
 MIN_DOF = 4
 
 
