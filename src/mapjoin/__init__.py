@@ -18,6 +18,7 @@ used, so ``import mapjoin`` stays cheap and scipy is loaded only by :func:`refin
     exact = mapjoin.join_and_refine(maps)              # the fast join, then the exact optimum
     mapjoin.write_global_map(exact.global_map, "exact.csv")
     mapjoin.check_minima(a=5.0, c_phi=2.5)             # Theorem 2 for one join's (a, C_phi)
+    found = mapjoin.join_associated(maps_with_local_ids)  # feature ids local to each map: data association
 
 Data: :class:`LocalMap` (a map in the frame of its start pose), :class:`GlobalMap`,
 :class:`GroundTruth`. Errors: :class:`MapjoinError` and its subclasses :class:`InputError`
@@ -50,6 +51,8 @@ _LAZY: dict[str, tuple[str, str]] = {
     "read_truth": ("io", "read_truth"),
     "write_truth": ("io", "write_truth"),
     "join": ("joining", "join"),
+    "join_associated": ("association", "join_associated"),
+    "local_ids": ("association", "local_ids"),
     "JoinResult": ("joining", "JoinResult"),
     "JoinRecord": ("joining", "JoinRecord"),
     "check_minima": ("onestep", "summarise_minima"),

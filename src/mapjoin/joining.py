@@ -25,7 +25,7 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -44,6 +44,9 @@ from .onestep import (
     point_constants,
 )
 from .se2 import wrap
+
+if TYPE_CHECKING:
+    from .association import _Associator
 
 __all__ = ["STRATEGIES", "JoinRecord", "JoinResult", "Strategy", "certify_pair",
            "check_chain", "join", "join_sequential", "join_tree", "without_features"]
@@ -337,7 +340,8 @@ class _Labels:
 def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
                     solver: Solver = "bisection",
                     progress: Callable[[int], None] | None = None, *, warn: bool = True,
-                    gate: float = DEFAULT_GATE, unlinked: frozenset[int] = frozenset()) -> JoinResult:
+                    gate: float = DEFAULT_GATE, unlinked: frozenset[int] = frozenset(),
+                    associate: _Associator | None = None) -> JoinResult:
     """Join ``maps`` (a connected chain) one after the other; the global frame is the first map's start.
 
     The global map lives in arrays indexed by compact feature id, so join k reads and writes
@@ -347,6 +351,8 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     pieces of their own, which the user never sees, say False). ``gate``: the report's flags
     (:mod:`mapjoin.consistency`); ``unlinked``: the joins (numbers k, map k+1 onto maps 1..k) made by
     the features alone, without the heading link.
+    ``associate`` (:mod:`mapjoin.association`): the maps' ids are local to each map; it numbers
+    each map's features before its join.
     """
     feature_ids, pieces = _prepare(maps, covariance)
     offsets = np.searchsorted(pieces.feature_piece, np.arange(len(maps) + 1))
@@ -359,6 +365,8 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     starts = offsets.tolist()
     ends_common = (offsets[:-1] + np.bincount(pieces.feature_piece[seen_before], minlength=len(maps))).tolist()
 
+    if associate is not None:  # compact ids are handed out as features are matched: at most one per row
+        ids[:starts[1]], feature_ids = associate.first(starts[1]), np.zeros(len(ids), dtype=np.int64)
     positions = np.zeros(len(feature_ids), dtype=complex)
     position_variances = np.zeros(len(feature_ids))
     positions[ids[:starts[1]]], position_variances[ids[:starts[1]]] = z[:starts[1]], var[:starts[1]]
@@ -368,7 +376,15 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     if progress:
         progress(1)
     for k in range(1, len(maps)):
-        rows, common = slice(starts[k], starts[k + 1]), ends_common[k] - starts[k]
+        rows = slice(starts[k], starts[k + 1])
+        if associate is not None:  # map k's rows: its matches of the map so far first, then its new features
+            order_k, ids[rows], common = associate.next(k, positions, position_variances, pose_xy[k - 1],
+                                                       pose_phi[k - 1], (var_xy[k - 1], var_phi[k - 1]), z[rows],
+                                                       var[rows])
+            for array in (z, var, information, squared):
+                array[rows] = array[rows][order_k]
+            ends_common[k] = starts[k] + common
+        common = ends_common[k] - starts[k]
         shared, local_map = ids[starts[k]:ends_common[k]], maps[k]
         z0, var0 = positions[shared], position_variances[shared]
         joins = _solve_join(z0, var0, z[rows][:common], var[rows][:common], pose_xy[k - 1], pose_phi[k - 1],
@@ -386,6 +402,9 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         report += joins.rows
         if progress:
             progress(k + 1)
+    if associate is not None:
+        feature_ids = np.arange(associate.count)
+        positions, position_variances = positions[:associate.count], position_variances[:associate.count]
     pieces = replace(pieces, feature_piece=np.zeros(len(feature_ids), dtype=np.intp),
                      feature_ids=np.arange(len(feature_ids)), features=positions,
                      feature_variances=position_variances, pose_xy=np.array(pose_xy, dtype=complex),
@@ -394,9 +413,12 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
                       _report(report, unlinked, gate))
 
 
-def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
+def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, associate: _Associator | None = None
                 ) -> tuple[_Pieces, list[tuple]]:
-    """Join pieces 2i and 2i+1 for every i (an odd last piece passes through): one level of the tree."""
+    """Join pieces 2i and 2i+1 for every i (an odd last piece passes through): one level of the tree.
+    ``associate`` first renames right pieces' features to the ids of their matches in the left ones."""
+    if associate is not None:
+        pieces = associate.level(pieces, level)
     count = pieces.count // 2
     parent = pieces.feature_piece // 2
     right = (pieces.feature_piece % 2 == 1) & (parent < count)
@@ -440,12 +462,13 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int
 
 
 def _join_levels(pieces: _Pieces, labels: _Labels, solver: Solver, level: int,
-                 progress: Callable[[int], None] | None = None) -> tuple[_Pieces, list[tuple]]:
+                 progress: Callable[[int], None] | None = None, associate: _Associator | None = None
+                 ) -> tuple[_Pieces, list[tuple]]:
     """Join levels from ``level`` on until one piece is left; the joins' report rows."""
     records: list[tuple] = []
     while pieces.count > 1:
         level += 1
-        pieces, joined = _join_level(pieces, labels, solver, level)
+        pieces, joined = _join_level(pieces, labels, solver, level, associate)
         records += joined
         if progress:
             progress(len(records) + 1)
@@ -462,15 +485,19 @@ def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[tuple]
 
 def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
               solver: Solver = "bisection", jobs: int = 1,
-              progress: Callable[[int], None] | None = None, *, gate: float = DEFAULT_GATE) -> JoinResult:
+              progress: Callable[[int], None] | None = None, associate: _Associator | None = None, *,
+              gate: float = DEFAULT_GATE) -> JoinResult:
     """Join ``maps`` pairwise, level by level (Remark 8); ``jobs`` processes share the lower levels.
 
     With ``jobs > 1`` the maps are cut into aligned blocks of 2^L maps (at least ``jobs``
     of them), each joined to one piece in a worker, exactly as the single-process tree
-    would; the parent joins the blocks' results. Join numbers follow the levels.
+    would; the parent joins the blocks' results. Join numbers follow the levels. ``associate``: as for
+    :func:`join_sequential` (in one process only).
     """
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
+    if associate is not None and jobs > 1:
+        raise ValueError("data association runs the tree in one process (jobs=1)")
     feature_ids, pieces = _prepare(maps, covariance)
     labels = _Labels.of(maps)
     records: list[tuple] = []
@@ -492,9 +519,11 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
         if progress:
             progress(len(records) + 1)
     pieces, upper = _join_levels(pieces, labels, solver, depth,
-                                 (lambda done: progress(done + len(records))) if progress else None)
+                                 (lambda done: progress(done + len(records))) if progress else None, associate)
     records += upper
     records.sort(key=lambda row: row[_LEVEL])  # by level, stable: chain order within a level
+    if associate is not None:  # the compact ids the associator handed out
+        feature_ids = np.arange(associate.count)
     return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"),
                       _report(records, gate=gate))
 
@@ -513,8 +542,9 @@ def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:
 def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection",
          strategy: Strategy = "sequential", jobs: int = 1,
          progress: Callable[[int], None] | None = None, *, gate: float = DEFAULT_GATE,
-         on_inconsistent: Policy = "warn") -> JoinResult:
-    """Join ``maps`` with ``strategy`` (``jobs`` only matters for the tree).
+         on_inconsistent: Policy = "warn", associate: _Associator | None = None) -> JoinResult:
+    """Join ``maps`` with ``strategy`` (``jobs`` only matters for the tree; ``associate``: see
+    :func:`join_sequential`, used by :func:`mapjoin.association.join_associated`).
 
     Every join is checked (:mod:`mapjoin.consistency`): a join whose chi-square p-value is below
     ``gate``, or that has two minima, is flagged in the report, and ``on_inconsistent`` says what
@@ -522,12 +552,14 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
     map) or ``skip`` (sequential only: such a map is joined by its features alone or left out; see
     :func:`mapjoin.consistency.enforce`).
     """
+    if on_inconsistent == "skip" and associate is not None:
+        raise ValueError("on_inconsistent='skip' re-joins the chain with the maps' own ids: not with association")
     if on_inconsistent == "skip" and strategy != "sequential":
         raise ValueError("on_inconsistent='skip' re-joins the chain map by map: it needs strategy='sequential'")
     if strategy == "sequential":
-        result = join_sequential(maps, covariance, solver, progress, gate=gate)
+        result = join_sequential(maps, covariance, solver, progress, gate=gate, associate=associate)
     elif strategy == "tree":
-        result = join_tree(maps, covariance, solver, jobs, progress, gate=gate)
+        result = join_tree(maps, covariance, solver, jobs, progress, associate, gate=gate)
     else:
         raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
 

@@ -8,11 +8,15 @@ import click
 
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE
+from ..association import DEFAULT_GATE as DEFAULT_ASSOCIATION_GATE
 from ..joining import join as join_maps
+from ..maps import Range
 from . import common, main
-from .common import (covariance_option, gate_option, global_map_format_option, global_map_output_option,
-                     input_format_option, inputs_argument, json_option, on_inconsistent_option, progress_bar, say,
-                     solver_option, trajectory_option)
+from .common import (TABLE_EXTENSIONS, covariance_option, gate_option, global_map_format_option,
+                     global_map_output_option, input_format_option, inputs_argument, json_option,
+                     on_inconsistent_option, progress_bar, say, solver_option, trajectory_option)
+
+ASSOCIATION_GATE = Range("chi-square levels", 0.5, 0.999999)
 
 
 @main.command()
@@ -30,6 +34,14 @@ from .common import (covariance_option, gate_option, global_map_format_option, g
 @common.refine_options
 @gate_option
 @on_inconsistent_option
+@click.option("--associate", is_flag=True,
+              help="Feature ids are local to each map: match each map's features with the map so far "
+                   "(Mahalanobis gate, joint compatibility; docs/joining.md, 'Data association').")
+@click.option("--gate-association", "association_gate", type=common.FiniteFloat(ASSOCIATION_GATE),
+              default=DEFAULT_ASSOCIATION_GATE, show_default=True,
+              help="Chi-square level of the association's gate and joint test (--associate).")
+@click.option("--associations", "associations_path", metavar="FILE",
+              help=f"With --associate: each input feature's global id ({TABLE_EXTENSIONS}): map,local_id,global_id.")
 @input_format_option
 @trajectory_option
 @json_option
@@ -37,7 +49,8 @@ from .common import (covariance_option, gate_option, global_map_format_option, g
 def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format: str | None,
          report_path: str | None, covariance: str, solver: str, strategy: str, jobs: int, exact: bool,
          max_iterations: int, tolerance: float | None, no_covariances: bool, gate: float, on_inconsistent: str,
-         input_format: str | None, trajectory_path: str | None) -> None:
+         associate: bool, association_gate: float, associations_path: str | None, input_format: str | None,
+         trajectory_path: str | None) -> None:
     """Join a chain of local maps into one global map.
 
     Map k must start at the end pose of map k-1; the global frame is the start pose of
@@ -51,13 +64,20 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
       mapjoin simulate -o - | mapjoin join - > global.csv
       mapjoin join ../shared/data/VicPark_6898_local_maps --strategy tree --jobs 2 -o vp.csv
       mapjoin join ../shared/data/DLR_200_local_maps --refine -o dlr_exact.yaml
+      mapjoin join maps/ --associate --associations ids.csv -o global.csv
     """
     common.check_jobs(jobs, strategy)
     if not exact and (solve_options := common.given(ctx, common.REFINE_OPTIONS)):
         raise click.UsageError(f"{solve_options[0]} is an option of the exact solve; add --refine")
     if on_inconsistent == "skip" and strategy != "sequential":
         raise click.UsageError("--on-inconsistent skip re-joins the chain map by map; use --strategy sequential")
-    outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path})
+    if not associate and (associations_path or ctx.get_parameter_source("association_gate").name != "DEFAULT"):
+        raise click.UsageError("--associations and --gate-association need --associate")
+    if associate and (jobs > 1 or exact or on_inconsistent == "skip"):
+        raise click.UsageError("--associate runs the join in one process, without --refine and without "
+                               "--on-inconsistent skip; drop those (refine the written map's inputs with their ids)")
+    outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path,
+                                   "--associations": associations_path})
     start = time.perf_counter()
     maps = common.read_local_maps(inputs, input_format, outputs)
     read = time.perf_counter() - start
@@ -70,6 +90,11 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                                       gate=gate, on_inconsistent=on_inconsistent,
                                       **common.solve_arguments(max_iterations, tolerance, no_covariances))
             result, global_map = refined.fast_join, refined.global_map
+        elif associate:
+            from ..association import join_associated
+
+            result = join_associated(maps, covariance, solver, strategy, gate=association_gate, progress=progress)
+            global_map = result.global_map
         else:
             result = join_maps(maps, covariance, solver, strategy, jobs, progress, gate=gate,
                                on_inconsistent=on_inconsistent)
@@ -84,6 +109,9 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
         if report_path:
             mapio.write_table(result.report, report_path, common.output_format(report_path, None, TABLE))
         common.write_trajectory(global_map, maps[0].start_id, trajectory_path)
+        if associations_path:
+            mapio.write_table(result.rows(maps), associations_path,
+                              common.output_format(associations_path, None, TABLE))
     if ctx.obj["verbose"]:
         for r in result.report:
             second = f", other minimum at {r.phi2:+.4f} rad" if r.minima == 2 else ""

@@ -33,11 +33,15 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
               help="Robots in one world, --maps maps each, their areas overlapping: the directory gets one "
                    "folder robot<r> per robot (its maps and truth, in its own frame) and the world's truth in "
                    "the first robot's frame (README, 'Merging maps').")
+@click.option("--local-ids", is_flag=True,
+              help="Number each map's features from 0 (ids local to the map, for `join --associate`); a folder "
+                   "output also gets the true correspondence, associations.csv (map,local_id,global_id).")
 @common.no_covariances_option
 @common.json_option
 @click.pass_context
 def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_map: int,
-             output_format: str, truth_path: str | None, robots: int, no_covariances: bool) -> None:
+             output_format: str, truth_path: str | None, robots: int, local_ids: bool,
+             no_covariances: bool) -> None:
     """Simulate a robot run, with ground truth, as local maps.
 
     The maps' estimates are drawn from their declared full covariances, so joins can be
@@ -57,6 +61,8 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
     if robots > 1:
         if stream:
             raise click.UsageError("--robots writes one folder per robot: give -o a directory")
+        if local_ids:
+            raise click.UsageError("--local-ids numbers one robot's maps; --robots keeps the world's ids for merge")
         _simulate_robots(ctx, output, robots, count, seed, steps_per_map, output_format, truth_path, no_covariances)
         return
     if not stream:
@@ -64,11 +70,18 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
     outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--truth": truth_path},
                             folders={} if stream else {"-o": output})
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
+    maps = simulation.maps
+    if local_ids:
+        from ..association import correspondence_rows, local_ids as localise
+
+        maps, correspondence = localise(maps)
     with outputs:
-        mapio.write_maps(simulation.maps, output if stream else os.path.join(output, ""), output_format,
+        mapio.write_maps(maps, output if stream else os.path.join(output, ""), output_format,
                          covariances=not no_covariances)
         if truth_path:
             mapio.write_truth(simulation.truth, truth_path)
+        if local_ids and not stream:
+            mapio.write_table(correspondence_rows(correspondence), os.path.join(output, "associations.csv"), "csv")
     common.summary(ctx, f"simulated {common.counted(count, 'local map')} (seed {seed})"
                    + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""),
                    {"maps": count, "seed": seed, "output": output, "truth": truth_path},

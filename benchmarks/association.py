@@ -1,0 +1,70 @@
+"""Data association on the real datasets with ids local to each map: recall, false matches, and its cost.
+
+For each dataset (ids replaced by ids local to each map, mapjoin.association.local_ids) and strategy:
+the true links (a feature seen again by a later map), how many the association missed and how many
+false links it made (input features given one global id that are different features), the ambiguous
+and rejected counts, and the time of the associating join against the known-id join of the same maps
+(medians of --repeat runs, in one process, maps loaded). Writes the 'association' section of
+benchmarks/README.md.
+
+    PYTHONPATH=src python benchmarks/association.py [DATASETS...] [--repeat N]
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import dataset_arguments, median_seconds, write_section  # noqa: E402
+
+from mapjoin import io as mapio  # noqa: E402
+from mapjoin.association import DEFAULT_GATE, join_associated, local_ids  # noqa: E402
+from mapjoin.joining import join  # noqa: E402
+
+DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps")
+
+
+def score(local, truth, found) -> tuple[int, int, int]:
+    """(true links, missed, false): the found partition of the input features against the true one."""
+    true = np.concatenate(truth)
+    mine = np.concatenate([found.global_ids[k][np.argsort(m.feature_ids)] for k, m in enumerate(local)])
+    pairs = set(zip(mine.tolist(), true.tolist()))
+    per_found = collections.Counter(f for f, _ in pairs)
+    per_true = collections.Counter(t for _, t in pairs)
+    return (len(true) - len(set(true.tolist())), sum(c - 1 for c in per_true.values()),
+            sum(c - 1 for c in per_found.values()))
+
+
+def main() -> None:
+    args = dataset_arguments(__doc__, DATASETS)
+    lines = [f"Measured with `PYTHONPATH=src python benchmarks/association.py --repeat {args.repeat}` "
+             f"(load average {os.getloadavg()[0]:.2f} at the start; gate {DEFAULT_GATE}, default covariance mode).", "",
+             "| dataset | strategy | true links | missed | recall | false links | ambiguous | rejected | "
+             "associating join (ms) | known-id join (ms) | ratio |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name in args.datasets:
+        maps = mapio.read_maps(str(args.data / name))
+        local, truth = local_ids(maps)
+        for strategy in ("sequential", "tree"):
+            join(maps, strategy=strategy)
+            join_associated(local, strategy=strategy)  # warm-up: imports and caches
+            associating, found = median_seconds(lambda: join_associated(local, strategy=strategy), args.repeat)
+            known, _ = median_seconds(lambda: join(maps, strategy=strategy), args.repeat)
+            links, missed, false = score(local, truth, found)
+            ambiguous = sum(r.ambiguous for r in found.report)
+            rejected = sum(r.rejected for r in found.report)
+            row = (f"| {name} | {strategy} | {links} | {missed} | {100 * (links - missed) / links:.1f} % | {false} | "
+                   f"{ambiguous} | {rejected} | {1e3 * associating:.1f} | {1e3 * known:.1f} | "
+                   f"{associating / known:.1f}× |")
+            print(row, flush=True)
+            lines.append(row)
+    write_section("association", "\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
