@@ -12,7 +12,6 @@ benchmarks/README.md.
 
 from __future__ import annotations
 
-import collections
 import os
 import sys
 from pathlib import Path
@@ -23,21 +22,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import dataset_arguments, median_seconds, write_section  # noqa: E402
 
 from mapjoin import io as mapio  # noqa: E402
-from mapjoin.association import DEFAULT_GATE, join_associated, local_ids  # noqa: E402
+from mapjoin.association import DEFAULT_GATE, join_associated, link_errors, local_ids  # noqa: E402
 from mapjoin.joining import join  # noqa: E402
 
 DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps")
 
-
-def score(local, truth, found) -> tuple[int, int, int]:
-    """(true links, missed, false): the found partition of the input features against the true one."""
-    true = np.concatenate(truth)
-    mine = np.concatenate([found.global_ids[k][np.argsort(m.feature_ids)] for k, m in enumerate(local)])
-    pairs = set(zip(mine.tolist(), true.tolist()))
-    per_found = collections.Counter(f for f, _ in pairs)
-    per_true = collections.Counter(t for _, t in pairs)
-    return (len(true) - len(set(true.tolist())), sum(c - 1 for c in per_true.values()),
-            sum(c - 1 for c in per_found.values()))
 
 
 def main() -> None:
@@ -55,7 +44,7 @@ def main() -> None:
             join_associated(local, strategy=strategy)  # warm-up: imports and caches
             associating, found = median_seconds(lambda: join_associated(local, strategy=strategy), args.repeat)
             known, _ = median_seconds(lambda: join(maps, strategy=strategy), args.repeat)
-            links, missed, false = score(local, truth, found)
+            links, missed, false = link_errors(local, truth, found)
             ambiguous = sum(r.ambiguous for r in found.report)
             rejected = sum(r.rejected for r in found.report)
             row = (f"| {name} | {strategy} | {links} | {missed} | {100 * (links - missed) / links:.1f} % | {false} | "

@@ -3,7 +3,6 @@ test against dense formulas, local ids, recovery on simulated and real maps, the
 
 from __future__ import annotations
 
-import collections
 import csv
 import logging
 import math
@@ -15,22 +14,28 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
-from mapjoin.association import (_gate, _joint_distances, _joint_terms, chi2_quantile, correspondence_rows,
+from mapjoin.association import (link_errors, _gate, _joint_distances, _joint_terms, chi2_quantile, correspondence_rows,
                                  join_associated, local_ids, match_features)
 from mapjoin.joining import join
+from mapjoin.maps import LocalMap
 from mapjoin.simulation import simulate
 
 
-def score(local, truth, found) -> tuple[int, int, int]:
-    """(true links, links missed, false links): a link is a feature seen again by a later map; the found
-    global ids partition the input features, compared with the true partition."""
-    true = np.concatenate(truth)
-    mine = np.concatenate([found.global_ids[k][np.argsort(m.feature_ids)] for k, m in enumerate(local)])
-    pairs = set(zip(mine.tolist(), true.tolist()))
-    per_found = collections.Counter(f for f, _ in pairs)
-    per_true = collections.Counter(t for _, t in pairs)
-    return (len(true) - len(set(true.tolist())), sum(c - 1 for c in per_true.values()),
-            sum(c - 1 for c in per_found.values()))
+
+def test_link_errors_count_missed_and_false_links_by_hand():
+    """Two maps; true ids: map 1 sees features 10, 11, map 2 sees 10, 11, 12 (two true links)."""
+    def local_map(name, start, ids):
+        return LocalMap(name=name, start_id=start, end_id=start + 1, end_pose=np.zeros(3), feature_ids=np.array(ids),
+                        features=np.zeros((len(ids), 2)), pose_variances=np.ones(2), feature_variances=np.ones(len(ids)))
+    local = [local_map("a", 0, [0, 1]), local_map("b", 1, [0, 1, 2])]
+    truth = [np.array([10, 11]), np.array([10, 11, 12])]
+
+    class Found:
+        def __init__(self, *ids):
+            self.global_ids = [np.array(i) for i in ids]
+    assert link_errors(local, truth, Found([0, 1], [0, 1, 2])) == (2, 0, 0)    # all right
+    assert link_errors(local, truth, Found([0, 1], [0, 5, 2])) == (2, 1, 0)    # 11 seen anew: one missed
+    assert link_errors(local, truth, Found([0, 1], [0, 1, 0])) == (2, 0, 1)    # 12 taken for 10: one false
 
 
 def test_chi2_quantiles_match_scipy():
@@ -167,7 +172,7 @@ def test_noise_free_simulations_are_associated_without_false_matches(seed, count
     maps = simulate(count, seed=seed, noiseless=True).maps
     local, truth = local_ids(maps)
     found = join_associated(local, strategy=strategy)
-    links, missed, false = score(local, truth, found)
+    links, missed, false = link_errors(local, truth, found)
     assert false == 0
     assert missed <= sum(r.ambiguous + r.rejected for r in found.report)
     if missed == 0:
@@ -190,7 +195,7 @@ def test_target_recall_99_percent_without_false_links(data_dir, name, strategy, 
     maps = simulate(30, seed=11).maps if name == "simulation" else mapio.read_maps(str(data_dir / name))
     local, truth = local_ids(maps)
     found = join_associated(local, strategy=strategy)
-    links, missed, false = score(local, truth, found)
+    links, missed, false = link_errors(local, truth, found)
     assert false == 0 and missed <= links // 100
     if missed == 0:
         known = join(maps, strategy=strategy).global_map

@@ -45,6 +45,7 @@ returns the true correspondence (tests, benchmarks, ``simulate --local-ids``).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 from collections.abc import Callable, Sequence
@@ -61,7 +62,7 @@ if TYPE_CHECKING:
     from .joining import _Pieces
     from .onestep import Solver
 
-__all__ = ["DEFAULT_GATE", "EXHAUSTIVE_PAIRS", "AssociatedJoinRecord", "AssociatedJoin", "FeatureAssociation",
+__all__ = ["DEFAULT_GATE", "link_errors", "EXHAUSTIVE_PAIRS", "AssociatedJoinRecord", "AssociatedJoin", "FeatureAssociation",
            "Matches", "chi2_quantile", "correspondence_rows", "join_associated", "local_ids", "match_features"]
 
 #: default chi-square level of the individual gate and of the joint compatibility test
@@ -521,3 +522,20 @@ def correspondence_rows(truth: Sequence[np.ndarray]) -> list[FeatureAssociation]
     """:func:`local_ids`' truth as the rows ``join --associations`` writes (map 1-based, by local id)."""
     return [FeatureAssociation(k + 1, local, int(found)) for k, ids in enumerate(truth)
             for local, found in enumerate(ids.tolist())]
+
+
+def link_errors(local: Sequence[LocalMap], truth: Sequence[np.ndarray], found: AssociatedJoin) -> tuple[int, int, int]:
+    """How an association compares with the true one: (true links, links missed, false links).
+
+    A link is a feature seen again by a later map. ``truth[k]`` are map k's true global ids in the
+    order of its sorted local ids (as :func:`local_ids` returns them); ``found`` the association's
+    global ids. Both partition the input features: a true feature split over several found ones
+    counts the extra parts as missed links, a found feature joining several true ones counts the
+    extra ones as false links."""
+    true = np.concatenate(truth)
+    mine = np.concatenate([found.global_ids[k][np.argsort(m.feature_ids)] for k, m in enumerate(local)])
+    pairs = set(zip(mine.tolist(), true.tolist()))
+    per_found = collections.Counter(f for f, _ in pairs)
+    per_true = collections.Counter(t for _, t in pairs)
+    return (len(true) - len(set(true.tolist())), sum(c - 1 for c in per_true.values()),
+            sum(c - 1 for c in per_found.values()))
