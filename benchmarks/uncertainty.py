@@ -31,7 +31,6 @@ import dataclasses
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
-from mapjoin.consistency import DEFAULT_GATE, degrees_of_freedom, flags, p_values
+from mapjoin.consistency import degrees_of_freedom, flags, p_values
 from mapjoin.errors import JoinError
 from mapjoin.evaluation import compare
 from mapjoin.joining import join, join_sequential

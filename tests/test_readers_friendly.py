@@ -263,7 +263,7 @@ def test_a_conversion_that_drops_variances_says_so_once(tmp_path):
     result = run("convert", str(tmp_path / "maps.yaml"), "-o", str(tmp_path / "txt") + "/", "--to", "linearslam")
     assert result.exit_code == 0, result.output
     warnings = [line for line in result.stderr.splitlines() if "warning" in line]
-    assert len(warnings) == 1 and "the variances of 3 map(s) differ from their covariance's marginal" in warnings[0]
+    assert len(warnings) == 1 and "the variances of 3 maps differ from their covariance's marginal" in warnings[0]
     back = mapjoin.read_maps(str(tmp_path / "txt"))
     assert np.allclose(back[0].feature_variances, [(0.06 + 0.08) / 2], rtol=1e-9)
     result = run("convert", str(tmp_path / "txt"), "-o", str(tmp_path / "again") + "/", "--to", "mat")
@@ -278,7 +278,7 @@ def test_no_covariances_writes_spherical_variances_only_and_says_so(tmp_path, co
     result = run(*[part.format(tmp=tmp_path) for part in command], "--no-covariances")
     assert result.exit_code == 0, result.output
     assert [line for line in result.stderr.splitlines() if "warning" in line] == [
-        "mapjoin: warning: dropped the full covariances of 3 map(s) as asked: only their spherical variances are written"]
+        "mapjoin: warning: dropped the full covariances of 3 maps as asked: only their spherical variances are written"]
     back = mapjoin.read_maps(str(tmp_path / "out.csv"))
     assert all(m.covariance is None for m in back)
     for written, original in zip(back, simulation.maps):

@@ -16,7 +16,6 @@ a few numpy calls per size.
 from __future__ import annotations
 
 import itertools
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import InitVar, dataclass, field
 from typing import NamedTuple

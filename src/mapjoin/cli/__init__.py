@@ -12,7 +12,6 @@ input is read and writes them all or none.
 from __future__ import annotations
 
 import logging
-import sys
 
 import click
 

@@ -14,7 +14,7 @@ import click
 from .. import io as mapio
 from ..consistency import DEFAULT_GATE, POLICIES
 from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
-from ..errors import InputError, counted, shown
+from ..errors import InputError, counted, shown  # noqa: F401  (counted: the commands' common.counted)
 from ..io.numbers import first_unplain
 from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, TRAJECTORY, Kind, by_name, extensions_text, names
 from ..joining import STRATEGIES

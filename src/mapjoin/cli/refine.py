@@ -10,8 +10,7 @@ from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE
 from . import common, main
 from .common import (covariance_option, gate_option, global_map_format_option, global_map_output_option,
-                     input_format_option, inputs_argument, json_option, on_inconsistent_option, progress_bar, say,
-                     solver_option, trajectory_option)
+                     input_format_option, inputs_argument, json_option, on_inconsistent_option, progress_bar, solver_option, trajectory_option)
 
 
 @main.command()

@@ -226,8 +226,8 @@ def _spherical(maps: Sequence[LocalMap]) -> list[LocalMap]:
     """The maps without their full covariances (already checked: not checked again), with one warning."""
     dropped = sum(local_map.covariance is not None for local_map in maps)
     if dropped:
-        log.warning("dropped the full covariances of %d map(s) as asked: only their spherical variances are "
-                    "written", dropped)
+        log.warning("dropped the full covariances of %s as asked: only their spherical variances are "
+                    "written", counted(dropped, "map"))
     return [local_map if local_map.covariance is None else
             LocalMap(*(getattr(local_map, key) for key in _LOCAL_MAP_FIELDS), None, checked=True)
             for local_map in maps]
@@ -243,9 +243,9 @@ def _warn_dropped_variances(maps: Sequence[LocalMap], fmt: Format) -> None:
     dropped = [local_map.name for local_map in maps if local_map.covariance is not None
                and not _marginal(local_map)]
     if dropped:
-        log.warning("%s stores a map's full covariance, not its spherical variances: the variances of %d map(s) "
+        log.warning("%s stores a map's full covariance, not its spherical variances: the variances of %s "
                     "differ from their covariance's marginal ones, which they read back as (first: %s; the joins "
-                    "use the covariance either way)", fmt.name, len(dropped), dropped[0])
+                    "use the covariance either way)", fmt.name, counted(len(dropped), "map"), dropped[0])
 
 
 def _marginal(local_map: LocalMap) -> bool:

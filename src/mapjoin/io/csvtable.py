@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
-import reprlib
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
