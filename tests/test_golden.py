@@ -8,7 +8,7 @@ tolerance (the golden-section search, the least-squares builds) carry such diffe
 up to their tolerance. So a case's fingerprint is
 
 - ``layout``: the SHA-256 of every file's name and text with each number replaced by
-  ``#``: any change of format, order, header or count of values fails exactly;
+  ``#`` (and the data and output folders, which outputs name, by placeholders): any change of format, order, header or count of values fails exactly;
 - ``count``: how many numbers the case wrote, and ``digits``: the mean number of
   significant digits they were written with (a lost precision fails);
 - ``sample``: 128 numbers at evenly spaced positions, compared one by one with
@@ -101,8 +101,12 @@ def _cases() -> dict[str, list[str]]:
 CASES = _cases()
 
 
-def _read(path: Path) -> tuple[bytes, np.ndarray, int]:
-    """A file's layout (its text with numbers as ``#``), its numbers in order, and their digits."""
+def _read(path: Path, places: dict[bytes, bytes]) -> tuple[bytes, np.ndarray, int]:
+    """A file's layout (its text with numbers as ``#``), its numbers in order, and their digits.
+
+    ``places`` maps the machine's folders (the data folder, the output folder) to
+    placeholders: outputs name their sources by path, and CI clones elsewhere.
+    """
     if path.suffix == ".mat":
         contents = scipy.io.loadmat(path)
         names = sorted(name for name in contents if not name.startswith("__"))
@@ -111,6 +115,8 @@ def _read(path: Path) -> tuple[bytes, np.ndarray, int]:
         values = np.concatenate([array.ravel(order="F") for array in arrays] or [np.empty(0)])
         return layout, values, 17 * values.size
     text = path.read_bytes()
+    for folder, placeholder in places.items():
+        text = text.replace(folder, placeholder)
     tokens = NUMBER.findall(text)
     return NUMBER.sub(b"#", text), np.array([float(token) for token in tokens]), sum(map(_digits, tokens))
 
@@ -121,13 +127,13 @@ def _digits(token: bytes) -> int:
     return len(mantissa)
 
 
-def _fingerprint(folder: Path) -> dict:
+def _fingerprint(folder: Path, places: dict[bytes, bytes] | None = None) -> dict:
     """The fingerprint of every file below the folder (see the module docstring)."""
     layout = hashlib.sha256()
     numbers, digits = [], 0
     for path in sorted(folder.rglob("*")):
         if path.is_file():
-            text, values, written = _read(path)
+            text, values, written = _read(path, places or {})
             digits += written
             layout.update(path.relative_to(folder).as_posix().encode() + b"\0" + text + b"\0")
             numbers.append(values)
@@ -172,7 +178,7 @@ def test_outputs_match_the_recorded_ones(case, data_dir, tmp_path):
     args = [arg.format(data=data_dir, out=out) for arg in CASES[case]]
     result = run("-q", *args)
     assert result.exit_code == 0, result.output
-    got = _fingerprint(out)
+    got = _fingerprint(out, {str(out).encode(): b"{out}", str(data_dir).encode(): b"{data}"})
     assert got["layout"] != hashlib.sha256().hexdigest(), f"{case} wrote nothing"
     if UPDATE:
         recorded = _recorded()
