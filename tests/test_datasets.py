@@ -190,8 +190,8 @@ def test_network_failure_names_the_url_and_suggests_a_mirror(tmp_path, monkeypat
     assert result.exit_code == 1
     url = f"{DATASETS['dlr-200'].url}/localmap_1.mat"
     assert result.stderr.startswith(f"Error: cannot download {url} ([Errno -3] Temporary failure in name resolution); "
-                                    "check the network connection, or fetch from a mirror or a local copy with "
-                                    "--source URL")
+                                    "check the network connection, or fetch from a mirror or a local copy (a URL or "
+                                    "folder holding DLR_200_local_maps/): pass it with --source URL")
     assert result.stderr.count("\n") == 1 and leftovers(tmp_path) == []
     assert not (tmp_path / "DLR_200_local_maps").exists()
 
@@ -209,3 +209,9 @@ def test_an_unwritable_cache_is_a_clear_error(tmp_path, data_dir):
     blocked.write_text("not a folder")
     with pytest.raises(FetchError, match=f"{blocked}: cannot create the cache folder"):
         datasets.fetch("sim-535", blocked, data_dir.as_uri())
+    with pytest.raises(FetchError) as raised:
+        datasets.fetch("sim-535", blocked, data_dir.as_uri())
+    assert raised.value.argument == "into" and "--" not in str(raised.value)  # the library names no option
+    result = run("datasets", "fetch", "sim-535", "--into", str(blocked / "cache"), "--source", data_dir.as_uri())
+    assert result.exit_code == 1 and result.stderr.count("\n") == 1
+    assert result.stderr.rstrip().endswith("choose another cache folder: pass it with --into DIR")

@@ -12,7 +12,7 @@ files cannot change under the checksums.
 root) records the SHA-256 of every file of every set present in the reference copy
 (``../shared/data`` beside the project); sets not present there (e.g. DLR 3298) have none,
 are fetched unverified, and say so. A cache folder has the reference copy's layout,
-``<cache>/<folder>/<file>``, so a cache (or the reference copy) can serve as a ``--source``
+``<cache>/<folder>/<file>``, so a cache (or the reference copy) can serve as a ``source``
 mirror for another machine.
 
 Fetching downloads into a temporary folder beside the target and renames it into place
@@ -52,7 +52,15 @@ _TIMEOUT = 60.0  # seconds without data before a download fails
 
 
 class FetchError(MapjoinError):
-    """A dataset that could not be fetched: unreachable source, missing file, or wrong checksum."""
+    """A dataset that could not be fetched: unreachable source, missing file, or wrong checksum.
+
+    ``argument`` names the :func:`fetch` argument whose change is the remedy (``into`` or
+    ``source``), so that a caller can say how to pass it; ``None`` when no argument helps.
+    """
+
+    def __init__(self, message: str, argument: str | None = None) -> None:
+        super().__init__(message)
+        self.argument = argument
 
 
 @dataclass(frozen=True)
@@ -185,7 +193,7 @@ def fetch(name: str, into: str | Path | None = None, source: str | None = None,
         temporary.mkdir()
     except OSError as error:
         raise FetchError(f"{root}: cannot create the cache folder ({error.strerror or error}); choose another "
-                         "with --into") from None
+                         "cache folder", argument="into") from None
     try:
         downloads = _download_all(dataset, base, temporary, progress)
         if expected is not None:
@@ -242,8 +250,7 @@ def _download(url: str, path: Path, optional: bool, dataset: Dataset) -> tuple[s
                              f"(<source>/{dataset.folder}/<file>)") from None
         reason = getattr(error, "reason", None) or error
         raise FetchError(f"cannot download {url} ({reason}); check the network connection, or fetch from a mirror "
-                         f"or a local copy with --source URL (a URL or folder holding {dataset.folder}/, e.g. "
-                         "--source file:///path/to/data)") from None
+                         f"or a local copy (a URL or folder holding {dataset.folder}/)", argument="source") from None
     return digest.hexdigest(), size
 
 

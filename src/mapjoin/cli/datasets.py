@@ -9,6 +9,8 @@ import click
 from . import common, main
 from .common import progress_bar, say
 
+_REMEDIES = {"into": "--into DIR", "source": "--source URL (e.g. --source file:///path/to/data)"}
+
 into_option = click.option(
     "--into", type=click.Path(file_okay=False, path_type=Path), metavar="DIR",
     help="Cache directory (default: $XDG_CACHE_HOME/mapjoin, else ~/.cache/mapjoin).")
@@ -83,7 +85,12 @@ def fetch(ctx: click.Context, names: tuple[str, ...], into: Path | None, source:
 
     for dataset in [catalogue.get(name) for name in names]:
         with progress_bar(ctx, len(dataset.files), f"fetching {dataset.name}") as progress:
-            result = catalogue.fetch(dataset.name, into, source, progress)
+            try:
+                result = catalogue.fetch(dataset.name, into, source, progress)
+            except catalogue.FetchError as error:
+                if error.argument is None:
+                    raise
+                raise catalogue.FetchError(f"{error}: pass it with {_REMEDIES[error.argument]}") from None
         if result.already_cached:
             check = "checksums verified" if result.verified else "no checksums known"
             say(ctx, f"{dataset.name}: already in the cache ({common.counted(result.files, 'file')}, {check})")
