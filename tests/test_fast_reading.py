@@ -4,6 +4,7 @@ and the errors of the line-tracking readers; YAML streams are read document by d
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 from collections.abc import Iterator
 from pathlib import Path
@@ -166,3 +167,20 @@ def test_directives_comments_and_document_ends_stay_with_their_document():
     assert [line for line, _ in chunks] == [0, 6, 9]
     assert "".join(chunk for _, chunk in chunks) == text
     assert [len(yamldoc.documents(chunk, "s")) for _, chunk in chunks] == [1, 1, 1]
+
+
+
+NAMES = ["../shared/data/localmap_1.mat", "./maps/m.yaml", "map 1", "0001", "1e5", "yes", "null", "-", "<stdin>#3",
+         "a: b", "#x", "'quoted'", "tab\there", "ü/ß.mat", " padded", "x # not a comment", "[1, 2]", ".5", "~", ""]
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_any_written_name_is_read_fast_and_as_the_line_tracking_reader_reads_it(name):
+    """The name line (a path, often relative) does not send a document to the slow path (``../`` did)."""
+    first = mapio.read_maps(["-"], stdin=io.StringIO(_SIMULATED), format="yaml")[0]
+    text = io.StringIO()
+    mapio.write_maps([dataclasses.replace(first, name=name)], text, "yaml")
+    assert fast_documents(text.getvalue()) == 1
+    fast, tracked = both_ways(yaml_maps.read, text.getvalue(), "s.yaml")
+    assert_same_maps(fast, tracked)
+    assert yaml_maps._fast_document(text.getvalue())["name"] == name

@@ -53,10 +53,10 @@ _VARIANCES = ("var", "var_xy", "var_phi")  # may be left out when the map has a 
 
 _ID = r"(?:0|[1-9][0-9]*)"  # YAML 1.1 reads 012 as octal: not here
 _FLOAT = yamldoc.PLAIN_FLOAT
-_NAME = r"[A-Za-z/<_][A-Za-z0-9_./<>#+-]*"  # a plain scalar YAML reads as this string, unless _RESOLVED
-_RESOLVED = frozenset({"yes", "no", "true", "false", "on", "off", "null", "<<"})  # lower case
+_NAME = re.compile(r"(?:\.\.?/|[A-Za-z/<_])[A-Za-z0-9_./<>#+-]*")  # plain scalars YAML reads as this string,
+_RESOLVED = frozenset({"yes", "no", "true", "false", "on", "off", "null", "<<"})  # unless one of these (lower case)
 _FAST_HEAD = re.compile(
-    rf"(?:---\n)?format: {_FORMAT}\nversion: 1\n(?:name: ({_NAME})\n)?start_id: ({_ID})\nend_id: ({_ID})\n"
+    rf"(?:---\n)?format: {_FORMAT}\nversion: 1\n(?:name: ([^\n]*)\n)?start_id: ({_ID})\nend_id: ({_ID})\n"
     rf"end_pose: \{{x: ({_FLOAT}), y: ({_FLOAT}), phi: ({_FLOAT}), var_xy: ({_FLOAT}), var_phi: ({_FLOAT})\}}\n"
     r"features:(?: (\[\])\n|\n)")
 _FAST_FEATURES = re.compile(rf"(?:- \{{id: {_ID}, x: {_FLOAT}, y: {_FLOAT}, var: {_FLOAT}\}}\n)+")
@@ -116,8 +116,10 @@ def _fast_document(text: str) -> dict[str, Any] | None:
     if head is None:
         return None
     name, start_id, end_id, *pose, no_features = head.groups()
-    if name is not None and name.lower() in _RESOLVED:
-        return None
+    if name is not None:
+        name = name if _NAME.fullmatch(name) and name.lower() not in _RESOLVED else yamldoc.one_line_string(name)
+        if name is None:
+            return None
     end = head.end()
     if no_features:
         tokens: list[str] = []

@@ -27,7 +27,7 @@ if TYPE_CHECKING:  # PyYAML is imported when YAML is read or written
     import yaml
 
 __all__ = ["COLUMN_CHECKS", "FIELD_KINDS", "PLAIN_FLOAT", "Columns", "Document", "NeedsLines", "document", "documents",
-           "dump", "looks_like_yaml", "records", "split_documents", "stack"]
+           "dump", "looks_like_yaml", "one_line_string", "records", "split_documents", "stack"]
 
 
 _YAML_FLOAT = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$")
@@ -328,6 +328,18 @@ def documents(text: str, source: str, first_line: int = 0) -> list[Document]:
     finally:
         loader.dispose()
     return parsed
+
+
+def one_line_string(text: str) -> str | None:
+    """The string that the one-line YAML value ``text`` (quoted, say, or with a comment) reads as; None when it
+    reads as anything else (a number, a boolean, null, a list) or is not valid YAML on its own line."""
+    import yaml
+
+    try:
+        value = yaml.load(text, Loader=_yaml_classes()[0])  # noqa: S506 -- mapjoin's loader is a safe loader
+    except (yaml.YAMLError, ValueError, OverflowError, RecursionError):
+        return None
+    return value if type(value) is str else None
 
 
 def _one_line(message: object) -> str:
