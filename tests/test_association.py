@@ -4,6 +4,7 @@ test against dense formulas, local ids, recovery on simulated and real maps, the
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 import math
 
@@ -14,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
-from mapjoin.association import (_gate, _joint_distances, _joint_terms, chi2_quantile, correspondence_rows, inverted,
+from mapjoin.association import (_gate, _joint_distances, _joint_terms, chi2_quantile, correspondence_rows,
+                                 feature_covariances, inverted,
                                  join_associated, link_errors, local_ids, match_features, rotated, sighting_bits)
 from mapjoin.joining import join
 from mapjoin.maps import LocalMap
@@ -181,6 +183,51 @@ def test_the_joint_test_rejects_a_pair_inconsistent_with_the_others():
     right[6] += 0.9
     found = match_one(left, np.full(7, 1e-3), 0j, 0.0, (1.0, 1e-8), right, np.full(7, 1e-3))
     assert 6 not in found.right.tolist() and len(found.right) == 6
+
+
+def test_feature_covariances_are_the_marginal_blocks_in_sorted_id_order():
+    rng = np.random.default_rng(9)
+    ids = np.array([7, 2, 9, 4])
+    factor = rng.normal(size=(11, 11))
+    covariance = factor @ factor.T + np.eye(11)
+    local_map = LocalMap(name="m", start_id=0, end_id=1, end_pose=np.zeros(3), feature_ids=ids,
+                         features=rng.normal(size=(4, 2)), pose_variances=np.ones(2),
+                         feature_variances=np.arange(1.0, 5.0), covariance=covariance)
+    found = feature_covariances(local_map)
+    for row, position in enumerate(np.argsort(ids)):  # file position of the row-th smallest id
+        block = covariance[3 + 2 * position:5 + 2 * position, 3 + 2 * position:5 + 2 * position]
+        assert np.allclose(found[row], [block[0, 0], block[0, 1], block[1, 1]])
+    spherical = feature_covariances(dataclasses.replace(local_map, covariance=None))
+    assert spherical.tolist() == [[v, 0.0, v] for v in [2.0, 4.0, 1.0, 3.0]]
+
+
+def test_a_feature_mapped_twice_is_no_rival_of_itself():
+    """Two left features 0.3 m apart in the gate of one right feature: never seen in one map, they may be one feature
+    mapped twice and the nearest is taken; seen in one map, they are two features and the choice is left new."""
+    left = np.array([0.0 + 0j, 0.3 + 0j, 10 + 0j])
+    right = np.array([0.1 + 0j, 10 + 0j])
+    args = (left, np.full(3, 0.05), np.zeros(3, np.intp), np.array([0j]), np.array([0.0]), np.array([(0.01, 1e-6)]),
+            right, np.full(2, 0.05), np.zeros(2, np.intp))
+    apart = match_features(*args, left_sightings=sighting_bits([0, 1, 0]), right_sightings=sighting_bits([2, 2]))
+    assert sorted(zip(apart.left.tolist(), apart.right.tolist())) == [(0, 0), (2, 1)]
+    together = match_features(*args, left_sightings=sighting_bits([0, 0, 0]), right_sightings=sighting_bits([2, 2]))
+    assert sorted(zip(together.left.tolist(), together.right.tolist())) == [(2, 1)]
+    assert together.ambiguous.tolist() == [1]
+    assert sighting_bits([0, 64, 128, 255]).tolist() == [[1, 0], [0, 1], [1, 0], [0, 1 << 63]]
+
+
+def test_rounds_find_the_pairs_the_link_error_hid(monkeypatch):
+    """The link's heading is off by 0.03 rad, almost four of its prior standard deviations: the first round gates the
+    features near the start only; the link corrected by them, the far ones are found too."""
+    rng = np.random.default_rng(12)
+    right = rng.uniform(1, 40, 20) * np.exp(1j * rng.uniform(-np.pi, np.pi, 20))
+    left = right * np.exp(0.03j) + rng.normal(scale=0.003, size=20) + 1j * rng.normal(scale=0.003, size=20)
+    args = (left, np.full(20, 1e-4), np.zeros(20, np.intp), np.array([0j]), np.array([0.0]),
+            np.array([(1e-6, 6e-5)]), right, np.full(20, 1e-4), np.zeros(20, np.intp))
+    found = match_features(*args)
+    assert found.left.tolist() == found.right.tolist() == list(range(20))
+    monkeypatch.setattr("mapjoin.association.ROUNDS", 1)
+    assert 0 < len(match_features(*args).right) < 20
 
 
 @pytest.mark.parametrize("strategy", ["sequential", "tree"])

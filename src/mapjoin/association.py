@@ -5,30 +5,38 @@ Maps whose feature ids are local to each map (a front end's submaps) cannot be j
 join (sequential and tree) which features of the right piece are features of the left one
 (docs/method.md#data-association):
 
-1. **Prediction.** Right's features ``z`` are predicted in left's frame through left's end pose
-   ``(o, phi_o)``, the join's link: ``x = o + R(phi_o) z``. An error ``(dt, dphi)`` of the link
-   moves the prediction by ``dt + R'(phi_o) z dphi``; with the spherical variances of the link
-   ``(var_t, p_phi)``, of left's feature ``var0`` and of right's ``var1``, a pair's innovation
-   ``r = f - x`` has covariance ``S = a I + p_phi u u^T`` with ``a = var0 + var1 + var_t`` and
-   ``u = R'(phi_o) z`` (the heading error's lever is perpendicular to ``z``, so ``S`` is not
-   spherical).
-2. **Gate.** A pair is a candidate when its Mahalanobis distance ``r^T S^-1 r`` is within the
-   ``gate`` quantile of a chi-square with 2 degrees of freedom (default 0.999: a true pair is
-   refused once in a thousand).
-3. **Ambiguity, nearest neighbour.** A right feature with two or more candidates, or whose
-   candidate is also another right feature's candidate, is *ambiguous* and left new: never guessed.
-   Every other gated right feature has one candidate, its nearest neighbour.
+1. **Covariances.** Each right feature's uncertainty relative to the join's link is its 2 x 2 marginal
+   covariance in its local map (the map's full covariance, which the spherical weights of the fast join
+   are not: :func:`feature_covariances`), rotated into left's frame. Each left feature carries the
+   covariances of its sightings fused as independent estimates: its uncertainty relative to the maps
+   that saw it, whose common drift is left to the link's error (3).
+2. **Prediction and gate.** Right's features ``z`` are predicted in left's frame through left's end pose
+   ``(o, phi_o)``, the join's link: ``x = o + R(phi_o) z``. A link error ``(dt, dphi)`` moves the
+   prediction by ``H (dt, dphi)``, ``H = [I, u]``, ``u = R'(phi_o) z``; a pair's innovation
+   ``r = f - x`` has covariance ``S = s (C0 + C1) + H P_link H^T``. A pair is a candidate when
+   ``r^T S^-1 r`` is within the ``gate`` quantile of a chi-square with 2 degrees of freedom
+   (default 0.999: a true pair is refused once in a thousand).
+3. **Nearest neighbour, when clear.** A pair is taken when each of its features is the other's nearest
+   candidate and each one's nearest *rival* is at least ``margin`` farther (squared Mahalanobis distance;
+   default 9.2 = 2 ln 100: the nearest is a hundred times likelier). A rival is a candidate that is a
+   different feature from the nearest one: seen in one map with it. Two candidates never seen in one map may
+   be one feature mapped twice (an earlier miss), and taking the nearest then joins no two features; this
+   stops a miss from making every later sighting of the feature ambiguous. Other right features with
+   candidates are *ambiguous* and left new.
 4. **Joint compatibility.** The pairs share the link's error, so they are tested together: the
-   joint Mahalanobis distance of all their innovations (covariance ``diag(a_j) + H P_link H^T``,
-   ``H_j = [I, u_j]``, evaluated in 3-D by the Woodbury identity) must be within the ``gate``
+   joint Mahalanobis distance of all their innovations (covariance ``blockdiag(s (C0 + C1)) + H P_link H^T``,
+   evaluated in 3-D by the Woodbury identity) must be within the ``gate``
    quantile of a chi-square with ``2k`` degrees of freedom. When it is not, the largest jointly
    compatible subset is kept: by exhaustive search over every subset at once (as arrays) when at
    most :data:`EXHAUSTIVE_PAIRS` pairs remain (the optimum branch and bound would find), after
    removing, one at a time, the pair with the largest residual once the link is corrected
    while more remain. Pairs removed are *rejected* and their right features left new.
-5. **Second pass.** Gate, ambiguity and joint test once more around the prediction corrected by the
-   link error the pairs explain, with its posterior covariance, the variances scaled by the first
-   pass's a-posteriori variance factor (when it is above 1).
+5. **Rounds.** The pairs give the link's correction and its posterior covariance ``P_link``, and the
+   a-posteriori variance factor ``s``: the median of the pairs' squared residuals (Mahalanobis, after the
+   correction) over the median of a chi-square with 2 degrees of freedom, robust to a few wrong pairs,
+   at least 1, once the pairs have :data:`MIN_DOF` degrees of freedom. Steps 2 to 4 run again around the
+   corrected prediction until the pairs repeat (at most :data:`ROUNDS` rounds), which removes the link's
+   error and finds the pairs it had hidden (as ICP does).
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -62,8 +70,10 @@ if TYPE_CHECKING:
     from .joining import _Pieces
     from .onestep import Solver
 
-__all__ = ["DEFAULT_GATE", "link_errors", "EXHAUSTIVE_PAIRS", "AssociatedJoinRecord", "AssociatedJoin", "FeatureAssociation",
-           "Matches", "chi2_quantile", "correspondence_rows", "join_associated", "local_ids", "match_features"]
+__all__ = ["DEFAULT_GATE", "DEFAULT_MARGIN", "link_errors", "EXHAUSTIVE_PAIRS", "ROUNDS", "AssociatedJoinRecord",
+           "AssociatedJoin", "FeatureAssociation", "Matches", "blocks", "chi2_quantile", "correspondence_rows",
+           "feature_covariances", "fused", "inverted", "join_associated", "local_ids", "match_features", "rotated",
+           "sighting_bits"]
 
 #: default chi-square level of the individual gate and of the joint compatibility test
 DEFAULT_GATE = 0.999
@@ -428,7 +438,9 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     prior_information = np.zeros((joins, 3, 3))
     prior_information[:, 0, 0] = prior_information[:, 1, 1] = 1.0 / var_t
     prior_information[:, 2, 2] = 1.0 / p_phi
-    link = np.linalg.inv(prior_information)
+    link = np.zeros((joins, 3, 3))
+    link[:, 0, 0] = link[:, 1, 1] = var_t
+    link[:, 2, 2] = p_phi
     predicted = prior_prediction
     g2 = float(_threshold(gate, 1))
     scale = np.ones(joins)
@@ -606,9 +618,11 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
                     gate: float = DEFAULT_GATE, progress: Callable[[int], None] | None = None,
                     margin: float = DEFAULT_MARGIN) -> AssociatedJoin:
     """Join ``maps`` whose feature ids are local to each map, associating their features before each join
-    (see the module docstring; ``gate`` is the chi-square level of the gate and of the joint test). The
-    tree runs in one process."""
+    (see the module docstring; ``gate`` is the chi-square level of the gate and of the joint test, ``margin``
+    how much farther a rival candidate must be). The tree runs in one process."""
     _check_gate(gate)
+    if not margin >= 0.0:
+        raise ValueError(f"margin must be a squared distance >= 0, got {margin!r}")
     associator = _Associator([feature_covariances(m) for m in maps], gate, margin)
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
