@@ -239,6 +239,23 @@ def test_one_map_is_numbered_in_order(strategy):
     assert found.global_map.provenance.strategy == strategy
 
 
+@pytest.mark.parametrize("strategy", ["sequential", "tree"])
+def test_any_local_labels_give_the_same_association(strategy):
+    """Local ids are labels: relabelled with overlapping, unsorted, non-contiguous ids (a front end's), the maps'
+    features are grouped into the same global features as with ids 0 .. m-1 (numbered by first sighting, by
+    map then local id, so the numbers differ: the two numberings are one-to-one)."""
+    local, _ = local_ids(simulate(8, seed=3, noiseless=True).maps)
+    rng = np.random.default_rng(0)
+    labels = [rng.choice(60, size=m.size, replace=False) for m in local]
+    relabelled = [dataclasses.replace(m, feature_ids=label[m.feature_ids]) for m, label in zip(local, labels)]
+    plain = join_associated(local, strategy=strategy)
+    other = join_associated(relabelled, strategy=strategy)
+    pairs = set(zip(np.concatenate(plain.global_ids).tolist(), np.concatenate(other.global_ids).tolist()))
+    assert len(pairs) == plain.global_map.features.shape[0] == other.global_map.features.shape[0]
+    assert len(pairs) < sum(m.size for m in local)  # features were associated
+    assert np.allclose(np.sort(other.global_map.features, axis=0), np.sort(plain.global_map.features, axis=0))
+
+
 def test_local_ids_round_trip():
     maps = simulate(8, seed=2).maps
     local, truth = local_ids(maps)
