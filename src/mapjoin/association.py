@@ -198,8 +198,13 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
     (complex points; rows grouped by join): every pair of a join at once when there are few in all, else
     from a k-d tree (scipy.spatial, imported then) of the points lifted to 3-D, the join as the third
     coordinate, far apart, so that one tree serves every join."""
-    if joins == 1 and len(left) * len(predicted) <= BRUTE_FORCE_PAIRS:  # one join: the outer difference
-        return np.nonzero(np.abs(left[:, None] - predicted[None, :]) <= radius[None, :])
+    if joins == 1 and len(predicted):  # one join: the left points in the right ones' reach, then the outer difference
+        reach = float(radius.max())
+        rows = np.flatnonzero((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
+                              & (left.imag >= predicted.imag.min() - reach) & (left.imag <= predicted.imag.max() + reach))
+        if len(rows) * len(predicted) <= BRUTE_FORCE_PAIRS:
+            i, j = np.nonzero(np.abs(left[rows, None] - predicted[None, :]) <= radius[None, :])
+            return rows[i], j
     left_start, left_size = _segments(left_join, joins)
     right_start, right_size = _segments(right_join, joins)
     per_join = left_size * right_size
