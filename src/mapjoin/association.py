@@ -70,10 +70,28 @@ if TYPE_CHECKING:
     from .joining import _Pieces
     from .onestep import Solver
 
-__all__ = ["DEFAULT_GATE", "DEFAULT_MARGIN", "link_errors", "EXHAUSTIVE_PAIRS", "ROUNDS", "AssociatedJoinRecord",
-           "AssociatedJoin", "FeatureAssociation", "Matches", "blocks", "chi2_quantile", "correspondence_rows",
-           "feature_covariances", "fused", "inverted", "join_associated", "local_ids", "match_features", "rotated",
-           "sighting_bits"]
+__all__ = [
+    "DEFAULT_GATE",
+    "DEFAULT_MARGIN",
+    "EXHAUSTIVE_PAIRS",
+    "ROUNDS",
+    "AssociatedJoin",
+    "AssociatedJoinRecord",
+    "FeatureAssociation",
+    "Matches",
+    "blocks",
+    "chi2_quantile",
+    "correspondence_rows",
+    "feature_covariances",
+    "fused",
+    "inverted",
+    "join_associated",
+    "link_errors",
+    "local_ids",
+    "match_features",
+    "rotated",
+    "sighting_bits",
+]
 
 #: default chi-square level of the individual gate and of the joint compatibility test
 DEFAULT_GATE = 0.999
