@@ -5,30 +5,38 @@ Maps whose feature ids are local to each map (a front end's submaps) cannot be j
 join (sequential and tree) which features of the right piece are features of the left one
 (docs/method.md#data-association):
 
-1. **Prediction.** Right's features ``z`` are predicted in left's frame through left's end pose
-   ``(o, phi_o)``, the join's link: ``x = o + R(phi_o) z``. An error ``(dt, dphi)`` of the link
-   moves the prediction by ``dt + R'(phi_o) z dphi``; with the spherical variances of the link
-   ``(var_t, p_phi)``, of left's feature ``var0`` and of right's ``var1``, a pair's innovation
-   ``r = f - x`` has covariance ``S = a I + p_phi u u^T`` with ``a = var0 + var1 + var_t`` and
-   ``u = R'(phi_o) z`` (the heading error's lever is perpendicular to ``z``, so ``S`` is not
-   spherical).
-2. **Gate.** A pair is a candidate when its Mahalanobis distance ``r^T S^-1 r`` is within the
-   ``gate`` quantile of a chi-square with 2 degrees of freedom (default 0.999: a true pair is
-   refused once in a thousand).
-3. **Ambiguity, nearest neighbour.** A right feature with two or more candidates, or whose
-   candidate is also another right feature's candidate, is *ambiguous* and left new: never guessed.
-   Every other gated right feature has one candidate, its nearest neighbour.
+1. **Covariances.** Each right feature's uncertainty relative to the join's link is its 2 x 2 marginal
+   covariance in its local map (the map's full covariance, which the spherical weights of the fast join
+   are not: :func:`feature_covariances`), rotated into left's frame. Each left feature carries the
+   covariances of its sightings fused as independent estimates: its uncertainty relative to the maps
+   that saw it, whose common drift is left to the link's error (3).
+2. **Prediction and gate.** Right's features ``z`` are predicted in left's frame through left's end pose
+   ``(o, phi_o)``, the join's link: ``x = o + R(phi_o) z``. A link error ``(dt, dphi)`` moves the
+   prediction by ``H (dt, dphi)``, ``H = [I, u]``, ``u = R'(phi_o) z``; a pair's innovation
+   ``r = f - x`` has covariance ``S = s (C0 + C1) + H P_link H^T``. A pair is a candidate when
+   ``r^T S^-1 r`` is within the ``gate`` quantile of a chi-square with 2 degrees of freedom
+   (default 0.999: a true pair is refused once in a thousand).
+3. **Nearest neighbour, when clear.** A pair is taken when each of its features is the other's nearest
+   candidate and each one's nearest *rival* is at least ``margin`` farther (squared Mahalanobis distance;
+   default 9.2 = 2 ln 100: the nearest is a hundred times likelier). A rival is a candidate that is a
+   different feature from the nearest one: seen in one map with it. Two candidates never seen in one map may
+   be one feature mapped twice (an earlier miss), and taking the nearest then joins no two features; this
+   stops a miss from making every later sighting of the feature ambiguous. Other right features with
+   candidates are *ambiguous* and left new.
 4. **Joint compatibility.** The pairs share the link's error, so they are tested together: the
-   joint Mahalanobis distance of all their innovations (covariance ``diag(a_j) + H P_link H^T``,
-   ``H_j = [I, u_j]``, evaluated in 3-D by the Woodbury identity) must be within the ``gate``
+   joint Mahalanobis distance of all their innovations (covariance ``blockdiag(s (C0 + C1)) + H P_link H^T``,
+   evaluated in 3-D by the Woodbury identity) must be within the ``gate``
    quantile of a chi-square with ``2k`` degrees of freedom. When it is not, the largest jointly
    compatible subset is kept: by exhaustive search over every subset at once (as arrays) when at
    most :data:`EXHAUSTIVE_PAIRS` pairs remain (the optimum branch and bound would find), after
    removing, one at a time, the pair with the largest residual once the link is corrected
    while more remain. Pairs removed are *rejected* and their right features left new.
-5. **Second pass.** Gate, ambiguity and joint test once more around the prediction corrected by the
-   link error the pairs explain, with its posterior covariance, the variances scaled by the first
-   pass's a-posteriori variance factor (when it is above 1).
+5. **Rounds.** The pairs give the link's correction and its posterior covariance ``P_link``, and the
+   a-posteriori variance factor ``s``: the median of the pairs' squared residuals (Mahalanobis, after the
+   correction) over the median of a chi-square with 2 degrees of freedom, robust to a few wrong pairs,
+   at least 1, once the pairs have :data:`MIN_DOF` degrees of freedom. Steps 2 to 4 run again around the
+   corrected prediction until the pairs repeat (at most :data:`ROUNDS` rounds), which removes the link's
+   error and finds the pairs it had hidden (as ICP does).
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -62,8 +70,28 @@ if TYPE_CHECKING:
     from .joining import _Pieces
     from .onestep import Solver
 
-__all__ = ["DEFAULT_GATE", "link_errors", "EXHAUSTIVE_PAIRS", "AssociatedJoinRecord", "AssociatedJoin", "FeatureAssociation",
-           "Matches", "chi2_quantile", "correspondence_rows", "join_associated", "local_ids", "match_features"]
+__all__ = [
+    "DEFAULT_GATE",
+    "DEFAULT_MARGIN",
+    "EXHAUSTIVE_PAIRS",
+    "ROUNDS",
+    "AssociatedJoin",
+    "AssociatedJoinRecord",
+    "FeatureAssociation",
+    "Matches",
+    "blocks",
+    "chi2_quantile",
+    "correspondence_rows",
+    "feature_covariances",
+    "fused",
+    "inverted",
+    "join_associated",
+    "link_errors",
+    "local_ids",
+    "match_features",
+    "rotated",
+    "sighting_bits",
+]
 
 #: default chi-square level of the individual gate and of the joint compatibility test
 DEFAULT_GATE = 0.999
@@ -71,8 +99,15 @@ DEFAULT_GATE = 0.999
 EXHAUSTIVE_PAIRS = 10
 #: candidate pairs are found by brute force up to this many (left x right) pairs, else by a k-d tree
 BRUTE_FORCE_PAIRS = 1 << 16
-#: the variance factor of the second pass needs at least this many degrees of freedom (2k - 3 for k pairs)
+#: the variance factor of a round needs at least this many degrees of freedom (2k - 3 for k pairs)
 MIN_DOF = 4
+#: a feature's nearest candidate is taken when the next one is at least this much farther (squared Mahalanobis
+#: distance: twice the log-likelihood ratio of the two hypotheses; 9.2 = 2 ln 100)
+DEFAULT_MARGIN = 9.2
+#: at most this many rounds of associate, correct the link, re-predict (they stop when the pairs repeat)
+ROUNDS = 4
+#: the median of a chi-square with 2 degrees of freedom, 2 ln 2: the robust variance factor's reference
+CHI2_2_MEDIAN = 2 * math.log(2)
 
 
 @dataclass(frozen=True)
@@ -181,8 +216,13 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
     (complex points; rows grouped by join): every pair of a join at once when there are few in all, else
     from a k-d tree (scipy.spatial, imported then) of the points lifted to 3-D, the join as the third
     coordinate, far apart, so that one tree serves every join."""
-    if joins == 1 and len(left) * len(predicted) <= BRUTE_FORCE_PAIRS:  # one join: the outer difference
-        return np.nonzero(np.abs(left[:, None] - predicted[None, :]) <= radius[None, :])
+    if joins == 1 and len(predicted):  # one join: the left points in the right ones' reach, then the outer difference
+        reach = float(radius.max())
+        rows = np.flatnonzero((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
+                              & (left.imag >= predicted.imag.min() - reach) & (left.imag <= predicted.imag.max() + reach))
+        if len(rows) * len(predicted) <= BRUTE_FORCE_PAIRS:
+            i, j = np.nonzero(np.abs(left[rows, None] - predicted[None, :]) <= radius[None, :])
+            return rows[i], j
     left_start, left_size = _segments(left_join, joins)
     right_start, right_size = _segments(right_join, joins)
     per_join = left_size * right_size
@@ -204,21 +244,68 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
     return i, np.repeat(np.arange(len(predicted)), counts)
 
 
-def _joint_terms(r: np.ndarray, a: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each pair's share of the joint test: ``|r|^2 / a``, ``H^T r / a`` (k x 3) and ``H^T H / a`` (k x 9),
-    ``H = [I, u]`` (complex ``r``, ``u``)."""
-    weight = 1.0 / a
-    ux, uy = u.real * weight, u.imag * weight
-    g = np.stack([r.real * weight, r.imag * weight, (np.conj(u) * r).real * weight], axis=1)
-    zero = np.zeros_like(weight)
-    h = np.stack([weight, zero, ux, zero, weight, uy, ux, uy, ux * u.real + uy * u.imag], axis=1)
-    return (r.real**2 + r.imag**2) * weight, g, h
+def blocks(variances: np.ndarray) -> np.ndarray:
+    """2 x 2 covariances as rows ``[xx, xy, yy]``: ``variances`` as they are (n x 3) or spherical (n,)."""
+    variances = np.asarray(variances, dtype=float)
+    if variances.ndim == 2:
+        return variances
+    return np.column_stack([variances, np.zeros_like(variances), variances])
+
+
+def rotated(covariances: np.ndarray, phi: np.ndarray | float) -> np.ndarray:
+    """``R(phi) C R(phi)^T`` of 2 x 2 covariances (rows ``[xx, xy, yy]``; ``phi`` one angle or one per row)."""
+    c, s = np.cos(phi), np.sin(phi)
+    xx, xy, yy = covariances.T
+    return np.column_stack([c * c * xx - 2 * c * s * xy + s * s * yy, c * s * (xx - yy) + (c * c - s * s) * xy,
+                            s * s * xx + 2 * c * s * xy + c * c * yy])
+
+
+def inverted(covariances: np.ndarray) -> np.ndarray:
+    """The inverses of 2 x 2 symmetric matrices (rows ``[xx, xy, yy]``), in closed form."""
+    xx, xy, yy = covariances.T
+    det = xx * yy - xy * xy
+    return np.column_stack([yy / det, -xy / det, xx / det])
+
+
+def fused(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """The covariance of two independent estimates of one point fused: ``(C1^-1 + C2^-1)^-1`` (rows ``[xx, xy, yy]``)."""
+    return inverted(inverted(first) + inverted(second))
+
+
+def feature_covariances(local_map: LocalMap) -> np.ndarray:
+    """Each feature's 2 x 2 marginal covariance in ``local_map``'s frame (rows ``[xx, xy, yy]``, in the order of
+    the sorted feature ids, as :mod:`mapjoin.joining` holds them): the blocks of the full covariance when the map
+    has one, else its spherical variances. They are the uncertainty of a feature *relative to the map's start*,
+    the join's link, which the gate needs (docs/method.md#data-association)."""
+    order = np.argsort(local_map.feature_ids, kind="stable")
+    if local_map.covariance is None:
+        return blocks(local_map.feature_variances[order])
+    rows = 3 + 2 * order
+    covariance = local_map.covariance
+    return np.column_stack([covariance[rows, rows], covariance[rows, rows + 1], covariance[rows + 1, rows + 1]])
+
+
+def _mahalanobis(r: np.ndarray, information: np.ndarray) -> np.ndarray:
+    """``r^T W r`` of complex ``r`` and 2 x 2 ``W`` (rows ``[xx, xy, yy]``)."""
+    return information[:, 0] * r.real**2 + 2 * information[:, 1] * r.real * r.imag + information[:, 2] * r.imag**2
+
+
+def _joint_terms(r: np.ndarray, w: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pair's share of the joint test, ``W`` its innovation's information without the link (k x 3, rows
+    ``[xx, xy, yy]``): ``r^T W r``, ``H^T W r`` (k x 3) and ``H^T W H`` (k x 9), ``H = [I, u]`` (complex ``r``, ``u``)."""
+    wxx, wxy, wyy = w.T
+    ux, uy = u.real, u.imag
+    qx, qy = wxx * r.real + wxy * r.imag, wxy * r.real + wyy * r.imag  # W r
+    g = np.stack([qx, qy, ux * qx + uy * qy], axis=1)
+    px, py = wxx * ux + wxy * uy, wxy * ux + wyy * uy  # W u
+    h = np.stack([wxx, wxy, px, wxy, wyy, py, px, py, ux * px + uy * py], axis=1)
+    return r.real * qx + r.imag * qy, g, h
 
 
 def _joint_distances(masks: np.ndarray, terms, link_information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The joint Mahalanobis distance of each subset of pairs (``masks``, s x k, 0/1) and the link correction
-    that explains it best: ``D^2 = sum |r|^2/a - g^T M^-1 g`` with ``M = P_link^-1 + sum H^T H / a``
-    (Woodbury: the pairs' covariance ``diag(a) + H P_link H^T`` inverted through the 3-D link)."""
+    that explains it best: ``D^2 = sum r^T W r - g^T M^-1 g`` with ``g = sum H^T W r``, ``M = P_link^-1 + sum
+    H^T W H`` (Woodbury: the pairs' covariance ``blockdiag(W^-1) + H P_link H^T`` inverted through the 3-D link)."""
     c, g, h = terms
     big_g = masks @ g
     big_m = (masks @ h).reshape(-1, 3, 3) + link_information
@@ -226,7 +313,7 @@ def _joint_distances(masks: np.ndarray, terms, link_information: np.ndarray) -> 
     return masks @ c - np.einsum("si,si->s", big_g, correction), correction
 
 
-def _jointly_compatible(terms, r: np.ndarray, a: np.ndarray, u: np.ndarray, link_information: np.ndarray,
+def _jointly_compatible(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, link_information: np.ndarray,
                         gate: float) -> np.ndarray:
     """The pairs kept by the joint compatibility test (a boolean mask over the k pairs, whose
     :func:`_joint_terms` are ``terms``): all of them when compatible, else the largest compatible subset
@@ -242,9 +329,8 @@ def _jointly_compatible(terms, r: np.ndarray, a: np.ndarray, u: np.ndarray, link
             return keep
         if keep.sum() <= EXHAUSTIVE_PAIRS:
             break
-        ux, uy = u.real, u.imag
         dx, dy, dphi = correction[0]
-        residual = np.abs(r - (dx + 1j * dy) - (ux + 1j * uy) * dphi) ** 2 / a
+        residual = _mahalanobis(r - (dx + 1j * dy) - u * dphi, w)
         keep[np.flatnonzero(keep)[np.argmax(residual[keep])]] = False
     rows = np.flatnonzero(keep)
     count = len(rows)
@@ -268,14 +354,61 @@ def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarr
                     axis=1)
 
 
-def _gate(left: np.ndarray, left_variances: np.ndarray, left_join: np.ndarray, predicted: np.ndarray,
-          lever: np.ndarray, right_variances: np.ndarray, right_join: np.ndarray, link: np.ndarray, g2: float
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _segment_medians(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarray:
+    """The median of ``values`` in each group (the upper one of an even group; NaN for an empty group)."""
+    order = np.lexsort((values, group))
+    start, size = _segments(group[order], count)
+    middle = np.minimum(start + size // 2, max(len(values) - 1, 0))
+    return np.where(size > 0, values[order][middle] if len(values) else np.nan, np.nan)
+
+
+def _best(group: np.ndarray, other: np.ndarray, d2: np.ndarray, sightings: np.ndarray | None
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """For each pair (``group``: its feature on one side, ``other``: on the other): whether it is the nearest of
+    its group, and the distance of the group's nearest *rival*, infinite when there is none. A rival is another
+    candidate that is a different feature from the nearest: one seen in a same map as it (``sightings``: each
+    other-side feature's maps, :func:`sighting_bits`; without them every other candidate is a rival). Two
+    candidates never seen together may be one feature mapped twice, and either is the right match."""
+    order = np.lexsort((d2, group))
+    grouped, others, distances = group[order], other[order], d2[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = grouped[1:] != grouped[:-1]
+    head = np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))  # each pair's group's nearest
+    rival = ~first
+    if sightings is not None:
+        rival &= (sightings[others] & sightings[others[head]]).any(axis=1)
+    second = np.full(len(order), np.inf)
+    np.minimum.at(second, head[rival], distances[rival])
+    best = np.zeros(len(order), dtype=bool)
+    best[order] = first
+    runner_up = np.empty(len(order))
+    runner_up[order] = second[head]
+    return best, runner_up
+
+
+def sighting_bits(maps: np.ndarray) -> np.ndarray:
+    """Each map index as one bit of a 128-bit set (2 x uint64: bit ``k mod 128``): a feature's sightings are the
+    union of its maps'. Two features whose sets intersect may have been seen in one map (a collision modulo 128
+    says so wrongly, which only leaves a choice ambiguous); disjoint sets were never seen together."""
+    maps = np.asarray(maps, dtype=np.int64) % 128
+    bits = np.zeros((len(maps), 2), dtype=np.uint64)
+    bits[np.arange(len(maps)), maps // 64] = np.left_shift(np.uint64(1), (maps % 64).astype(np.uint64))
+    return bits
+
+
+def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, predicted: np.ndarray,
+          lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray, link: np.ndarray, g2: float,
+          margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
+          right_sightings: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The unambiguous candidate pairs (left rows, right rows) of every join, and each join's number of
     ambiguous right features.
 
-    A pair's innovation ``r = f - x`` has covariance ``S = (var0 + var1) I + H link H^T`` with ``H = [I, u]``
-    (``link[join]``: the 3 x 3 covariance of the join's link error); it is a candidate when ``r^T S^-1 r <= g2``.
+    A pair's innovation ``r = f - x`` has covariance ``S = C0 + C1 + H link H^T`` with ``H = [I, u]`` (``C0``,
+    ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``; ``link[join]``: the 3 x 3 covariance of the
+    join's link error); it is a candidate when ``d^2 = r^T S^-1 r <= g2``. A candidate is taken when it is its
+    right feature's nearest and its left feature's nearest, and each one's nearest rival (:func:`_best`, given the
+    features' ``sightings``) is at least ``margin`` farther (in ``d^2``); the other right features with candidates
+    are ambiguous.
     """
     joins = len(link)
     ux, uy = lever.real, lever.imag
@@ -285,39 +418,44 @@ def _gate(left: np.ndarray, left_variances: np.ndarray, left_join: np.ndarray, p
     syy = own[:, 1, 1] + 2 * uy * own[:, 1, 2] + own[:, 2, 2] * uy * uy
     sxy = own[:, 0, 1] + ux * own[:, 1, 2] + uy * own[:, 0, 2] + own[:, 2, 2] * ux * uy
     largest = np.zeros(joins)
-    np.maximum.at(largest, left_join, left_variances)
-    radius = np.sqrt(g2 * (2 * largest[right_join] + 2 * right_variances + sxx + syy))  # >= the largest eigenvalue's
+    np.maximum.at(largest, left_join, left_covariances[:, 0] + left_covariances[:, 2])
+    # the trace bounds the largest eigenvalue: every pair in the gate is within this Euclidean radius
+    radius = np.sqrt(g2 * (largest[right_join] + right_covariances[:, 0] + right_covariances[:, 2] + sxx + syy))
     i, j = _candidates(left, left_join, predicted, right_join, radius, joins)
     r = left[i] - predicted[j]
-    base = left_variances[i] + right_variances[j]
-    a, b, c = base + sxx[j], sxy[j], base + syy[j]
-    d2 = (c * r.real**2 - 2 * b * r.real * r.imag + a * r.imag**2) / (a * c - b * b)
+    innovation = left_covariances[i] + right_covariances[j] + np.column_stack([sxx[j], sxy[j], syy[j]])
+    d2 = _mahalanobis(r, inverted(innovation))
     gated = d2 <= g2
-    i, j = i[gated], j[gated]
-    per_right = np.bincount(j, minlength=len(predicted))
-    per_left = np.bincount(i, minlength=len(left))
-    single = (per_right[j] == 1) & (per_left[i] == 1)
-    ambiguous = (np.bincount(right_join[per_right > 0], minlength=joins)
-                 - np.bincount(right_join[j[single]], minlength=joins))
-    return i[single], j[single], ambiguous
+    i, j, d2 = i[gated], j[gated], d2[gated]
+    right_best, right_second = _best(j, i, d2, left_sightings)
+    left_best, left_second = _best(i, j, d2, right_sightings)
+    taken = right_best & left_best & (right_second - d2 >= margin) & (left_second - d2 >= margin)
+    ambiguous = (np.bincount(right_join[np.unique(j)], minlength=joins)
+                 - np.bincount(right_join[j[taken]], minlength=joins))
+    return i[taken], j[taken], ambiguous
 
 
-def match_features(left: np.ndarray, left_variances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
+def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
                    link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
-                   right_variances: np.ndarray, right_join: np.ndarray, gate: float = DEFAULT_GATE) -> Matches:
-    """Associate right's features with left's in several independent joins at once (complex points, spherical
-    variances, rows grouped by join; see the module docstring): predict through each join's link
-    ``(link_xy, link_phi)`` with variances ``link_variances`` (joins x 2: var_t, p_phi), gate, leave ambiguous
-    features new, test the rest jointly; then once more with each link corrected by the pairs found (its
-    posterior covariance in the gate), which finds the pairs the link's error had hidden.
+                   right_covariances: np.ndarray, right_join: np.ndarray, gate: float = DEFAULT_GATE,
+                   margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
+                   right_sightings: np.ndarray | None = None) -> Matches:
+    """Associate right's features with left's in several independent joins at once (complex points; their
+    covariances as rows ``[xx, xy, yy]`` in left's frame, or spherical variances; rows grouped by join; see the
+    module docstring): predict through each join's link ``(link_xy, link_phi)`` with variances
+    ``link_variances`` (joins x 2: var_t, p_phi), gate, take the clear nearest neighbours, test them jointly;
+    then correct each link by its pairs, re-predict with the link's posterior covariance and the robust
+    variance factor of the pairs' residuals, and associate again, until the pairs repeat (at most
+    :data:`ROUNDS` rounds).
 
     Every step is array operations over all joins; only a join whose pairs fail the joint test is searched
     on its own (:func:`_jointly_compatible`).
     """
     _check_gate(gate)
+    left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
     joins = len(link_xy)
     turn = np.exp(1j * link_phi)
-    predicted = link_xy[right_join] + turn[right_join] * right
+    prior_prediction = link_xy[right_join] + turn[right_join] * right
     lever = 1j * turn[right_join] * right  # R'(phi_o) z
     var_t, p_phi = link_variances[:, 0], link_variances[:, 1]
     prior_information = np.zeros((joins, 3, 3))
@@ -326,31 +464,27 @@ def match_features(left: np.ndarray, left_variances: np.ndarray, left_join: np.n
     link = np.zeros((joins, 3, 3))
     link[:, 0, 0] = link[:, 1, 1] = var_t
     link[:, 2, 2] = p_phi
+    predicted = prior_prediction
     g2 = float(_threshold(gate, 1))
     scale = np.ones(joins)
-    done = np.zeros(joins, dtype=bool)  # joins whose first pass found no pair keep its outcome
-    outcome = None
-    for _ in range(2):
-        i, j, ambiguous = _gate(left, scale[left_join] * left_variances, left_join, predicted, lever,
-                                scale[right_join] * right_variances, right_join, link, g2)
+    previous = None
+    for _ in range(ROUNDS):
+        i, j, ambiguous = _gate(left, scale[left_join, None] * left_covariances, left_join, predicted, lever,
+                                scale[right_join, None] * right_covariances, right_join, link, g2, margin,
+                                left_sightings, right_sightings)
         pair_join = right_join[j]
-        r = left[i] - (link_xy[pair_join] + turn[pair_join] * right[j])
-        a = scale[pair_join] * (left_variances[i] + right_variances[j])
-        terms = _joint_terms(r, a, lever[j])
+        r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
+        unscaled = inverted(left_covariances[i] + right_covariances[j])
+        w = unscaled / scale[pair_join, None]
+        terms = _joint_terms(r, w, lever[j])
         information = prior_information / scale[:, None, None]
-        keep = _joint_test(terms, r, a, lever[j], pair_join, information, gate, joins)
+        keep = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
-        if outcome is None:
-            outcome = (i[keep], j[keep], ambiguous, rejected)
-        else:
-            kept = keep & ~done[pair_join]
-            old_i, old_j, old_ambiguous, old_rejected = outcome
-            stay = done[right_join[old_j]]
-            outcome = (np.concatenate([old_i[stay], i[kept]]), np.concatenate([old_j[stay], j[kept]]),
-                       np.where(done, old_ambiguous, ambiguous), np.where(done, old_rejected, rejected))
+        outcome = (i[keep], j[keep], ambiguous, rejected)
+        if previous is not None and np.array_equal(previous[0], i[keep]) and np.array_equal(previous[1], j[keep]):
             break
-        done = np.bincount(pair_join[keep], minlength=joins) == 0
-        # each link's correction and posterior covariance from its kept pairs; the a-posteriori variance factor
+        previous = outcome
+        # each link's correction and posterior covariance from its kept pairs; the robust variance factor
         c, g, h = (term[keep] for term in terms)
         kept_join = pair_join[keep]
         posterior = np.linalg.inv(information + _segment_sums(h, kept_join, joins).reshape(joins, 3, 3))
@@ -358,15 +492,15 @@ def match_features(left: np.ndarray, left_variances: np.ndarray, left_join: np.n
         shift = correction[:, 0] + 1j * correction[:, 1]
         residual = r[keep] - shift[kept_join] - lever[j[keep]] * correction[kept_join, 2]
         dof = 2 * np.bincount(kept_join, minlength=joins) - 3
-        factor = np.bincount(kept_join, np.abs(residual) ** 2 / a[keep], minlength=joins) / np.maximum(dof, 1)
-        scale = np.where(dof >= MIN_DOF, np.maximum(1.0, factor), scale)
-        link = posterior  # a join without pairs: its prior, uncorrected
-        predicted = predicted + shift[right_join] + lever * correction[right_join, 2]
+        factor = _segment_medians(_mahalanobis(residual, unscaled[keep]), kept_join, joins) / CHI2_2_MEDIAN
+        old, scale = scale, np.where(dof >= MIN_DOF, np.maximum(1.0, factor), 1.0)
+        link = posterior * (scale / old)[:, None, None]  # the posterior in the new scale's units
+        predicted = prior_prediction + shift[right_join] + lever * correction[right_join, 2]
     order = np.argsort(outcome[1], kind="stable")
     return Matches(outcome[0][order], outcome[1][order], outcome[2], outcome[3])
 
 
-def _joint_test(terms, r: np.ndarray, a: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
+def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
                 information: np.ndarray, gate: float, joins: int) -> np.ndarray:
     """The pairs kept by the joint compatibility test of every join (a mask over the pairs, grouped by join):
     each join's joint distance at once; a join that fails is searched alone by :func:`_jointly_compatible`."""
@@ -380,7 +514,7 @@ def _joint_test(terms, r: np.ndarray, a: np.ndarray, u: np.ndarray, pair_join: n
     starts = np.cumsum(sizes) - sizes
     for join in np.flatnonzero((sizes > 0) & (distance > _threshold(gate, sizes))).tolist():
         rows = slice(starts[join], starts[join] + sizes[join])
-        keep[rows] = _jointly_compatible((c[rows], g[rows], h[rows]), r[rows], a[rows], u[rows],
+        keep[rows] = _jointly_compatible((c[rows], g[rows], h[rows]), r[rows], w[rows], u[rows],
                                          information[join], gate)
     return keep
 
@@ -390,23 +524,43 @@ class _Associator:
     matched. Compact ids (indices of the joins' arrays) are handed out in order of first sighting; the
     tree renames a right piece's features to the left piece's ids, so each input row's current id is kept."""
 
-    def __init__(self, sizes: Sequence[int], gate: float):
-        self.gate = gate
-        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+    def __init__(self, covariances: Sequence[np.ndarray], gate: float, margin: float = DEFAULT_MARGIN):
+        self.gate, self.margin = gate, margin
+        self.offsets = np.concatenate([[0], np.cumsum([len(c) for c in covariances])]).astype(np.intp)
         self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
+        self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
         self.count = 0
+        # each compact id's 2 x 2 covariance relative to the maps that saw it (rows [xx, xy, yy]), in its piece's
+        # frame: the sightings' marginal covariances fused as independent (their common drift is the link's error)
+        self.covariances = np.zeros((max(len(self.row_ids), 1), 3))
+        self.row_sightings = sighting_bits(np.repeat(np.arange(len(covariances)), np.diff(self.offsets)))
+        self.sightings = np.zeros((len(self.covariances), 2), dtype=np.uint64)  # each compact id's maps (bits)
         self.counts: list[tuple[int, int]] = []  # (ambiguous, rejected) per join, in the report's order
 
     def _fresh(self, number: int) -> np.ndarray:
         ids = np.arange(self.count, self.count + number)
         self.count += number
+        if self.count > len(self.covariances):  # the tree hands out new ids at every level
+            more = max(self.count, len(self.covariances))
+            self.covariances = np.concatenate([self.covariances, np.zeros((more, 3))])
+            self.sightings = np.concatenate([self.sightings, np.zeros((more, 2), dtype=np.uint64)])
         return ids
+
+    def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray) -> None:
+        """Features ``ids`` seen with ``covariances`` (in their frame) by maps ``sightings``: fused into the
+        ``matched`` ones, the others new."""
+        self.covariances[ids[matched]] = fused(self.covariances[ids[matched]], covariances[matched])
+        self.covariances[ids[~matched]] = covariances[~matched]
+        self.sightings[ids[matched]] |= sightings[matched]
+        self.sightings[ids[~matched]] = sightings[~matched]
 
     # sequential strategy -----------------------------------------------------------------
     def first(self, size: int) -> np.ndarray:
         """Compact ids of the first map's rows: all new."""
         ids = self._fresh(size)
         self.row_ids[:size] = ids
+        self.covariances[ids] = self.row_covariances[:size]
+        self.sightings[ids] = self.row_sightings[:size]
         return ids
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
@@ -416,9 +570,12 @@ class _Associator:
         its rows (matched first, then new, each in input order), their compact ids in that order, and how many
         are matched."""
         used = self.count
-        found = match_features(positions[:used], variances[:used], np.zeros(used, np.intp), np.array([link_xy]),
-                               np.array([link_phi]), np.array([link_variances]), z, var,
-                               np.zeros(len(z), np.intp), self.gate)
+        rows = slice(self.offsets[k], self.offsets[k + 1])
+        right_covariances = rotated(self.row_covariances[rows], link_phi)
+        found = match_features(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
+                               np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
+                               right_covariances, np.zeros(len(z), np.intp), self.gate, self.margin,
+                               self.sightings[:used], self.row_sightings[rows])
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
@@ -426,6 +583,7 @@ class _Associator:
         ids = np.empty(len(z), dtype=np.int64)
         ids[:len(found.right)] = found.left
         ids[len(found.right):] = self._fresh(len(z) - len(found.right))
+        self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], np.arange(len(z)) < len(found.right))
         self.row_ids[self.offsets[k] + order] = ids
         return order, ids, len(found.right)
 
@@ -443,15 +601,21 @@ class _Associator:
         joined = pieces.feature_piece < 2 * count
         left = np.flatnonzero(joined & (pieces.feature_piece % 2 == 0))
         right = np.flatnonzero(joined & (pieces.feature_piece % 2 == 1))
-        found = match_features(pieces.features[left], pieces.feature_variances[left], pieces.feature_piece[left] // 2,
-                               pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
-                               pieces.features[right], pieces.feature_variances[right],
-                               pieces.feature_piece[right] // 2, self.gate)
+        right_join = pieces.feature_piece[right] // 2
+        right_covariances = rotated(self.covariances[pieces.feature_ids[right]], pieces.pose_phi[link][right_join])
+        found = match_features(pieces.features[left], self.covariances[pieces.feature_ids[left]],
+                               pieces.feature_piece[left] // 2, pieces.pose_xy[link], pieces.pose_phi[link],
+                               pieces.pose_variances[link], pieces.features[right], right_covariances, right_join,
+                               self.gate, self.margin, self.sightings[pieces.feature_ids[left]],
+                               self.sightings[pieces.feature_ids[right]])
         self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
         ids = pieces.feature_ids.copy()
         renamed = self._fresh(len(right))
         renamed[found.right] = ids[left[found.left]]
         ids[right] = renamed
+        matched = np.zeros(len(right), dtype=bool)
+        matched[found.right] = True
+        self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched)
         # every input row of a right piece follows its feature's new id
         shift = level - 1
         piece_of_row = np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets)) >> shift
@@ -474,12 +638,15 @@ class _Associator:
 
 def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
                     solver: Solver = "bisection", strategy: Strategy = "sequential", *,
-                    gate: float = DEFAULT_GATE, progress: Callable[[int], None] | None = None) -> AssociatedJoin:
+                    gate: float = DEFAULT_GATE, progress: Callable[[int], None] | None = None,
+                    margin: float = DEFAULT_MARGIN) -> AssociatedJoin:
     """Join ``maps`` whose feature ids are local to each map, associating their features before each join
-    (see the module docstring; ``gate`` is the chi-square level of the gate and of the joint test). The
-    tree runs in one process."""
+    (see the module docstring; ``gate`` is the chi-square level of the gate and of the joint test, ``margin``
+    how much farther a rival candidate must be). The tree runs in one process."""
     _check_gate(gate)
-    associator = _Associator([m.size for m in maps], gate)
+    if not margin >= 0.0:
+        raise ValueError(f"margin must be a squared distance >= 0, got {margin!r}")
+    associator = _Associator([feature_covariances(m) for m in maps], gate, margin)
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
                   associate=associator)

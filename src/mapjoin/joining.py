@@ -359,6 +359,8 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     # a feature is common in join k iff a map before k saw it: its first row is in an earlier map
     first_row = np.unique(pieces.feature_ids, return_index=True)[1]  # compact ids are 0 .. n-1
     seen_before = first_row[pieces.feature_ids] < offsets[pieces.feature_piece]
+    if associate is not None:  # local ids say nothing: each map's rows stay in _prepare's order, as the associator's
+        seen_before[:] = False
     order = np.lexsort((~seen_before, pieces.feature_piece))  # stable: the input order within each part
     ids, z, var = pieces.feature_ids[order], pieces.features[order], pieces.feature_variances[order]
     information, squared = 1.0 / var, squared_norm(z)
