@@ -149,11 +149,24 @@ def summary(ctx: click.Context, message: str, fields: dict[str, object], *, data
 
 #: the order of the fast joins, which is also the start of the exact join: one option, two names
 strategy_option = click.option(
-    "--strategy", "--start", "strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
+    "--strategy", "--start", "strategy", type=click.Choice(STRATEGIES), default=None,
+    show_default="sequential; tree to start the exact join (refine, --refine) unless --on-inconsistent skip",
     help="Order of the fast joins (and so the start of the exact join, --refine / refine): each map onto the "
          "global map so far, or neighbours pairwise, level by level (faster, less accurate: README, "
          "'Strategies'). On long runs with loop closures the sequential start drifts and the exact solve can "
-         "end in a worse local minimum, where the tree's start reaches the optimum.")
+         "creep or end in a worse local minimum, where the tree's start reaches the optimum.")
+#: refine's default start, :data:`mapjoin.refine.DEFAULT_START` (not imported here: it imports scipy.sparse;
+#: a test checks that they agree)
+REFINE_START = "tree"
+
+
+def start_of(strategy: str | None, refining: bool, on_inconsistent: str) -> str:
+    """The fast join's strategy: the one given, else for a join that starts the exact solve refine's
+    default start (sequential under --on-inconsistent skip, which re-joins the chain map by map, as
+    :func:`mapjoin.refine.default_start`), else sequential."""
+    if strategy is not None:
+        return strategy
+    return REFINE_START if refining and on_inconsistent != "skip" else "sequential"
 jobs_option = click.option(
     "-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
     help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
