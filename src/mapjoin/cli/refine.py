@@ -81,7 +81,8 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     two = sum(r.minima == 2 for r in joins)
     common.summary(ctx, f"refined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
              f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(joins), 'join')} ({two} with two "
-             f"minima, {common.inconsistency(joins)}), from the {strategy} join, {common.counted(result.iterations, 'iteration')}, chi^2 "
+             f"minima, {common.inconsistency(joins)}), from the {strategy} join, "
+             f"{common.counted(result.iterations, 'iteration')}, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}",

@@ -4,8 +4,8 @@ The problem (docs/method.md#exact-joining): the global end poses of all maps and
 global positions of all features minimising ``sum_k e_k^T P_k^-1 e_k`` over the local
 maps k, each weighted by its full covariance (:mod:`.problem`). It is solved by
 Gauss-Newton with Levenberg-Marquardt and Newton safeguards (:mod:`.solver`) from a fast
-join (:func:`join_and_refine`; the tree join by default, :data:`DEFAULT_START`), on normal equations of fixed sparse pattern factorised by
-SuperLU; the marginal covariances at the optimum come by selected inversion of that
+join (:func:`join_and_refine`; the tree join by default, :data:`DEFAULT_START`), on normal
+equations of fixed sparse pattern factorised by SuperLU; the marginal covariances at the optimum come by selected inversion of that
 factor (:mod:`.sparse`).
 
 :func:`join_and_refine` is the whole pipeline, fast join then refinement, that ``mapjoin

@@ -153,7 +153,8 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
         factor, step = _step(problem, data + second if mode.newton else data, gradient, mode)
         finite = step is not None and bool(np.all(np.isfinite(step)))
         undamped = mode.damping == 0.0          # the model's own minimiser: the only step that measures the optimum
-        if undamped and finite and np.max(np.abs(step), initial=0.0) <= tolerance * (1.0 + np.max(np.abs(x), initial=0.0)):
+        scale = 1.0 + np.max(np.abs(x), initial=0.0)
+        if undamped and finite and np.max(np.abs(step), initial=0.0) <= tolerance * scale:
             return stop("step below tolerance", True, factor if mode.plain else None)
         if mode.newton and (not finite or step @ gradient >= 0):
             mode.abandon_newton()       # not a descent direction: Gauss-Newton for now
@@ -189,7 +190,8 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             # a step of negligible predicted decrease is taken however chi^2 compares: at that level the
             # comparison is rounding noise (it would make where the solver stops random), and the model's
             # minimiser is the better estimate
-            mode.accept((cost - trial_cost) / predicted if predicted > 0 else 1.0, (cost - trial_cost) / cost)
+            mode.accept((cost - trial_cost) / predicted if predicted > 0 else 1.0,
+                        (cost - trial_cost) / cost if cost > 0 else 0.0)
             x, previous = trial, cost
             # the cost change stops the solver only after a full undamped step that was also predicted to
             # change chi^2 that little: a shortened or damped step gains little because it is short, not
