@@ -518,11 +518,13 @@ def test_a_shortened_step_does_not_stop_the_solver_far_from_the_optimum():
     assert abs(found.x[0]) < 0.33                  # atan(x)^2 <= 0.1: the optimum to the tolerance
 
 
-def test_the_default_start_reaches_the_optimum_a_start_at_the_truth_reaches():
-    """A 1000-map simulation (seed 0, two laps): from the sequential join the solver crept for 100
-    iterations (chi^2 31856, exit 3); the default start (the tree join) reaches the chi^2 and the map
-    that the solve started at the ground truth reaches, with a vanishing gradient."""
-    run = simulate(1000, seed=0)
+@pytest.mark.parametrize("seed", [0, 6])
+def test_the_default_start_reaches_the_optimum_a_start_at_the_truth_reaches(seed):
+    """1000-map simulations (two laps): the default start (the tree join) reaches the chi^2 and the map
+    that the solve started at the ground truth reaches, with a vanishing gradient. From the sequential
+    join the solver crept for 100 iterations (seed 0: chi^2 31856, exit 3); on seed 6 Newton's steps
+    taken far from the optimum led it from the tree's start into a local minimum 10 % above it."""
+    run = simulate(1000, seed=seed)
     result = join_and_refine(run.maps, covariances=False)
     problem = ExactProblem(run.maps)
     where = np.searchsorted(run.truth.feature_ids, problem.feature_ids)
