@@ -150,7 +150,7 @@ def summary(ctx: click.Context, message: str, fields: dict[str, object], *, data
 #: the order of the fast joins, which is also the start of the exact join: one option, two names
 strategy_option = click.option(
     "--strategy", "--start", "strategy", type=click.Choice(STRATEGIES), default=None,
-    show_default="sequential; tree to start the exact join (refine, --refine) unless --on-inconsistent skip",
+    show_default="join: sequential; refine, --refine: tree, sequential with --on-inconsistent skip",
     help="Order of the fast joins (and so the start of the exact join, --refine / refine): each map onto the "
          "global map so far, or neighbours pairwise, level by level (faster, less accurate: README, "
          "'Strategies'). On long runs with loop closures the sequential start drifts and the exact solve can "
@@ -167,6 +167,8 @@ def start_of(strategy: str | None, refining: bool, on_inconsistent: str) -> str:
     if strategy is not None:
         return strategy
     return REFINE_START if refining and on_inconsistent != "skip" else "sequential"
+
+
 jobs_option = click.option(
     "-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
     help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
@@ -195,9 +197,9 @@ def refine_options(command: Callable) -> Callable:
             click.option("--max-iterations", type=click.IntRange(min=0), default=100, show_default=True,
                          help="At most this many (accepted) Gauss-Newton/Newton steps of the exact solve."),
             click.option("--tolerance", type=FiniteFloat(TOLERANCE_RANGE), show_default="1e-12",
-                         help="Stop the exact solve when a step changes chi^2 by at most this (relative) or moves "
-                              "no unknown by more than this times (1 + largest |unknown|); 0 runs to chi^2's "
-                              "rounding."),
+                         help="Stop the exact solve when a full undamped step (not shortened after a rejected "
+                              "one) changes chi^2 by at most this (relative) or moves no unknown by more than this "
+                              "times (1 + largest |unknown|); 0 runs to chi^2's rounding."),
             click.option("--no-covariances", is_flag=True,
                          help="Skip the exact join's marginal covariances (faster): no cov columns, the fast "
                               "join's variances."))):
