@@ -2,7 +2,7 @@
 
     python benchmarks/refine_scale.py [--repeat N] [DATASET ...]   (default: all four)
 
-For each dataset: the fast sequential join (the default initial value), then refine from
+For each dataset: refine's default start (the fast tree join, mapjoin.refine.DEFAULT_START), then refine from
 it: solve time (set-up + iterations), covariance time (selected inversion), their total
 and its ratio to the fast join's time (machines are noisy: compare ratios), iterations,
 final chi^2, and the peak memory the refine allocated (tracemalloc; numpy arrays
@@ -24,8 +24,8 @@ import tracemalloc
 from common import dataset_arguments, write_section
 
 from mapjoin.io import read_maps
-from mapjoin.joining import join_sequential
-from mapjoin.refine import refine
+from mapjoin.joining import join
+from mapjoin.refine import DEFAULT_START, refine
 
 DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps", "VicPark_6898_local_maps")
 
@@ -39,7 +39,7 @@ def main() -> None:
         joins, solves, covs, totals = [], [], [], []
         for _ in range(args.repeat):
             start = time.perf_counter()
-            initial = join_sequential(maps).global_map
+            initial = join(maps, strategy=DEFAULT_START).global_map
             joins.append(time.perf_counter() - start)
             start = time.perf_counter()
             result = refine(maps, initial)
@@ -56,7 +56,8 @@ def main() -> None:
         print(lines[-1])
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     write_section("refine", "\n".join([
-        f"Refine started from the fast sequential join (in-process, maps loaded, `OPENBLAS_NUM_THREADS=1`, "
+        f"Refine started from its default start, the fast {DEFAULT_START} join (in-process, maps loaded, "
+        f"`OPENBLAS_NUM_THREADS=1`, "
         f"medians of {args.repeat}; load average {os.getloadavg()[0]:.1f} at the end): solve = set-up and "
         "iterations, cov = the marginal covariances by selected inversion, peak = memory refine allocated "
         "(tracemalloc; SuperLU's own not included).", "", *lines, "", f"Max RSS of the whole run: {rss:.0f} MB."]))

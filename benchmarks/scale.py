@@ -75,7 +75,7 @@ CASES: dict[str, tuple[str, int]] = {"sequential": ("sequential", 1), "tree": ("
                                      "tree --jobs 2": ("tree", 2)}
 PROFILED = ("sequential", "tree")
 REFINE_FROM = ("sequential", "tree")
-SNAPSHOT = "MAPJOIN_SCALE_COMMIT"      # set in a run on a --commit snapshot of src/   # the joins refine starts from (sequential: its default)
+SNAPSHOT = "MAPJOIN_SCALE_COMMIT"      # set in a run on a --commit snapshot of src/   # the joins refine starts from (tree: its default)
 PROFILE_LINES = 15
 
 
@@ -400,9 +400,9 @@ def report(results: Results) -> str:
     if results.refine_rows:
         lines += [
             "", "### Exact refine (in-process)", "",
-            ("Started from the sequential join (refine's default) and from the tree join. Time = set-up, "
-             "iterations and marginal covariances (solve + cov); initial chi^2 is the start's; dof = "
-             "residuals − unknowns (chi^2's expected value at the optimum)."),
+            ("Started from the sequential join and from the tree join (refine's default since 2026-11-26; the "
+             "sequential join was before). Time = set-up, iterations and marginal covariances (solve + cov); "
+             "initial chi^2 is the start's; dof = residuals − unknowns (chi^2's expected value at the optimum)."),
             "",
             *table("maps | from | unknowns | residuals | runs | time (s) | solve (s) | cov (s) | iterations / max "
                    "| initial chi^2 | chi^2 | dof | stop | peak (MB)", "---:|---|" + "---:|" * 10 + "---|---:|",

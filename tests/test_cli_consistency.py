@@ -85,7 +85,9 @@ def test_refine_jobs_runs_the_tree_start_in_parallel(simulated_folder, tmp_path)
     two = run("refine", simulated_folder, "--start", "tree", "--jobs", "2", "-o", str(tmp_path / "two.csv"))
     assert one.exit_code == 0 and two.exit_code == 0
     assert (tmp_path / "one.csv").read_text() == (tmp_path / "two.csv").read_text()
-    refused = run("refine", simulated_folder, "--jobs", "2", "-o", str(tmp_path / "three.csv"))
+    default = run("refine", simulated_folder, "--jobs", "2", "-o", str(tmp_path / "default.csv"))  # tree start
+    assert default.exit_code == 0 and (tmp_path / "default.csv").read_text() == (tmp_path / "one.csv").read_text()
+    refused = run("refine", simulated_folder, "--start", "sequential", "--jobs", "2", "-o", str(tmp_path / "three.csv"))
     assert refused.exit_code == 2 and "--strategy tree" in refused.stderr
 
 

@@ -149,11 +149,26 @@ def summary(ctx: click.Context, message: str, fields: dict[str, object], *, data
 
 #: the order of the fast joins, which is also the start of the exact join: one option, two names
 strategy_option = click.option(
-    "--strategy", "--start", "strategy", type=click.Choice(STRATEGIES), default="sequential", show_default=True,
+    "--strategy", "--start", "strategy", type=click.Choice(STRATEGIES), default=None,
+    show_default="join: sequential; refine, --refine: tree, sequential with --on-inconsistent skip",
     help="Order of the fast joins (and so the start of the exact join, --refine / refine): each map onto the "
          "global map so far, or neighbours pairwise, level by level (faster, less accurate: README, "
          "'Strategies'). On long runs with loop closures the sequential start drifts and the exact solve can "
-         "end in a worse local minimum, where the tree's start reaches the optimum.")
+         "creep or end in a worse local minimum, where the tree's start reaches the optimum.")
+#: refine's default start, :data:`mapjoin.refine.DEFAULT_START` (not imported here: it imports scipy.sparse;
+#: a test checks that they agree)
+REFINE_START = "tree"
+
+
+def start_of(strategy: str | None, refining: bool, on_inconsistent: str) -> str:
+    """The fast join's strategy: the one given, else for a join that starts the exact solve refine's
+    default start (sequential under --on-inconsistent skip, which re-joins the chain map by map, as
+    :func:`mapjoin.refine.default_start`), else sequential."""
+    if strategy is not None:
+        return strategy
+    return REFINE_START if refining and on_inconsistent != "skip" else "sequential"
+
+
 jobs_option = click.option(
     "-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
     help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
@@ -182,9 +197,9 @@ def refine_options(command: Callable) -> Callable:
             click.option("--max-iterations", type=click.IntRange(min=0), default=100, show_default=True,
                          help="At most this many (accepted) Gauss-Newton/Newton steps of the exact solve."),
             click.option("--tolerance", type=FiniteFloat(TOLERANCE_RANGE), show_default="1e-12",
-                         help="Stop the exact solve when a step changes chi^2 by at most this (relative) or moves "
-                              "no unknown by more than this times (1 + largest |unknown|); 0 runs to chi^2's "
-                              "rounding."),
+                         help="Stop the exact solve when a full undamped step (not shortened after a rejected "
+                              "one) changes chi^2 by at most this (relative) or moves no unknown by more than this "
+                              "times (1 + largest |unknown|); 0 runs to chi^2's rounding."),
             click.option("--no-covariances", is_flag=True,
                          help="Skip the exact join's marginal covariances (faster): no cov columns, the fast "
                               "join's variances."))):

@@ -66,6 +66,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
       mapjoin join ../shared/data/DLR_200_local_maps --refine -o dlr_exact.yaml
       mapjoin join maps/ --associate --associations ids.csv -o global.csv
     """
+    strategy = common.start_of(strategy, exact, on_inconsistent)
     common.check_jobs(jobs, strategy)
     if not exact and (solve_options := common.given(ctx, common.REFINE_OPTIONS)):
         raise click.UsageError(f"{solve_options[0]} is an option of the exact solve; add --refine")

@@ -37,7 +37,8 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
 
     Solves the problem I-SLSJF solves: all end poses and features at once, each local
     map weighted by its full covariance, by sparse Gauss-Newton with Levenberg-Marquardt
-    safeguards (Newton steps near the optimum) from the fast join (--start, made with
+    safeguards (Newton steps near the optimum) from the fast join (--start, by default the
+    tree join, which leads the solve to the optimum where the sequential one may not; made with
     --covariance, --solver and --jobs as `mapjoin join` makes it; --report writes that
     fast join's per-join report, the table `join --report` writes). The global
     map holds the marginal covariance of every feature and pose (cov_* columns in CSV,
@@ -51,11 +52,12 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
       mapjoin refine ../shared/data/VicPark_200_local_maps -o vicpark_exact.csv
       mapjoin -v refine 'maps/localmap_*.yaml' --format yaml -o exact.yaml
       mapjoin simulate -o - | mapjoin refine - --no-covariances > exact.csv
-      mapjoin refine ../shared/data/VicPark_6898_local_maps --start tree --jobs 2 -o vp_exact.csv
+      mapjoin refine ../shared/data/VicPark_6898_local_maps --jobs 2 -o vp_exact.csv
       mapjoin refine ../shared/data/VicPark_200_local_maps --report joins.csv -o exact.csv
     """
     from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
+    strategy = common.start_of(strategy, True, on_inconsistent)
     common.check_jobs(jobs, strategy)
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path})
     if on_inconsistent == "skip" and strategy != "sequential":
@@ -79,12 +81,13 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     two = sum(r.minima == 2 for r in joins)
     common.summary(ctx, f"refined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
              f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(joins), 'join')} ({two} with two "
-             f"minima, {common.inconsistency(joins)}), {common.counted(result.iterations, 'iteration')}, chi^2 "
+             f"minima, {common.inconsistency(joins)}), from the {strategy} join, "
+             f"{common.counted(result.iterations, 'iteration')}, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}",
                    {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids), "joins": len(joins),
-                    "two_minima": two, "inconsistent": sum(bool(r.flag) for r in joins),
+                    "start": strategy, "two_minima": two, "inconsistent": sum(bool(r.flag) for r in joins),
                     "iterations": result.iterations, "chi2_initial": result.costs[0],
                     "chi2": result.cost, "reason": result.reason, "converged": result.converged,
                     "degrees_of_freedom": result.degrees_of_freedom, "seconds": elapsed, "read_seconds": read,

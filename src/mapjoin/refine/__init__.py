@@ -4,8 +4,8 @@ The problem (docs/method.md#exact-joining): the global end poses of all maps and
 global positions of all features minimising ``sum_k e_k^T P_k^-1 e_k`` over the local
 maps k, each weighted by its full covariance (:mod:`.problem`). It is solved by
 Gauss-Newton with Levenberg-Marquardt and Newton safeguards (:mod:`.solver`) from a fast
-join (:func:`join_and_refine`), on normal equations of fixed sparse pattern factorised by
-SuperLU; the marginal covariances at the optimum come by selected inversion of that
+join (:func:`join_and_refine`; the tree join by default, :data:`DEFAULT_START`), on normal
+equations of fixed sparse pattern factorised by SuperLU; the marginal covariances at the optimum come by selected inversion of that
 factor (:mod:`.sparse`).
 
 :func:`join_and_refine` is the whole pipeline, fast join then refinement, that ``mapjoin
@@ -30,7 +30,19 @@ from ..onestep import Solver
 from .problem import ExactProblem
 from .solver import TOLERANCE, Minimum, minimise
 
-__all__ = ["TOLERANCE", "RefineResult", "exact_cost", "join_and_refine", "refine"]
+__all__ = ["DEFAULT_START", "TOLERANCE", "RefineResult", "default_start", "exact_cost", "join_and_refine", "refine"]
+
+#: the fast join the exact solve starts from unless told: measured to lead it to the optimum (the one a start
+#: at the ground truth reaches) on the real datasets and on 1000- and 10^4-map simulations, where the
+#: sequential join's drift left it creeping for 100 iterations (benchmarks/README.md, "Which start refine
+#: defaults to")
+DEFAULT_START: Strategy = "tree"
+
+
+def default_start(on_inconsistent: Policy = "warn") -> Strategy:
+    """The start of :func:`join_and_refine` when none is given: :data:`DEFAULT_START`, except under the
+    ``skip`` policy, which re-joins the chain map by map and so needs the sequential join."""
+    return "sequential" if on_inconsistent == "skip" else DEFAULT_START
 
 
 @dataclass(frozen=True)
@@ -49,7 +61,8 @@ class RefineResult:
     initial value (0 when one was given), ``fast_join``: that join (None when an initial
     map was given). ``gradient_norm``: max |J^T r| at the optimum (r whitened residuals).
     ``rejected``: steps computed but not taken (they did not lower chi^2, or a Newton step
-    was no descent).
+    was no descent). ``start``: the fast join's strategy the solve started from (None when an initial
+    map was given).
     """
 
     global_map: GlobalMap
@@ -66,6 +79,7 @@ class RefineResult:
     gradient_norm: float = math.nan
     rejected: int = 0
     fast_join: JoinResult | None = None
+    start: Strategy | None = None
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -83,18 +97,20 @@ class RefineResult:
                    rejected=found.rejected)
 
 
-def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy = "sequential",
+def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy | None = None,
                     covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection", jobs: int = 1,
                     join_progress: Callable[[int], None] | None = None, max_iterations: int = 100,
                     tolerance: float = TOLERANCE, covariances: bool = True,
                     progress: Callable[[int, float], None] | None = None, gate: float = DEFAULT_GATE,
                     on_inconsistent: Policy = "warn") -> RefineResult:
-    """Join the chain ``maps`` fast (:func:`mapjoin.joining.join` with strategy ``start``,
+    """Join the chain ``maps`` fast (:func:`mapjoin.joining.join` with strategy ``start``, by default
+    :func:`default_start`,
     ``covariance``, ``solver``, ``jobs``, ``join_progress``, ``gate`` and ``on_inconsistent``: a map
     the skip policy leaves out keeps only its end pose in the refinement too), then refine that to the
     exact least-squares join (:func:`refine` with the other arguments). The result holds
     the fast join (``fast_join``) and its time (``initial_seconds``)."""
     maps = list(maps)
+    start = start or default_start(on_inconsistent)
     began = time.perf_counter()
     fast = join(maps, covariance, solver, start, jobs, join_progress, gate=gate, on_inconsistent=on_inconsistent)
     left_out = {r.join for r in fast.report if r.action == "left out"}
@@ -102,7 +118,7 @@ def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy = "sequential",
     initial_seconds = time.perf_counter() - began
     result = refine(maps, fast.global_map, max_iterations=max_iterations, tolerance=tolerance,
                     covariances=covariances, progress=progress)
-    return dataclasses.replace(result, initial_seconds=initial_seconds, fast_join=fast)
+    return dataclasses.replace(result, initial_seconds=initial_seconds, fast_join=fast, start=start)
 
 
 def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_iterations: int = 100,
@@ -111,8 +127,8 @@ def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_it
     """Solve the exact least-squares joining problem of the chain ``maps``.
 
     Starts from ``initial`` (which must hold every pose and feature; extra ones are
-    ignored) or else from the sequential join (:func:`join_and_refine`, which needs a
-    chain); the steps and the stopping rules are those of :func:`.solver.minimise`.
+    ignored) or else from the fast join :data:`DEFAULT_START` (:func:`join_and_refine`, which
+    needs a chain); the steps and the stopping rules are those of :func:`.solver.minimise`.
     ``covariances``: compute the marginal covariances (else the initial map's variances
     are kept).
     """
