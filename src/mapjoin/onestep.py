@@ -309,6 +309,7 @@ def reduced_cost(a: float, c_phi: float, varphi):
 class _Brackets(NamedTuple):
     """Theorem 2's analysis of fbar for one problem (numbers) or many (arrays): see :func:`_brackets`."""
 
+    steep: Any  # a > 1: g vanishes at phi1 and phi2 (else phi1, phi2, h1, h2 are meaningless)
     phi1: Any
     phi2: Any
     h1: Any
@@ -323,7 +324,7 @@ def _brackets(ops: SimpleNamespace, a, c_phi) -> _Brackets:
     """Count and bracket the local minima of fbar on [-pi, pi) (Theorem 2, conditions (16)-(21)).
 
     g = fbar'' vanishes at ``phi1 = wrap(arccos(-1/a) - c_phi)`` and
-    ``phi2 = wrap(-arccos(-1/a) - c_phi)`` (NaN when a <= 1); h decreases between them (going
+    ``phi2 = wrap(-arccos(-1/a) - c_phi)`` (when a > 1: ``steep``); h decreases between them (going
     forward from phi1 to phi2). When phi1 < phi2 the increasing parts are [-pi, phi1] and
     [phi2, pi] and each holds a minimum iff h changes sign strictly inside it; if rounding leaves
     neither, the one with the larger margin (the first on a tie: Theorem 2 guarantees one minimum).
@@ -332,7 +333,7 @@ def _brackets(ops: SimpleNamespace, a, c_phi) -> _Brackets:
     (``ops.where``), for one problem or many (docs/method.md#brackets).
     """
     bad = ops.not_(ops.isfinite(a) & ops.isfinite(c_phi) & (a >= 0))
-    if ops.any(bad):
+    if ops.any(bad):  # (NaN compares false)
         raise ValueError(f"expected a finite a >= 0 and a finite c_phi, got a={float(ops.first(bad, a))!r}, "
                          f"c_phi={float(ops.first(bad, c_phi))!r}")
     pi, where, not_ = math.pi, ops.where, ops.not_
@@ -348,9 +349,7 @@ def _brackets(ops: SimpleNamespace, a, c_phi) -> _Brackets:
     # one bracket: (-pi, pi) when a <= 1, (phi2, phi1) when phi1 >= phi2, else (-pi, phi1) or (phi2, pi)
     low = where(steep & not_(first), phi2, -pi)
     high = where(steep & (not_(split) | first), phi1, pi)
-    nan = math.nan
-    return _Brackets(where(steep, phi1, nan), where(steep, phi2, nan), where(steep, h1, nan),
-                     where(steep, h2, nan), low, high, where(second, phi2, pi), first & second)
+    return _Brackets(steep, phi1, phi2, h1, h2, low, high, where(second, phi2, pi), first & second)
 
 
 def analyse_minima(a: float, c_phi: float) -> MinimaAnalysis:
@@ -358,7 +357,8 @@ def analyse_minima(a: float, c_phi: float) -> MinimaAnalysis:
     :func:`_brackets` of one problem."""
     found = _brackets(FLOATS, a, c_phi)
     brackets = ((found.low, found.high), (found.second_low, math.pi)) if found.two else ((found.low, found.high),)
-    return MinimaAnalysis(a, c_phi, found.phi1, found.phi2, found.h1, found.h2, brackets)
+    phi1, phi2, h1, h2 = found[1:5] if found.steep else (math.nan,) * 4
+    return MinimaAnalysis(a, c_phi, phi1, phi2, h1, h2, brackets)
 
 
 def _inflections(a, c_phi, ops: SimpleNamespace) -> tuple:
@@ -459,8 +459,9 @@ _SEARCHES = {"bisection": _bisection, "golden": _golden}
 
 
 def _minima(ops: SimpleNamespace, a, c_phi, found: _Brackets, solver: Solver, tolerance: float) -> tuple:
-    """(varphi, fbar, iterations) of the lowest local minimum of fbar and of the other one (NaN, NaN, 0
-    where there is one): Algorithm 1, steps 2-3. On a tie the first bracket's minimum is the lowest."""
+    """(varphi, fbar, iterations) of the minimum in the first bracket and in the second one (NaN, NaN, 0
+    where there is none), and ``swap``: whether the second is the lower, so the global minimum (Algorithm 1,
+    steps 2-3; on a tie the first bracket's)."""
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
     search = _SEARCHES[solver]
@@ -468,19 +469,17 @@ def _minima(ops: SimpleNamespace, a, c_phi, found: _Brackets, solver: Solver, to
     varphi2, steps2 = ops.apply_where(found.two, search, (ops, a, c_phi, found.second_low, math.pi, tolerance),
                                       (math.nan, 0))
     fbar1, fbar2 = _fbar(ops, a, c_phi, varphi1), _fbar(ops, a, c_phi, varphi2)
-    swap, where = fbar2 < fbar1, ops.where
-    return ((where(swap, varphi2, varphi1), where(swap, fbar2, fbar1), where(swap, steps2, steps1)),
-            (where(swap, varphi1, varphi2), where(swap, fbar1, fbar2), where(swap, steps1, steps2)))
+    return (varphi1, fbar1, steps1), (varphi2, fbar2, steps2), fbar2 < fbar1
 
 
 def minimise_reduced(analysis: MinimaAnalysis, solver: Solver = "bisection",
                      tolerance: float = TOLERANCE) -> tuple[Minimum, ...]:
     """Every local minimum of fbar, lowest first (Algorithm 1, steps 2-3): :func:`_minima` of one problem."""
     (low, high), (second_low, _) = analysis.brackets[0], analysis.brackets[-1]
-    found = _Brackets(analysis.phi1, analysis.phi2, analysis.h1, analysis.h2, low, high, second_low,
+    found = _Brackets(analysis.a > 1, analysis.phi1, analysis.phi2, analysis.h1, analysis.h2, low, high, second_low,
                       analysis.count == 2)
-    minima = _minima(FLOATS, analysis.a, analysis.c_phi, found, solver, tolerance)
-    return tuple(Minimum(*m) for m in minima[:analysis.count])
+    first, second, swap = _minima(FLOATS, analysis.a, analysis.c_phi, found, solver, tolerance)
+    return tuple(Minimum(*m) for m in ((second, first) if swap else (first, second))[:analysis.count])
 
 
 @dataclass(frozen=True)
@@ -553,9 +552,9 @@ def global_orientation(a0, phi0, z_phi, p_phi, solver: Solver = "bisection", tol
     ops = backend(a0)
     a, c_phi = a0 * p_phi, wrap(z_phi - phi0)
     found = _brackets(ops, a, c_phi)
-    lowest, other = _minima(ops, a, c_phi, found, solver, tolerance)
-    return Orientations(wrap(z_phi + lowest[0]), wrap(z_phi + other[0]), a, c_phi, 1 + found.two,
-                        lowest[2] + other[2])
+    (varphi1, _, steps1), (varphi2, _, steps2), swap = _minima(ops, a, c_phi, found, solver, tolerance)
+    lowest, other = ops.where(swap, varphi2, varphi1), ops.where(swap, varphi1, varphi2)
+    return Orientations(wrap(z_phi + lowest), wrap(z_phi + other), a, c_phi, 1 + found.two, steps1 + steps2)
 
 
 def solve(problem: OneStepProblem, solver: Solver = "bisection", tolerance: float = TOLERANCE
