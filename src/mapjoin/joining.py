@@ -187,7 +187,7 @@ def _solve_joins(pair: np.ndarray | None, count: int, z0: np.ndarray, var0: np.n
     k = point_constants(z0, var0, z1, var1, odometry_xy, var_o, pair)
     found = global_orientation(k.a0, k.phi0, odometry_phi, p_phi, solver)
     ops = backend(found.phi)
-    where, items = ops.where, ops.items
+    where = ops.where
     features_cost = k.c0 - 2.0 * k.a0
     if link:
         phi, minima, iterations = found.phi, found.count, found.iterations
@@ -201,11 +201,10 @@ def _solve_joins(pair: np.ndarray | None, count: int, z0: np.ndarray, var0: np.n
     turn = ops.cos(phi) + 1j * ops.sin(phi)
     other_cost = linked_cost(k, odometry_phi, p_phi, found.other_phi)  # the other minimum's, where ``second``
     common = [len(z0)] if pair is None else np.bincount(pair, minlength=count).tolist()
-    rows = [_row(*label[:3], common, label[3], *solution, level, free, warn=warn)
-            for label, common, *solution, free in zip(
-                labels, common, items(found.a), items(found.c_phi), items(minima), items(phi), items(cost),
-                items(where(second, found.other_phi, None)), items(where(second, other_cost, None)),
-                items(iterations), items(features_cost))]
+    solutions = ops.rows((found.a, found.c_phi, minima, phi, cost, where(second, found.other_phi, None),
+                          where(second, other_cost, None), iterations, ops.full(phi, level), features_cost))
+    rows = [_row(*label[:3], common, label[3], *solution, warn=warn)
+            for label, common, solution in zip(labels, common, solutions)]
     return _Joins(phi, turn, k.mean0 - turn * k.mean1, phi_variance,
                   translation_variance(k.weight, k.mean1, phi_variance), rows)
 

@@ -91,13 +91,35 @@ class OneStepProblem:
 #   apply_where(mask, function, arguments, fill): function's results where mask holds, else fill
 #   total(group, values, count): each problem's sum of ``values``, added left to right from 0 by
 #     np.bincount (``group``: each value's problem; one problem is group 0 of 1, its sum a Python float)
+#   pairs(group): the group of each x and y of complex values seen as floats (x/y of problem i: 2i, 2i + 1)
+#   total_xy(pairs, values, count): each problem's sums of the x and of the y entries of such ``values``
 #   at(values, group): each problem's value at the entries of ``group``
-#   complex(x, y): x + iy; items(x): the problems' values as a list of Python numbers
+#   complex(x, y): x + iy; rows(columns): per problem, a tuple of its values in ``columns``
 
 
 def _each(function):
     """``function`` of Python numbers applied entry by entry to arrays."""
     return lambda *arrays: np.array(list(map(function, *(x.tolist() for x in arrays))), dtype=float)
+
+
+def _alternating(count: int) -> np.ndarray:
+    """0, 1, 0, 1, ... (``2 count`` entries): the x/y groups of one problem's complex values seen as floats;
+    a slice of one read-only array, made longer when a problem needs it (the sequential join asks once a join)."""
+    global _ALTERNATING
+    if 2 * count > len(_ALTERNATING):
+        _ALTERNATING = np.arange(4 * count, dtype=np.intp) & 1
+        _ALTERNATING.flags.writeable = False
+    return _ALTERNATING[:2 * count]
+
+
+_ALTERNATING = np.zeros(0, dtype=np.intp)
+_XY = np.array([0, 1], dtype=np.intp)
+
+
+def _batch_sums_xy(pairs: np.ndarray, values: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each problem's sums of the x and of the y entries of ``values`` (x/y pairs, ``pairs``: ARRAYS.pairs)."""
+    sums = np.bincount(pairs, values, 2 * count)
+    return sums[0::2], sums[1::2]
 
 
 def _apply_where(mask: np.ndarray, function, arguments: tuple, fill: tuple) -> tuple:
@@ -120,14 +142,18 @@ FLOATS = SimpleNamespace(
     largest=float, smallest=float, first=lambda mask, x: x, complex=complex,
     apply_where=lambda mask, function, arguments, fill: function(*arguments) if mask else fill,
     total=lambda group, values, count: np.bincount(group, values, 1).item(), at=lambda values, group: values,
-    items=lambda x: [x])
+    pairs=lambda group: _alternating(len(group)),
+    total_xy=lambda pairs, values, count: np.bincount(pairs, values, 2).tolist(),
+    rows=lambda columns: (columns,))
 ARRAYS = SimpleNamespace(
     sin=np.sin, cos=np.cos, sqrt=np.sqrt, floor=np.floor, atan=_each(math.atan), atan2=_each(math.atan2),
     hypot=_each(math.hypot), minimum=np.minimum, maximum=np.maximum, isfinite=np.isfinite,
     not_=np.logical_not, any=np.any, where=np.where, full=lambda like, value: np.full(np.shape(like), value),
     size=len, largest=np.max, smallest=np.min, first=lambda mask, x: x[np.argmax(mask)],
     complex=lambda x, y: x + 1j * y, apply_where=_apply_where, total=np.bincount,
-    at=lambda values, group: values[group], items=lambda x: x.tolist())
+    pairs=lambda group: (2 * group[:, None] + _XY).ravel(), total_xy=_batch_sums_xy,
+    at=lambda values, group: values[group],
+    rows=lambda columns: zip(*(column.tolist() for column in columns)))
 
 
 def backend(value) -> SimpleNamespace:
@@ -179,26 +205,27 @@ def point_constants(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.n
     """
     ops = FLOATS if problem_of is None else ARRAYS
     group, count = (np.zeros(len(z0), dtype=np.intp), 1) if problem_of is None else (problem_of, len(odometry))
-    total, at = ops.total, ops.at
+    total, total_xy, at = ops.total, ops.total_xy, ops.at
     weights = 1.0 / (var0 + var1)
     odometry_weight = 1.0 / odometry_variance
     p0, p1 = weights * z0, weights * z1
+    pairs = ops.pairs(group)  # the problems of the x/y pairs of complex values (``values.view(float)``)
     weight = total(group, weights, count) + odometry_weight
+    (sum0_x, sum0_y), (sum1_x, sum1_y) = total_xy(pairs, p0.view(float), count), total_xy(pairs, p1.view(float), count)
     o_x, o_y = odometry.real, odometry.imag
-    mean0_x = (total(group, p0.real, count) + odometry_weight * o_x) / weight
-    mean0_y = (total(group, p0.imag, count) + odometry_weight * o_y) / weight
-    mean1_x, mean1_y = total(group, p1.real, count) / weight, total(group, p1.imag, count) / weight
+    mean0_x, mean0_y = (sum0_x + odometry_weight * o_x) / weight, (sum0_y + odometry_weight * o_y) / weight
+    mean1_x, mean1_y = sum1_x / weight, sum1_y / weight
     mean0, mean1 = ops.complex(mean0_x, mean0_y), ops.complex(mean1_x, mean1_y)
     q0, q1 = z0 - at(mean0, group), z1 - at(mean1, group)
     q1_conj = q1.conj()
-    moment = weights * (q0 * q1_conj)  # w q0 conj(q1): its sum is A + iB
     spread = weights * (q0 * q0.conj() + q1 * q1_conj).real  # w (|q0|^2 + |q1|^2): its sum is c0
+    big_a, big_b = total_xy(pairs, (weights * (q0 * q1_conj)).view(float), count)  # sum w q0 conj(q1) = A + iB
     # the odometry pair: q0 = O_xy - m0, q1 = -m1
     d_x, d_y = o_x - mean0_x, o_y - mean0_y
     c0 = total(group, spread, count) + odometry_weight * (d_x * d_x + d_y * d_y + mean1_x * mean1_x
                                                           + mean1_y * mean1_y)
-    big_a = total(group, moment.real, count) - odometry_weight * (d_x * mean1_x + d_y * mean1_y)
-    big_b = total(group, moment.imag, count) - odometry_weight * (d_y * mean1_x - d_x * mean1_y)
+    big_a = big_a - odometry_weight * (d_x * mean1_x + d_y * mean1_y)
+    big_b = big_b - odometry_weight * (d_y * mean1_x - d_x * mean1_y)
     return Constants(c0, ops.hypot(big_a, big_b), ops.atan2(big_b, big_a), mean0, mean1, weight)
 
 
