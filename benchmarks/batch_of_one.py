@@ -28,8 +28,9 @@ import timeit
 import numpy as np
 
 from mapjoin import io as mapio
+from mapjoin.arithmetic import FLOATS
 from mapjoin.joining import join
-from mapjoin.onestep import FLOATS, _bisection, global_orientation, point_constants
+from mapjoin.onestep import _bisection, global_orientation, point_constants
 
 DATA = os.environ.get("MAPJOIN_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
 

@@ -33,8 +33,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from theorem_oracles import _h_g, brute_count
 
+from mapjoin.arithmetic import ARRAYS
 from mapjoin.onestep import (
-    ARRAYS,
     TOLERANCE,
     _brackets,
     analyse_minima,

@@ -29,12 +29,13 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from .arithmetic import backend
 from .consistency import DEFAULT_GATE, Policy, degrees_of_freedom, enforce, flags, p_values
 from .errors import JoinError
 from .covariance import (DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances, fuse, placed_variances,
                          squared_norm, translation_variance)
 from .maps import GlobalMap, LocalMap, Provenance, first_duplicate, locate
-from .onestep import Solver, as_complex, backend, global_orientation, linked_cost, point_constants
+from .onestep import Solver, as_complex, global_orientation, linked_cost, point_constants
 from .se2 import wrap
 
 if TYPE_CHECKING:
