@@ -13,7 +13,8 @@ same numbers, bit for bit, alone or in any batch.
 
 The operations (``ops`` below is FLOATS or ARRAYS; arithmetic and comparisons are Python's operators):
 
-    where(condition, x, y): x where condition holds, else y; not_: logical not; any: whether any holds
+    where(condition, x, y): x where condition holds, else y (x, y: values or tuples of values)
+    not_: logical not; any, all: whether any, every problem's condition holds
     full(like, value): value for each problem of ``like``; size: the number of problems
     largest, smallest: over the problems; first(mask, x): x of the first problem where mask holds
     apply_where(mask, function, arguments, fill): function's results where mask holds, else fill
@@ -76,7 +77,7 @@ def _apply_where(mask: np.ndarray, function, arguments: tuple, fill: tuple) -> t
 
 FLOATS = SimpleNamespace(
     sin=math.sin, cos=math.cos, sqrt=math.sqrt, floor=math.floor, atan=math.atan, atan2=math.atan2,
-    hypot=math.hypot, minimum=min, maximum=max, isfinite=math.isfinite, not_=operator.not_, any=bool,
+    hypot=math.hypot, minimum=min, maximum=max, isfinite=math.isfinite, not_=operator.not_, any=bool, all=bool,
     where=lambda condition, x, y: x if condition else y, full=lambda like, value: value, size=lambda x: 1,
     largest=float, smallest=float, first=lambda mask, x: x, complex=complex,
     apply_where=lambda mask, function, arguments, fill: function(*arguments) if mask else fill,
@@ -87,7 +88,7 @@ FLOATS = SimpleNamespace(
 ARRAYS = SimpleNamespace(
     sin=np.sin, cos=np.cos, sqrt=np.sqrt, floor=np.floor, atan=_each(math.atan), atan2=_each(math.atan2),
     hypot=_each(math.hypot), minimum=np.minimum, maximum=np.maximum, isfinite=np.isfinite,
-    not_=np.logical_not, any=np.any, where=np.where, full=lambda like, value: np.full(np.shape(like), value),
+    not_=np.logical_not, any=np.any, all=np.all, where=np.where, full=lambda like, value: np.full(np.shape(like), value),
     size=len, largest=np.max, smallest=np.min, first=lambda mask, x: x[np.argmax(mask)],
     complex=lambda x, y: x + 1j * y, apply_where=_apply_where, total=np.bincount,
     pairs=lambda group: (2 * group[:, None] + _XY).ravel(), total_xy=_batch_sums_xy,

@@ -373,7 +373,7 @@ def _golden(ops: SimpleNamespace, a, c_phi, low, high, tolerance: float) -> tupl
     """The minimum of fbar on [low, high], where fbar is convex, and the steps taken, by golden-section
     search (Remark 7; docs/method.md#bisection-and-golden-section): the best of the four final points,
     the first of equal values. A finished problem is frozen while the others of its batch go on."""
-    where, not_ = ops.where, ops.not_
+    where = ops.where  # selects tuples of values at once (one call a selection on numbers)
     x1 = high - _INVERSE_GOLDEN * (high - low)
     x2 = low + _INVERSE_GOLDEN * (high - low)
     f1, f2 = _fbar(ops, a, c_phi, x1), _fbar(ops, a, c_phi, x2)
@@ -382,18 +382,19 @@ def _golden(ops: SimpleNamespace, a, c_phi, low, high, tolerance: float) -> tupl
         active = (high - low > tolerance) & (x1 < x2)
         if not ops.any(active):
             break
-        left = active & (f1 <= f2)  # the minimum is in [low, x2]
-        right = active & not_(f1 <= f2)  # ... in [x1, high]
-        high, low = where(left, x2, high), where(right, x1, low)
-        probe = where(left, high - _INVERSE_GOLDEN * (high - low), low + _INVERSE_GOLDEN * (high - low))
+        left = f1 <= f2  # the minimum is in [low, x2], else in [x1, high]; the inner point kept, its value
+        new_low, new_high, kept, f_kept = where(left, (low, x2, x1, f1), (x1, high, x2, f2))
+        probe = where(left, new_high - _INVERSE_GOLDEN * (new_high - new_low),
+                      new_low + _INVERSE_GOLDEN * (new_high - new_low))
         f_probe = _fbar(ops, a, c_phi, probe)
-        x1, x2 = where(left, probe, where(right, x2, x1)), where(left, x1, where(right, probe, x2))
-        f1, f2 = where(left, f_probe, where(right, f2, f1)), where(left, f1, where(right, f_probe, f2))
+        new = (new_low, new_high, *where(left, (probe, kept, f_probe, f_kept), (kept, probe, f_kept, f_probe)))
+        # a finished problem keeps its state (while every problem goes on there is none to keep)
+        low, high, x1, x2, f1, f2 = new if ops.all(active) else where(active, new, (low, high, x1, x2, f1, f2))
         iterations = iterations + active
     best, f_best = low, _fbar(ops, a, c_phi, low)
     for x in (x1, x2, high):
         f_x = _fbar(ops, a, c_phi, x)
-        best, f_best = where(f_x < f_best, x, best), where(f_x < f_best, f_x, f_best)
+        best, f_best = where(f_x < f_best, (x, f_x), (best, f_best))
     return best, iterations
 
 
@@ -408,8 +409,8 @@ def _minima(ops: SimpleNamespace, a, c_phi, found: _Brackets, solver: Solver, to
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
     search = _SEARCHES[solver]
     varphi1, steps1 = search(ops, a, c_phi, found.low, found.high, tolerance)
-    varphi2, steps2 = ops.apply_where(found.two, search, (ops, a, c_phi, found.second_low, math.pi, tolerance),
-                                      (math.nan, 0))
+    varphi2, steps2 = ops.apply_where(found.two, search, (ops, a, c_phi, found.second_low,
+                                                          ops.full(found.second_low, math.pi), tolerance), (math.nan, 0))
     fbar1, fbar2 = _fbar(ops, a, c_phi, varphi1), _fbar(ops, a, c_phi, varphi2)
     return (varphi1, fbar1, steps1), (varphi2, fbar2, steps2), fbar2 < fbar1
 
