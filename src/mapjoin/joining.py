@@ -200,7 +200,8 @@ def _solve_joins(pair: np.ndarray | None, count: int, z0: np.ndarray, var0: np.n
     positive = information > 0
     phi_variance = where(positive, 1.0 / where(positive, information, 1.0), p_phi)
     turn = ops.cos(phi) + 1j * ops.sin(phi)
-    other_cost = linked_cost(k, odometry_phi, p_phi, found.other_phi)  # the other minimum's, where ``second``
+    # the other minimum's cost, where ``second`` (rarely any: most joins have one minimum)
+    other_cost = linked_cost(k, odometry_phi, p_phi, found.other_phi) if ops.any(second) else found.other_phi
     common = [len(z0)] if pair is None else np.bincount(pair, minlength=count).tolist()
     solutions = ops.rows((found.a, found.c_phi, minima, phi, cost, where(second, found.other_phi, None),
                           where(second, other_cost, None), iterations, ops.full(phi, level), features_cost))

@@ -409,9 +409,13 @@ def _minima(ops: SimpleNamespace, a, c_phi, found: _Brackets, solver: Solver, to
         raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
     search = _SEARCHES[solver]
     varphi1, steps1 = search(ops, a, c_phi, found.low, found.high, tolerance)
-    varphi2, steps2 = ops.apply_where(found.two, search, (ops, a, c_phi, found.second_low,
-                                                          ops.full(found.second_low, math.pi), tolerance), (math.nan, 0))
-    fbar1, fbar2 = _fbar(ops, a, c_phi, varphi1), _fbar(ops, a, c_phi, varphi2)
+    varphi2, steps2, fbar2 = ops.full(a, math.nan), ops.full(a, 0), ops.full(a, math.nan)
+    if ops.any(found.two):  # rarely: most problems have one minimum
+        varphi2, steps2 = ops.apply_where(found.two, search, (ops, a, c_phi, found.second_low,
+                                                              ops.full(found.second_low, math.pi), tolerance),
+                                          (math.nan, 0))
+        fbar2 = _fbar(ops, a, c_phi, varphi2)
+    fbar1 = _fbar(ops, a, c_phi, varphi1)
     return (varphi1, fbar1, steps1), (varphi2, fbar2, steps2), fbar2 < fbar1
 
 
