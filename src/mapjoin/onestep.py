@@ -275,7 +275,7 @@ def _brackets(ops: SimpleNamespace, a, c_phi) -> _Brackets:
     (``ops.where``), for one problem or many (docs/method.md#brackets).
     """
     bad = ops.not_(ops.isfinite(a) & ops.isfinite(c_phi) & (a >= 0))
-    if ops.any(bad):  # (NaN compares false)
+    if ops.any(bad):  # (a NaN is not finite)
         raise ValueError(f"expected a finite a >= 0 and a finite c_phi, got a={float(ops.first(bad, a))!r}, "
                          f"c_phi={float(ops.first(bad, c_phi))!r}")
     pi, where, not_ = math.pi, ops.where, ops.not_
