@@ -20,6 +20,7 @@ import os
 import statistics
 import subprocess
 import sys
+from pathlib import Path
 
 from common import DATA
 
@@ -61,10 +62,11 @@ def main() -> None:
     parser.add_argument("after")
     parser.add_argument("datasets", nargs="*", default=DATASETS)
     parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--data", type=Path, default=DATA, help="folder of the datasets (default: %(default)s)")
     args = parser.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} at the start")
     for name in args.datasets:
-        folder = str(DATA / name)
+        folder = str(args.data / name)
         rounds: dict[str, list[list[float]]] = {"before": [], "after": []}
         for number in range(args.rounds):
             trees = [("before", args.before), ("after", args.after)]
