@@ -1,17 +1,18 @@
-"""What one join of the sequential strategy would cost if its one-step problem were a batch of one.
+"""What one join of the sequential strategy costs on Python numbers, and would cost as a numpy batch of one.
 
     python benchmarks/batch_of_one.py [--repeat N]
 
-Issue 12 asks for each one-step algorithm written once, the sequential join's single problem
-being a batch of one. This prints, in one run (so the ratios hold on a loaded machine):
+Each one-step algorithm is written once over an arithmetic backend (``onestep.FLOATS`` for one
+problem on Python numbers, ``onestep.ARRAYS`` for a batch). This prints, in one run (so the
+ratios hold on a loaded machine):
 
 * the sequential and tree joins of VicPark 6898 (in-process, maps loaded once), and the
-  sequential join's time per join: 10 % of it is what a batch of one may add per join;
-* one problem through today's scalar path (``point_constants``, ``global_orientation``) and
-  through the batch path with ``count = 1`` (``batch_constants``, ``batch_orientation``);
+  sequential join's time per join: 10 % of it is what the one-problem path may add per join;
+* one problem on Python numbers (``point_constants``, ``global_orientation`` of floats) and
+  as a batch of one (``problem_of`` given; arrays of length 1);
 * the floor of any lockstep search in numpy: a bisection of 43 steps on one problem with the
   fewest numpy calls a step (in place, no stopping rule), and a 255-section that takes 8 of
-  bisection's steps a round in 6 rounds, against today's scalar bisection of the same bracket.
+  bisection's steps a round in 6 rounds, against the bisection of the same bracket on numbers.
 
 The problem is a VicPark-like one (20 common features, a = 3, C_phi = 0.02).
 """
@@ -27,9 +28,9 @@ import timeit
 import numpy as np
 
 from mapjoin import io as mapio
+from mapjoin.arithmetic import FLOATS
 from mapjoin.joining import join
-from mapjoin.onestep import (_bisection, batch_constants, batch_orientation, global_orientation,
-                             point_constants)
+from mapjoin.onestep import _bisection, global_orientation, point_constants
 
 DATA = os.environ.get("MAPJOIN_DATA", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
 
@@ -93,25 +94,25 @@ def main() -> None:
     one = np.zeros(n, dtype=np.intp)
     array = np.array
     rows = [
-        ("constants: scalar point_constants", lambda: point_constants(z0, var0, z1, var1, 1 + 1j, 0.3)),
-        ("constants: batch_constants, count 1",
-         lambda: batch_constants(one, 1, z0, var0, z1, var1, array([1 + 1j]), array([0.3]))),
+        ("constants: point_constants on numbers", lambda: point_constants(z0, var0, z1, var1, 1 + 1j, 0.3)),
+        ("constants: point_constants, a batch of 1",
+         lambda: point_constants(z0, var0, z1, var1, array([1 + 1j]), array([0.3]), one)),
     ]
     for solver in ("bisection", "golden"):
         rows += [
-            (f"orientation ({solver}): scalar global_orientation",
+            (f"orientation ({solver}): global_orientation on numbers",
              lambda s=solver: global_orientation(300.0, 0.1, 0.12, 0.01, s)),
-            (f"orientation ({solver}): batch_orientation, count 1",
-             lambda s=solver: batch_orientation(array([300.0]), array([0.1]), array([0.12]), array([0.01]), s)),
+            (f"orientation ({solver}): global_orientation, a batch of 1",
+             lambda s=solver: global_orientation(array([300.0]), array([0.1]), array([0.12]), array([0.01]), s)),
         ]
     a, c_phi = array([3.0]), array([0.02])
     rows += [
-        ("search: scalar _bisection, 43 steps", lambda: _bisection(3.0, 0.02, -3.14, 3.14, 1e-12)),
+        ("search: _bisection on numbers, 43 steps", lambda: _bisection(FLOATS, 3.0, 0.02, -3.14, 3.14, 1e-12)),
         ("search floor: numpy lockstep bisection, 43 steps", lambda: lockstep_bisection(a, c_phi, -3.14, 3.14)),
         ("search floor: numpy 255-section, 6 rounds", lambda: multisection(a, c_phi, -3.14, 3.14)),
     ]
     for name, function in rows:
-        print(f"{name}: {microseconds(function, repeat, 200 if 'count 1' in name or 'floor' in name else 2000):.1f} us")
+        print(f"{name}: {microseconds(function, repeat, 200 if 'batch of 1' in name or 'floor' in name else 2000):.1f} us")
 
 
 if __name__ == "__main__":

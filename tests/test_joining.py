@@ -357,3 +357,37 @@ def test_locate_agrees_with_a_dictionary(keys, wanted, sorted_keys):
     assert found.tolist() == [w in where for w in wanted]
     assert [i for i, f in zip(index.tolist(), found.tolist()) if f] == [where[w] for w in wanted if w in where]
     assert all(0 <= i < max(len(ids), 1) for i in index.tolist())
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 6), solver=st.sampled_from(["bisection", "golden"]))
+def test_joins_of_a_level_are_each_join_alone(seed, count, solver):
+    """The tree's joins of a level (arrays) and each of them as the sequential strategy solves it (Python
+    numbers): the same report rows, bit for bit; the joined pose r1 and its variances to rounding (the
+    complex products of t = m0 - R(phi) m1 round differently in numpy and in Python)."""
+    from mapjoin.joining import _solve_joins
+
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(0, 6, count)  # a join may have no common feature
+    pair = np.repeat(np.arange(count), sizes)
+    order = rng.permutation(len(pair))
+    scale = 10.0 ** rng.uniform(-1, 2)
+    z1 = scale * (rng.normal(size=len(pair)) + 1j * rng.normal(size=len(pair)))
+    turn = np.exp(1j * rng.uniform(-np.pi, np.pi, count))
+    z0 = turn[pair] * z1 + scale * rng.normal(size=count)[pair] + 0.1 * scale * rng.normal(size=len(pair))
+    var0, var1 = 10 ** rng.uniform(-2, 1, len(pair)), 10 ** rng.uniform(-2, 1, len(pair))
+    xy = scale * (rng.normal(size=count) + 1j * rng.normal(size=count))
+    phi = np.angle(turn) + rng.choice([0.0, 2.5], count) + 0.01 * rng.normal(size=count)  # some contradict
+    var_o, p_phi = 10 ** rng.uniform(-2, 1, count), 10 ** rng.uniform(-3, 0, count)
+    labels = [(f"m{i}", i, i + 1, int(sizes[i]) + 2) for i in range(count)]
+    pair, z0, var0, z1, var1 = pair[order], z0[order], var0[order], z1[order], var1[order]
+    batch = _solve_joins(pair, count, z0, var0, z1, var1, xy, phi, var_o, p_phi, solver, labels, 1, warn=False)
+    for i in range(count):
+        mine = pair == i
+        alone = _solve_joins(None, 1, z0[mine], var0[mine], z1[mine], var1[mine], complex(xy[i]), float(phi[i]),
+                             float(var_o[i]), float(p_phi[i]), solver, labels[i:i + 1], 1, warn=False)
+        assert alone.rows == batch.rows[i:i + 1]
+        assert alone.phi == batch.phi[i] and alone.phi_variance == batch.phi_variance[i]
+        assert alone.turn == batch.turn[i]
+        assert abs(alone.t - batch.t[i]) <= 1e-14 * (abs(alone.t) + scale)
+        assert alone.t_variance == pytest.approx(batch.t_variance[i], rel=1e-14)

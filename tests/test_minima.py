@@ -33,11 +33,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from theorem_oracles import _h_g, brute_count
 
+from mapjoin.arithmetic import ARRAYS
 from mapjoin.onestep import (
     TOLERANCE,
-    _batch_brackets,
+    _brackets,
     analyse_minima,
-    batch_orientation,
     global_orientation,
     minimise_reduced,
 )
@@ -489,15 +489,13 @@ def _special_points() -> tuple[np.ndarray, np.ndarray]:
 def _scalar_orientations(a0, phi0, z_phi, p_phi, solver, tolerance=TOLERANCE):
     found = [global_orientation(*args, solver, tolerance)
              for args in zip(a0.tolist(), phi0.tolist(), z_phi.tolist(), p_phi.tolist())]
-    return {"phi": np.array([f.phi for f in found]),
-            "other_phi": np.array([np.nan if f.other_phi is None else f.other_phi for f in found]),
-            "a": np.array([f.minima.a for f in found]), "c_phi": np.array([f.minima.c_phi for f in found]),
-            "count": np.array([f.minima.count for f in found]), "iterations": np.array([f.iterations for f in found])}
+    assert all(type(value) in (float, int) for f in found for value in f)  # Python numbers: no numpy call
+    return {field: np.array([getattr(f, field) for f in found]) for field in found[0]._fields}
 
 
 def _assert_batch_is_scalar(a0, phi0, z_phi, p_phi, solver, tolerance=TOLERANCE):
-    """batch_orientation gives exactly the numbers of global_orientation, problem by problem."""
-    batch = batch_orientation(a0, phi0, z_phi, p_phi, solver, tolerance)
+    """global_orientation of a batch (arrays) gives exactly the numbers of each problem alone (floats)."""
+    batch = global_orientation(a0, phi0, z_phi, p_phi, solver, tolerance)
     for field, expected in _scalar_orientations(a0, phi0, z_phi, p_phi, solver, tolerance).items():
         got = getattr(batch, field)
         same = (got == expected) | (np.isnan(got) & np.isnan(expected))
@@ -509,14 +507,18 @@ def test_batch_brackets_are_those_of_analyse_minima():
     """Theorem 2 as array expressions: the same brackets, bit for bit, on random, adversarial,
     two-minima and boundary points (each boundary exactly and 1e-12, 1e-7 either side)."""
     a, c = _special_points()
-    low, high, two = _batch_brackets(a, c)
+    found = _brackets(ARRAYS, a, c)
     for i, (ai, ci) in enumerate(zip(a.tolist(), c.tolist())):
-        brackets = analyse_minima(ai, ci).brackets
-        assert two[i] == (len(brackets) == 2), (ai, ci)
-        assert (low[0, i], high[0, i]) == brackets[0], (ai, ci)
-        if two[i]:
-            assert (low[1, i], high[1, i]) == brackets[1], (ai, ci)
-    assert 0.05 < two.mean() < 0.5  # the points do cover the two-minima region
+        analysis = analyse_minima(ai, ci)
+        assert found.two[i] == (analysis.count == 2), (ai, ci)
+        assert (found.low[i], found.high[i]) == analysis.brackets[0], (ai, ci)
+        if found.two[i]:
+            assert (found.second_low[i], PI) == analysis.brackets[1], (ai, ci)
+        assert found.steep[i] == (ai > 1)
+        if found.steep[i]:
+            assert (found.phi1[i], found.phi2[i], found.h1[i], found.h2[i]) == (
+                analysis.phi1, analysis.phi2, analysis.h1, analysis.h2), (ai, ci)
+    assert 0.05 < found.two.mean() < 0.5  # the points do cover the two-minima region
 
 
 @pytest.mark.parametrize("solver", ["bisection", "golden"])
@@ -552,7 +554,7 @@ def test_batch_orientation_against_brute_force():
     """Independent of the scalar path: the number of minima is the certified brute-force count, and
     the minimum found is a root of h where fbar is lowest on a fine grid (the global minimum)."""
     a, c = _special_points()
-    batch = batch_orientation(a, np.zeros(len(a)), c, np.ones(len(a)))
+    batch = global_orientation(a, np.zeros(len(a)), c, np.ones(len(a)))
     expected, resolved = brute_count(batch.a, batch.c_phi)
     assert resolved.mean() > 0.95
     assert (batch.count[resolved] == expected[resolved]).all()
@@ -574,6 +576,6 @@ def test_batch_orientation_against_brute_force():
 @pytest.mark.parametrize("a0,phi0", [(math.nan, 0.0), (-1.0, 0.0), (1.0, math.inf)])
 def test_batch_orientation_bad_arguments_raise(a0, phi0):
     with pytest.raises(ValueError, match="finite a >= 0"), np.errstate(invalid="ignore"):
-        batch_orientation(np.full(24, a0), np.full(24, phi0), np.zeros(24), np.ones(24))
+        global_orientation(np.full(24, a0), np.full(24, phi0), np.zeros(24), np.ones(24))
     with pytest.raises(ValueError, match="unknown solver"):
-        batch_orientation(np.ones(3), np.zeros(3), np.zeros(3), np.ones(3), "newton")
+        global_orientation(np.ones(3), np.zeros(3), np.zeros(3), np.ones(3), "newton")

@@ -29,7 +29,6 @@ from theorem_oracles import Dense, my_wrap, rot
 
 from mapjoin.onestep import (
     OneStepProblem,
-    batch_constants,
     point_constants,
     constants,
     cost,
@@ -121,9 +120,9 @@ def test_batch_constants_equal_dense_formulas_problem_by_problem(problems, rando
     order = np.array(random.sample(range(len(owner)), len(owner)), dtype=np.intp)
     stack = lambda name: np.concatenate([getattr(p, name) for p in problems])[order]  # noqa: E731
     points = lambda xy: xy.reshape(-1, 2) @ [1, 1j]  # noqa: E731
-    k = batch_constants(owner[order], len(problems), points(stack("z0")), stack("var0"), points(stack("z1")),
-                        stack("var1"), points(np.array([p.odometry[:2] for p in problems])),
-                        np.array([p.odometry_variances[0] for p in problems]))
+    k = point_constants(points(stack("z0")), stack("var0"), points(stack("z1")), stack("var1"),
+                        points(np.array([p.odometry[:2] for p in problems])),
+                        np.array([p.odometry_variances[0] for p in problems]), owner[order])
     for i, problem in enumerate(problems):
         dense = Dense(problem)
         c0, a0, phi0 = dense.constants()
@@ -134,23 +133,24 @@ def test_batch_constants_equal_dense_formulas_problem_by_problem(problems, rando
 
 
 @FAST
-@given(raw_problems(n_min=0))
-def test_point_constants_equal_batch_constants(problem):
-    """One problem's constants on Python numbers (the sequential join's) and as a batch of one: the same
-    sums in another order, equal to rounding (relative to S, see the module docstring)."""
+@given(st.lists(raw_problems(n_min=0), min_size=1, max_size=6), st.randoms(use_true_random=False))
+def test_batch_constants_are_each_problem_alone(problems, random):
+    """A batch (features interleaved in any order, some problems with none) and each of its problems
+    solved alone on Python numbers (the sequential join's path): the same constants, bit for bit."""
     points = lambda xy: xy.reshape(-1, 2) @ [1, 1j]  # noqa: E731
-    z0, z1, odometry = points(problem.z0), points(problem.z1), points(problem.odometry[:2])
-    one = point_constants(z0, problem.var0, z1, problem.var1, complex(odometry[0]),
-                          float(problem.odometry_variances[0]))
-    batch = batch_constants(np.zeros(len(z0), dtype=np.intp), 1, z0, problem.var0, z1, problem.var1, odometry,
-                            problem.odometry_variances[:1])
-    scale = Dense(problem).scale
-    assert abs(one.c0 - batch.c0[0]) <= 1e-12 * scale and abs(one.a0 - batch.a0[0]) <= 1e-12 * scale
-    if batch.a0[0] > 1e-6 * scale:
-        assert angle_diff(one.phi0, batch.phi0[0]) <= 1e-12 * scale / batch.a0[0]
-    size = np.abs(np.concatenate([z0, z1, odometry])).max()
-    assert abs(one.mean0 - batch.mean0[0]) <= 1e-13 * size and abs(one.mean1 - batch.mean1[0]) <= 1e-13 * size
-    assert one.weight == pytest.approx(batch.weight[0], rel=1e-14)
+    owner = np.concatenate([np.full(len(p.z0), i) for i, p in enumerate(problems)]).astype(np.intp)
+    order = np.array(random.sample(range(len(owner)), len(owner)), dtype=np.intp)
+    stack = lambda name: np.concatenate([getattr(p, name) for p in problems])[order]  # noqa: E731
+    z0, var0, z1, var1 = points(stack("z0")), stack("var0"), points(stack("z1")), stack("var1")
+    batch = point_constants(z0, var0, z1, var1, points(np.array([p.odometry[:2] for p in problems])),
+                            np.array([p.odometry_variances[0] for p in problems]), owner[order])
+    for i, problem in enumerate(problems):
+        mine = owner[order] == i  # the problem's features, in the batch's order
+        alone = point_constants(z0[mine], var0[mine], z1[mine], var1[mine], complex(points(problem.odometry[:2])[0]),
+                                float(problem.odometry_variances[0]))
+        for field in ("c0", "a0", "phi0", "mean0", "mean1", "weight"):
+            assert getattr(alone, field) == getattr(batch, field)[i], (i, field)
+            assert type(getattr(alone, field)) in (float, complex), field  # Python numbers, not numpy's
 
 
 @FAST

@@ -29,20 +29,13 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from .arithmetic import backend
 from .consistency import DEFAULT_GATE, Policy, degrees_of_freedom, enforce, flags, p_values
 from .errors import JoinError
 from .covariance import (DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances, fuse, placed_variances,
                          squared_norm, translation_variance)
 from .maps import GlobalMap, LocalMap, Provenance, first_duplicate, locate
-from .onestep import (
-    Solver,
-    as_complex,
-    batch_constants,
-    batch_orientation,
-    global_orientation,
-    linked_cost,
-    point_constants,
-)
+from .onestep import Solver, as_complex, global_orientation, linked_cost, point_constants
 from .se2 import wrap
 
 if TYPE_CHECKING:
@@ -180,58 +173,42 @@ class _Joins:
     rows: list[tuple]
 
 
-def _solve_joins(pair: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
-                 var1: np.ndarray, odometry_xy: np.ndarray, odometry_phi: np.ndarray,
-                 odometry_variances: np.ndarray, solver: Solver, labels: list[tuple[str, int, int, int]],
-                 level: int) -> _Joins:
-    """Algorithm 1 for ``count`` joins at once: Theorem 1's constants and the 1-D solves as arrays.
+def _solve_joins(pair: np.ndarray | None, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
+                 var1: np.ndarray, odometry_xy, odometry_phi, var_o, p_phi, solver: Solver,
+                 labels: list[tuple[str, int, int, int]], level: int, warn: bool = True, link: bool = True) -> _Joins:
+    """Algorithm 1 for one join on Python numbers (``pair`` None: the sequential strategy's step) or for
+    ``count`` joins at once as arrays (a tree level): Theorem 1's constants, then the 1-D solve.
 
-    Common feature j belongs to join ``pair[j]``; ``odometry_*`` are the end pose of each left
-    piece and its spherical variances. ``labels[i]`` names join i's right piece (name, start id,
-    end id, its number of features) for the report.
+    Common feature j belongs to join ``pair[j]``; ``odometry_*`` are the end pose of each left piece
+    and ``var_o``, ``p_phi`` its spherical variances. ``labels[i]`` names join i's right piece (name,
+    start id, end id, its number of features) for the report (``warn``: as :func:`_row`).
+    ``link=False`` joins by the features alone: phi* = phi0, the chi = 0 solution
+    (docs/method.md#without-the-orientation-link), reported with one minimum.
     """
-    k = batch_constants(pair, count, z0, var0, z1, var1, odometry_xy, odometry_variances[:, 0])
-    p_phi = odometry_variances[:, 1]
-    found = batch_orientation(k.a0, k.phi0, odometry_phi, p_phi, solver)
-    phi = found.phi
-    information = k.a0 * np.cos(phi - k.phi0) + 1.0 / p_phi  # f_1''(phi*) / 2
-    positive = information > 0
-    phi_variance = np.where(positive, 1.0 / np.where(positive, information, 1.0), p_phi)
-    turn = np.exp(1j * phi)
-    t = k.mean0 - turn * k.mean1
-    second = found.count == 2  # the other minimum and its cost, else None
-    other_phi = np.where(second, found.other_phi, None).tolist()
-    other_cost = np.where(second, linked_cost(k, odometry_phi, p_phi, found.other_phi), None).tolist()
-    rows = [_row(*label[:3], common, label[3], *solution, level, free) for label, common, *solution, free in zip(
-        labels, np.bincount(pair, minlength=count).tolist(), found.a.tolist(), found.c_phi.tolist(),
-        found.count.tolist(), phi.tolist(), linked_cost(k, odometry_phi, p_phi, phi).tolist(), other_phi, other_cost,
-        found.iterations.tolist(), (k.c0 - 2.0 * k.a0).tolist())]
-    return _Joins(phi, turn, t, phi_variance, translation_variance(k.weight, k.mean1, phi_variance), rows)
-
-
-def _solve_join(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarray, odometry_xy: complex,
-                odometry_phi: float, odometry_variances: tuple[float, float], solver: Solver,
-                label: tuple[str, int, int, int], level: int, warn: bool = True, link: bool = True) -> _Joins:
-    """One join as :func:`_solve_joins` computes it, on Python numbers: the sequential strategy's step
-    (``warn``: as :func:`_row`). ``link=False`` joins by the features alone: phi* = phi0, the chi = 0
-    solution (docs/method.md#without-the-orientation-link), reported with one minimum."""
-    var_o, p_phi = odometry_variances
-    k = point_constants(z0, var0, z1, var1, odometry_xy, var_o)
+    k = point_constants(z0, var0, z1, var1, odometry_xy, var_o, pair)
     found = global_orientation(k.a0, k.phi0, odometry_phi, p_phi, solver)
+    ops = backend(found.phi)
+    where = ops.where
     features_cost = k.c0 - 2.0 * k.a0
     if link:
-        phi, other, minima, iterations = found.phi, found.other_phi, found.minima.count, found.iterations
-        information = k.a0 * math.cos(phi - k.phi0) + 1.0 / p_phi  # f_1''(phi*) / 2
-        cost = float(linked_cost(k, odometry_phi, p_phi, phi))
+        phi, minima, iterations = found.phi, found.count, found.iterations
+        information = k.a0 * ops.cos(phi - k.phi0) + 1.0 / p_phi  # f_1''(phi*) / 2
+        cost, second = linked_cost(k, odometry_phi, p_phi, phi), found.count == 2
     else:
-        phi, other, minima, iterations, information, cost = wrap(k.phi0), None, 1, 0, k.a0, features_cost
-    phi_variance = 1.0 / information if information > 0 else p_phi
-    turn = complex(math.cos(phi), math.sin(phi))
-    other_cost = float(linked_cost(k, odometry_phi, p_phi, other)) if other is not None else None
-    row = _row(*label[:3], len(z0), label[3], found.minima.a, found.minima.c_phi, minima, phi,
-               cost, other, other_cost, iterations, level, features_cost, warn=warn)
-    return _Joins(phi, turn, k.mean0 - turn * k.mean1, phi_variance, translation_variance(k.weight, k.mean1, phi_variance),
-                  [row])
+        phi, minima, iterations = wrap(k.phi0), ops.full(found.phi, 1), ops.full(found.phi, 0)
+        information, cost, second = k.a0, features_cost, ops.full(found.phi, False)
+    positive = information > 0
+    phi_variance = where(positive, 1.0 / where(positive, information, 1.0), p_phi)
+    turn = ops.cos(phi) + 1j * ops.sin(phi)
+    # the other minimum's cost, where ``second`` (rarely any: most joins have one minimum)
+    other_cost = linked_cost(k, odometry_phi, p_phi, found.other_phi) if ops.any(second) else found.other_phi
+    common = [len(z0)] if pair is None else np.bincount(pair, minlength=count).tolist()
+    solutions = ops.rows((found.a, found.c_phi, minima, phi, cost, where(second, found.other_phi, None),
+                          where(second, other_cost, None), iterations, ops.full(phi, level), features_cost))
+    rows = [_row(*label[:3], common, label[3], *solution, warn=warn)
+            for label, common, solution in zip(labels, common, solutions)]
+    return _Joins(phi, turn, k.mean0 - turn * k.mean1, phi_variance,
+                  translation_variance(k.weight, k.mean1, phi_variance), rows)
 
 
 def _row(name: str, start_id: int, end_id: int, common: int, size: int, *solution, warn: bool = True) -> tuple:
@@ -389,10 +366,10 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         common = ends_common[k] - starts[k]
         shared, local_map = ids[starts[k]:ends_common[k]], maps[k]
         z0, var0 = positions[shared], position_variances[shared]
-        joins = _solve_join(z0, var0, z[rows][:common], var[rows][:common], pose_xy[k - 1], pose_phi[k - 1],
-                            (var_xy[k - 1], var_phi[k - 1]), solver,
-                            (local_map.name, local_map.start_id, local_map.end_id, local_map.size), k, warn,
-                            k not in unlinked)
+        joins = _solve_joins(None, 1, z0, var0, z[rows][:common], var[rows][:common], pose_xy[k - 1],
+                             pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1], solver,
+                             [(local_map.name, local_map.start_id, local_map.end_id, local_map.size)], k, warn,
+                             k not in unlinked)
         move = (joins.turn, joins.t, joins.t_variance, joins.phi_variance)
         placed, spread = _place(*move, z[rows], var[rows], squared[rows])
         positions[shared], position_variances[shared] = fuse(z0, var0, placed[:common], information[rows][:common])
@@ -437,7 +414,8 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, as
     rights = zip(pieces.first[1:2 * count:2].tolist(), pieces.last[1:2 * count:2].tolist(), sizes)
     joins = _solve_joins(parent[rc], count, pieces.features[lc], pieces.feature_variances[lc],
                          pieces.features[rc], pieces.feature_variances[rc], pieces.pose_xy[left_end],
-                         pieces.pose_phi[left_end], pieces.pose_variances[left_end], solver,
+                         pieces.pose_phi[left_end], pieces.pose_variances[left_end, 0],
+                         pieces.pose_variances[left_end, 1], solver,
                          [(labels.run(first, last), labels.start_ids[first], labels.end_ids[last], size)
                           for first, last, size in rights], level)
 

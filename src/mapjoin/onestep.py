@@ -23,10 +23,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
+from .arithmetic import ARRAYS, FLOATS, backend
 from .se2 import rotation, wrap
 
 __all__ = [
@@ -38,16 +39,13 @@ __all__ = [
     "OneStepSolution",
     "Solver",
     "analyse_minima",
-    "batch_constants",
     "constants",
     "cost",
     "global_orientation",
     "linked_cost",
-    "Orientation",
     "MinimaSummary",
     "Orientations",
     "as_complex",
-    "batch_orientation",
     "point_constants",
     "minimise_reduced",
     "summarise_minima",
@@ -83,15 +81,16 @@ class Constants:
     """c0, a0, phi0 of Theorem 1, and the weighted means that recover ``t = m0 - R(phi) m1``.
 
     ``weight`` is the total weight ``W`` of the point pairs: the information of ``t`` at fixed phi.
-    For a batch (:func:`batch_constants`) every field has one more leading axis, one entry per problem.
+    The means are complex numbers ``x + iy`` except in :func:`constants` (x/y arrays); for a batch
+    (:func:`point_constants` with ``problem_of``) every field is an array, one entry per problem.
     """
 
-    c0: float
-    a0: float
-    phi0: float
-    mean0: np.ndarray
-    mean1: np.ndarray
-    weight: float
+    c0: float | np.ndarray
+    a0: float | np.ndarray
+    phi0: float | np.ndarray
+    mean0: complex | np.ndarray
+    mean1: complex | np.ndarray
+    weight: float | np.ndarray
 
 
 def as_complex(xy: np.ndarray) -> np.ndarray:
@@ -107,54 +106,42 @@ def constants(problem: OneStepProblem) -> Constants:
                      np.array([k.mean1.real, k.mean1.imag]), k.weight)
 
 
-def point_constants(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarray, odometry: complex,
-                    odometry_variance: float) -> Constants:
-    """Theorem 1's constants of one problem with points as complex numbers ``x + iy``, as Python numbers.
+def point_constants(z0: np.ndarray, var0: np.ndarray, z1: np.ndarray, var1: np.ndarray, odometry, odometry_variance,
+                    problem_of: np.ndarray | None = None) -> Constants:
+    """Theorem 1's constants with points as complex numbers ``x + iy`` (docs/method.md#weighted-sums).
 
-    The same sums as :func:`batch_constants` in a few numpy calls (one join of the sequential
-    strategy): with ``s = w q0``, ``sum w |q0|^2 = vdot(q0, s)`` and ``A + iB = vdot(q1, s)``.
+    One problem (``problem_of`` None): ``odometry`` (the x/y of O) is a complex number and
+    ``odometry_variance`` (var_o) a float, and the constants are Python numbers. A batch: they are
+    arrays, one entry per problem, and common feature j belongs to problem ``problem_of[j]`` (any
+    order, a problem may have none). Either way the features' sums are ``np.bincount``'s, added left
+    to right from 0 (one problem is group 0 of one), and the odometry pair ``(O_xy, 0)`` with weight
+    ``1 / var_o`` is added after them in real arithmetic, so that a problem's constants are the
+    same, bit for bit, alone or in any batch.
     """
+    ops = FLOATS if problem_of is None else ARRAYS
+    group, count = (np.zeros(len(z0), dtype=np.intp), 1) if problem_of is None else (problem_of, len(odometry))
+    total, total_xy, at = ops.total, ops.total_xy, ops.at
     weights = 1.0 / (var0 + var1)
     odometry_weight = 1.0 / odometry_variance
-    weight = float(np.add.reduce(weights)) + odometry_weight
-    mean0 = (complex(np.dot(weights, z0)) + odometry_weight * odometry) / weight
-    mean1 = complex(np.dot(weights, z1)) / weight
-    q0, q1 = z0 - mean0, z1 - mean1
-    s0 = weights * q0
-    o0 = odometry - mean0  # the odometry pair (O_xy, 0), centred
-    c0 = (complex(np.vdot(q0, s0) + np.vdot(q1, weights * q1)).real
-          + odometry_weight * (o0.real**2 + o0.imag**2 + mean1.real**2 + mean1.imag**2))
-    moment = complex(np.vdot(q1, s0)) - odometry_weight * o0 * mean1.conjugate()
-    return Constants(c0, abs(moment), math.atan2(moment.imag, moment.real), mean0, mean1, weight)
-
-
-def batch_constants(problem_of: np.ndarray, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
-                    var1: np.ndarray, odometry: np.ndarray, odometry_variance: np.ndarray) -> Constants:
-    """Theorem 1's constants of ``count`` one-step problems at once, as arrays of length ``count``.
-
-    Points are complex numbers ``x + iy`` (and so are the means returned). Common feature j
-    belongs to problem ``problem_of[j]`` (any order, a problem may have none); ``odometry``
-    (the x/y of each problem's O) and ``odometry_variance`` (var_o) give its odometry point
-    pair ``(O_xy, 0)`` with weight ``1 / var_o``, appended as one more pair. With complex
-    points ``A + iB = sum w q0 conj(q1)``.
-    """
-    group = np.concatenate([problem_of, np.arange(count)])
-    weights = 1.0 / np.concatenate([var0 + var1, odometry_variance])
-    p0 = np.concatenate([z0, odometry])
-    p1 = np.concatenate([z1, np.zeros(count, dtype=complex)])
-
-    def total(values: np.ndarray) -> np.ndarray:
-        return np.bincount(group, weights * values, count)
-
-    def complex_total(values: np.ndarray) -> np.ndarray:
-        return total(values.real) + 1j * total(values.imag)
-
-    weight = np.bincount(group, weights, count)
-    mean0, mean1 = complex_total(p0) / weight, complex_total(p1) / weight
-    q0, q1 = p0 - mean0[group], p1 - mean1[group]
-    c0 = total(q0.real**2 + q0.imag**2 + q1.real**2 + q1.imag**2)
-    moment = complex_total(q0 * q1.conj())
-    return Constants(c0, np.abs(moment), np.angle(moment), mean0, mean1, weight)
+    p0, p1 = weights * z0, weights * z1
+    pairs = ops.pairs(group)  # the problems of the x/y pairs of complex values (``values.view(float)``)
+    weight = total(group, weights, count) + odometry_weight
+    (sum0_x, sum0_y), (sum1_x, sum1_y) = total_xy(pairs, p0.view(float), count), total_xy(pairs, p1.view(float), count)
+    o_x, o_y = odometry.real, odometry.imag
+    mean0_x, mean0_y = (sum0_x + odometry_weight * o_x) / weight, (sum0_y + odometry_weight * o_y) / weight
+    mean1_x, mean1_y = sum1_x / weight, sum1_y / weight
+    mean0, mean1 = ops.complex(mean0_x, mean0_y), ops.complex(mean1_x, mean1_y)
+    q0, q1 = z0 - at(mean0, group), z1 - at(mean1, group)
+    q1_conj = q1.conj()
+    spread = weights * (q0 * q0.conj() + q1 * q1_conj).real  # w (|q0|^2 + |q1|^2): its sum is c0
+    big_a, big_b = total_xy(pairs, (weights * (q0 * q1_conj)).view(float), count)  # sum w q0 conj(q1) = A + iB
+    # the odometry pair: q0 = O_xy - m0, q1 = -m1
+    d_x, d_y = o_x - mean0_x, o_y - mean0_y
+    c0 = total(group, spread, count) + odometry_weight * (d_x * d_x + d_y * d_y + mean1_x * mean1_x
+                                                          + mean1_y * mean1_y)
+    big_a = big_a - odometry_weight * (d_x * mean1_x + d_y * mean1_y)
+    big_b = big_b - odometry_weight * (d_y * mean1_x - d_x * mean1_y)
+    return Constants(c0, ops.hypot(big_a, big_b), ops.atan2(big_b, big_a), mean0, mean1, weight)
 
 
 def cost(problem: OneStepProblem, phi, consts: Constants | None = None):
@@ -168,8 +155,10 @@ def cost(problem: OneStepProblem, phi, consts: Constants | None = None):
 
 
 def linked_cost(k: Constants, z_phi, p_phi, phi):
-    """f_1(phi) = c0 - 2 a0 cos(phi - phi0) + wrap(z_phi - phi)^2 / p_phi (Theorem 1; arrays broadcast)."""
-    return k.c0 - 2.0 * k.a0 * np.cos(phi - k.phi0) + wrap(z_phi - phi) ** 2 / p_phi
+    """f_1(phi) = c0 - 2 a0 cos(phi - phi0) + wrap(z_phi - phi)^2 / p_phi (Theorem 1; numbers, or arrays that
+    broadcast)."""
+    residual = wrap(z_phi - phi)
+    return k.c0 - 2.0 * k.a0 * backend(phi).cos(phi - k.phi0) + residual * residual / p_phi
 
 
 def recover(problem: OneStepProblem, phi: float, consts: Constants | None = None
@@ -246,63 +235,80 @@ class MinimaAnalysis:
         )
 
 
+def _fbar(ops: SimpleNamespace, a, c_phi, varphi):
+    """fbar(varphi) = -a cos(varphi + c_phi) + varphi^2 / 2 (Theorem 2) with ``ops``."""
+    return -a * ops.cos(varphi + c_phi) + 0.5 * varphi * varphi
+
+
 def reduced_cost(a: float, c_phi: float, varphi):
-    """fbar(varphi) = -a cos(varphi + c_phi) + varphi^2 / 2 (Theorem 2)."""
+    """fbar(varphi) = -a cos(varphi + c_phi) + varphi^2 / 2 (Theorem 2; a float or an array ``varphi``)."""
     if isinstance(varphi, float):
-        return -a * math.cos(varphi + c_phi) + 0.5 * varphi**2
-    varphi = np.asarray(varphi, dtype=float)
-    value = -a * np.cos(varphi + c_phi) + 0.5 * varphi**2
+        return _fbar(FLOATS, a, c_phi, varphi)
+    value = _fbar(ARRAYS, a, c_phi, np.asarray(varphi, dtype=float))
     return value if value.ndim else float(value)
 
 
-def analyse_minima(a: float, c_phi: float) -> MinimaAnalysis:
+class _Brackets(NamedTuple):
+    """Theorem 2's analysis of fbar for one problem (numbers) or many (arrays): see :func:`_brackets`."""
+
+    steep: Any  # a > 1: g vanishes at phi1 and phi2 (else phi1, phi2, h1, h2 are meaningless)
+    phi1: Any
+    phi2: Any
+    h1: Any
+    h2: Any
+    low: Any  # the first bracket (low, high): a problem's only one when it has one minimum
+    high: Any
+    second_low: Any  # the second bracket (second_low, pi), where ``two``
+    two: Any
+
+
+def _brackets(ops: SimpleNamespace, a, c_phi) -> _Brackets:
     """Count and bracket the local minima of fbar on [-pi, pi) (Theorem 2, conditions (16)-(21)).
 
     g = fbar'' vanishes at ``phi1 = wrap(arccos(-1/a) - c_phi)`` and
-    ``phi2 = wrap(-arccos(-1/a) - c_phi)``; h decreases between them (going forward from
-    phi1 to phi2). When phi1 < phi2 the increasing parts are [-pi, phi1] and [phi2, pi]
-    and each holds a minimum iff h changes sign strictly inside it; otherwise h increases
-    on one interval (the whole circle when a <= 1) holding the one minimum. A minimum
-    never sits at the wrap point: there h jumps down by 2 pi.
+    ``phi2 = wrap(-arccos(-1/a) - c_phi)`` (when a > 1: ``steep``); h decreases between them (going
+    forward from phi1 to phi2). When phi1 < phi2 the increasing parts are [-pi, phi1] and
+    [phi2, pi] and each holds a minimum iff h changes sign strictly inside it; if rounding leaves
+    neither, the one with the larger margin (the first on a tie: Theorem 2 guarantees one minimum).
+    Otherwise h increases on one interval (the whole circle when a <= 1) holding the one minimum.
+    A minimum never sits at the wrap point: there h jumps down by 2 pi. Written without branches
+    (``ops.where``), for one problem or many (docs/method.md#brackets).
     """
-    if not (math.isfinite(a) and math.isfinite(c_phi)) or a < 0:
-        raise ValueError(f"expected a finite a >= 0 and a finite c_phi, got a={a!r}, c_phi={c_phi!r}")
-    pi = math.pi
-    h_left = -a * math.sin(c_phi) - pi   # h(-pi)
-    h_right = -a * math.sin(c_phi) + pi  # h(pi)
-    if a > 1:
-        phi1, phi2, h1, h2 = _inflections(a, c_phi)
-    else:
-        phi1 = phi2 = h1 = h2 = math.nan
-    if not a > 1:
-        brackets: tuple[tuple[float, float], ...] = ((-pi, pi),)
-    elif phi1 >= phi2:
-        brackets = ((phi2, phi1),)
-    else:
-        # margin > 0: h changes sign strictly inside the interval, so it holds a minimum
-        candidates = (((-pi, phi1), min(-h_left, h1)), ((phi2, pi), min(-h2, h_right)))
-        brackets = tuple(b for b, margin in candidates if margin > 0)
-        if not brackets:  # rounding at a boundary; Theorem 2 guarantees one minimum
-            brackets = (max(candidates, key=lambda c: c[1])[0],)
+    bad = ops.not_(ops.isfinite(a) & ops.isfinite(c_phi) & (a >= 0))
+    if ops.any(bad):  # (a NaN is not finite)
+        raise ValueError(f"expected a finite a >= 0 and a finite c_phi, got a={float(ops.first(bad, a))!r}, "
+                         f"c_phi={float(ops.first(bad, c_phi))!r}")
+    pi, where, not_ = math.pi, ops.where, ops.not_
+    h_edge = -a * ops.sin(c_phi)  # h(-pi) + pi = h(pi) - pi
+    steep = a > 1
+    phi1, phi2, h1, h2 = _inflections(where(steep, a, 2.0), c_phi, ops)  # a <= 1: unused values
+    split = steep & (phi1 < phi2)  # h increases on [-pi, phi1] and [phi2, pi]
+    margin1, margin2 = ops.minimum(pi - h_edge, h1), ops.minimum(-h2, h_edge + pi)  # > 0: h changes sign
+    first, second = split & (margin1 > 0), split & (margin2 > 0)
+    neither = split & not_(first) & not_(second)  # rounding at a boundary
+    first = first | (neither & (margin1 >= margin2))
+    second = second | (neither & (margin1 < margin2))
+    # one bracket: (-pi, pi) when a <= 1, (phi2, phi1) when phi1 >= phi2, else (-pi, phi1) or (phi2, pi)
+    low = where(steep & not_(first), phi2, -pi)
+    high = where(steep & (not_(split) | first), phi1, pi)
+    return _Brackets(steep, phi1, phi2, h1, h2, low, high, where(second, phi2, pi), first & second)
+
+
+def analyse_minima(a: float, c_phi: float) -> MinimaAnalysis:
+    """Count and bracket the local minima of fbar on [-pi, pi) (Theorem 2, conditions (16)-(21)):
+    :func:`_brackets` of one problem."""
+    found = _brackets(FLOATS, a, c_phi)
+    brackets = ((found.low, found.high), (found.second_low, math.pi)) if found.two else ((found.low, found.high),)
+    phi1, phi2, h1, h2 = found[1:5] if found.steep else (math.nan,) * 4
     return MinimaAnalysis(a, c_phi, phi1, phi2, h1, h2, brackets)
 
 
-# the few functions _inflections needs, for one problem (floats) or many at once (arrays); the
-# arrays' atan is math.atan too (one call per problem), as numpy's may differ in the last bit
-# and so would the brackets: batches then give exactly the scalar results
-_FLOATS = SimpleNamespace(sqrt=math.sqrt, atan=math.atan, floor=math.floor, minimum=min,
-                          where=lambda condition, x, y: x if condition else y)
-_ARRAYS = SimpleNamespace(sqrt=np.sqrt, atan=lambda x: np.array([math.atan(v) for v in x.tolist()]),
-                          floor=np.floor, minimum=np.minimum, where=np.where)
-
-
-def _inflections(a, c_phi, ops: SimpleNamespace = _FLOATS) -> tuple:
+def _inflections(a, c_phi, ops: SimpleNamespace) -> tuple:
     """phi1, phi2 (the zeros of g) and h(phi1), h(phi2) for a > 1, free of cancellation near a = 1.
 
     With ``root = sqrt(a^2 - 1)`` and ``delta = atan(root)``, ``arccos(-1/a) = pi - delta`` and
     ``h(phi1) = root + phi1 = (root - delta) + (phi1 + delta)``; ``root - delta`` is taken
-    from its series when small, where both terms nearly cancel. ``ops`` is ``_FLOATS`` for
-    floats, ``_ARRAYS`` for arrays of problems.
+    from its series when small, where both terms nearly cancel (docs/method.md#precision).
     """
     root = ops.sqrt((a - 1.0) * (a + 1.0))
     delta = ops.atan(root)
@@ -319,57 +325,108 @@ def _inflections(a, c_phi, ops: SimpleNamespace = _FLOATS) -> tuple:
     return shift1 - delta, shift2 + delta, excess + shift1, -excess + shift2
 
 
-def _bisection(a: float, c_phi: float, low: float, high: float, tolerance: float) -> tuple[float, int]:
-    """The root of h in [low, high], where h increases, by bisection (Algorithm 1, step 2)."""
-    sin = math.sin  # h(x) = a sin(x + c_phi) + x, inlined: this loop runs ~42 times a join
-    iterations = 0
-    while high - low > tolerance:
+def _bisection(ops: SimpleNamespace, a, c_phi, low, high, tolerance: float) -> tuple:
+    """The root of h in [low, high], where h increases, and the steps taken, by bisection (Algorithm 1,
+    step 2; docs/method.md#bisection-and-golden-section).
+
+    Halves the bracket on the sign of h at the midpoint until it is at most ``tolerance`` wide or
+    the midpoint equals an end. The first :func:`_sure_steps` steps, which no bracket can stop in,
+    are taken without the test; then a finished problem is frozen while the others of its batch go
+    on. One problem takes the steps it would take in any batch: its numbers do not depend on it.
+    """
+    sin, where = ops.sin, ops.where  # looked up once: a join of the sequential strategy takes ~43 steps
+    sure = _sure_steps(ops, low, high, tolerance)
+    for _ in range(sure):
         middle = 0.5 * (low + high)
-        if middle == low or middle == high:
-            break
-        if a * sin(middle + c_phi) + middle < 0:
-            low = middle
-        else:
-            high = middle
-        iterations += 1
-    return 0.5 * (low + high), iterations
+        below = a * sin(middle + c_phi) + middle < 0  # h(middle) < 0: the root is above
+        low, high = where(below, middle, low), where(below, high, middle)
+    iterations = ops.full(low, sure)
+    while True:
+        middle = 0.5 * (low + high)
+        active = (high - low > tolerance) & (middle != low) & (middle != high)
+        if not ops.any(active):
+            return middle, iterations
+        below = a * sin(middle + c_phi) + middle < 0
+        low, high = where(active & below, middle, low), where(active & ops.not_(below), middle, high)
+        iterations = iterations + active
+
+
+def _sure_steps(ops: SimpleNamespace, low, high, tolerance: float) -> int:
+    """How many bisection steps every bracket takes for certain: all stay wider than the tolerance and 4 ulp.
+
+    A step halves the width up to the rounding of the midpoint, at most ``ulp/2`` of the endpoints'
+    sum; over any number of steps the width stays above ``w0 / 2^k - ulp``. While ``w0 / 2^k >=
+    4 m`` with ``m = max(tolerance, 4 ulp)`` it is above ``m``: the stopping rule cannot hold.
+    """
+    if not ops.size(low):
+        return 0
+    ulp = math.ulp(2 * float(ops.largest(ops.maximum(abs(low), abs(high)))))
+    margin = 4 * max(tolerance, 4 * ulp)
+    narrowest = float(ops.smallest(high - low))
+    return max(0, math.floor(math.log2(narrowest / margin)) + 1) if narrowest >= margin else 0
 
 
 _INVERSE_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
-def _golden(a: float, c_phi: float, low: float, high: float, tolerance: float) -> tuple[float, int]:
-    """The minimum of fbar on [low, high], where fbar is convex, by golden-section search (Remark 7)."""
-    f = lambda x: -a * math.cos(x + c_phi) + 0.5 * x * x  # noqa: E731
+def _golden(ops: SimpleNamespace, a, c_phi, low, high, tolerance: float) -> tuple:
+    """The minimum of fbar on [low, high], where fbar is convex, and the steps taken, by golden-section
+    search (Remark 7; docs/method.md#bisection-and-golden-section): the best of the four final points,
+    the first of equal values. A finished problem is frozen while the others of its batch go on."""
+    where = ops.where  # selects tuples of values at once (one call a selection on numbers)
     x1 = high - _INVERSE_GOLDEN * (high - low)
     x2 = low + _INVERSE_GOLDEN * (high - low)
-    f1, f2 = f(x1), f(x2)
-    iterations = 0
-    while high - low > tolerance and x1 < x2:
-        if f1 <= f2:
-            high, x2, f2 = x2, x1, f1
-            x1 = high - _INVERSE_GOLDEN * (high - low)
-            f1 = f(x1)
-        else:
-            low, x1, f1 = x1, x2, f2
-            x2 = low + _INVERSE_GOLDEN * (high - low)
-            f2 = f(x2)
-        iterations += 1
-    best = min((low, x1, x2, high), key=f)
+    f1, f2 = _fbar(ops, a, c_phi, x1), _fbar(ops, a, c_phi, x2)
+    iterations = ops.full(low, 0)
+    while True:
+        active = (high - low > tolerance) & (x1 < x2)
+        if not ops.any(active):
+            break
+        left = f1 <= f2  # the minimum is in [low, x2], else in [x1, high]; the inner point kept, its value
+        new_low, new_high, kept, f_kept = where(left, (low, x2, x1, f1), (x1, high, x2, f2))
+        probe = where(left, new_high - _INVERSE_GOLDEN * (new_high - new_low),
+                      new_low + _INVERSE_GOLDEN * (new_high - new_low))
+        f_probe = _fbar(ops, a, c_phi, probe)
+        new = (new_low, new_high, *where(left, (probe, kept, f_probe, f_kept), (kept, probe, f_kept, f_probe)))
+        # a finished problem keeps its state (while every problem goes on there is none to keep)
+        low, high, x1, x2, f1, f2 = new if ops.all(active) else where(active, new, (low, high, x1, x2, f1, f2))
+        iterations = iterations + active
+    best, f_best = low, _fbar(ops, a, c_phi, low)
+    for x in (x1, x2, high):
+        f_x = _fbar(ops, a, c_phi, x)
+        best, f_best = where(f_x < f_best, (x, f_x), (best, f_best))
     return best, iterations
+
+
+_SEARCHES = {"bisection": _bisection, "golden": _golden}
+
+
+def _minima(ops: SimpleNamespace, a, c_phi, found: _Brackets, solver: Solver, tolerance: float) -> tuple:
+    """(varphi, fbar, iterations) of the minimum in the first bracket and in the second one (NaN, NaN, 0
+    where there is none), and ``swap``: whether the second is the lower, so the global minimum (Algorithm 1,
+    steps 2-3; on a tie the first bracket's)."""
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
+    search = _SEARCHES[solver]
+    varphi1, steps1 = search(ops, a, c_phi, found.low, found.high, tolerance)
+    varphi2, steps2, fbar2 = ops.full(a, math.nan), ops.full(a, 0), ops.full(a, math.nan)
+    if ops.any(found.two):  # rarely: most problems have one minimum
+        varphi2, steps2 = ops.apply_where(found.two, search, (ops, a, c_phi, found.second_low,
+                                                              ops.full(found.second_low, math.pi), tolerance),
+                                          (math.nan, 0))
+        fbar2 = _fbar(ops, a, c_phi, varphi2)
+    fbar1 = _fbar(ops, a, c_phi, varphi1)
+    return (varphi1, fbar1, steps1), (varphi2, fbar2, steps2), fbar2 < fbar1
 
 
 def minimise_reduced(analysis: MinimaAnalysis, solver: Solver = "bisection",
                      tolerance: float = TOLERANCE) -> tuple[Minimum, ...]:
-    """Every local minimum of fbar, lowest first (Algorithm 1, steps 2-3)."""
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
-    search = _bisection if solver == "bisection" else _golden
-    minima = []
-    for low, high in analysis.brackets:
-        varphi, iterations = search(analysis.a, analysis.c_phi, low, high, tolerance)
-        minima.append(Minimum(varphi, reduced_cost(analysis.a, analysis.c_phi, varphi), iterations))
-    return tuple(sorted(minima, key=lambda m: m.fbar))
+    """Every local minimum of fbar, lowest first (Algorithm 1, steps 2-3): :func:`_minima` of one problem."""
+    (low, high), (second_low, _) = analysis.brackets[0], analysis.brackets[-1]
+    found = _Brackets(analysis.a > 1, analysis.phi1, analysis.phi2, analysis.h1, analysis.h2, low, high, second_low,
+                      analysis.count == 2)
+    first, second, swap = _minima(FLOATS, analysis.a, analysis.c_phi, found, solver, tolerance)
+    return tuple(Minimum(*m) for m in ((second, first) if swap else (first, second))[:analysis.count])
 
 
 @dataclass(frozen=True)
@@ -418,169 +475,33 @@ class OneStepSolution:
     phi_information: float
 
 
-@dataclass(frozen=True)
-class Orientation:
-    """The global minimiser ``phi`` of f_1 (Algorithm 1), the other local minimum if any, and Theorem 2's analysis."""
+class Orientations(NamedTuple):
+    """:func:`global_orientation` of one problem (numbers) or many (arrays, one entry per problem).
 
-    phi: float
-    other_phi: float | None
-    minima: MinimaAnalysis
-    iterations: int
-
-
-def global_orientation(a0: float, phi0: float, z_phi: float, p_phi: float, solver: Solver = "bisection",
-                       tolerance: float = TOLERANCE) -> Orientation:
-    """Algorithm 1 on f_1: reduce to fbar with ``a = a0 p_phi``, ``C_phi = wrap(z_phi - phi0)``, count, minimise."""
-    analysis = analyse_minima(a0 * p_phi, wrap(z_phi - phi0))
-    minima = minimise_reduced(analysis, solver, tolerance)
-    other = wrap(z_phi + minima[1].varphi) if len(minima) > 1 else None
-    return Orientation(wrap(z_phi + minima[0].varphi), other, analysis, sum(m.iterations for m in minima))
-
-
-@dataclass(frozen=True)
-class Orientations:
-    """:func:`global_orientation` of many problems (:func:`batch_orientation`), one array entry per problem.
-
-    ``other_phi`` is NaN where f_1 has one minimum; ``a``, ``c_phi`` and ``count`` are Theorem 2's
-    reduction and number of minima, ``iterations`` the search steps summed over the minima.
+    ``phi`` is the global minimiser of f_1, ``other_phi`` the other local minimum (NaN where f_1 has
+    one); ``a``, ``c_phi`` and ``count`` are Theorem 2's reduction and number of minima, ``iterations``
+    the search steps summed over the minima. (A named tuple: the sequential join makes one a join.)
     """
 
-    phi: np.ndarray
-    other_phi: np.ndarray
-    a: np.ndarray
-    c_phi: np.ndarray
-    count: np.ndarray
-    iterations: np.ndarray
+    phi: Any
+    other_phi: Any
+    a: Any
+    c_phi: Any
+    count: Any
+    iterations: Any
 
 
-def batch_orientation(a0: np.ndarray, phi0: np.ndarray, z_phi: np.ndarray, p_phi: np.ndarray,
-                      solver: Solver = "bisection", tolerance: float = TOLERANCE) -> Orientations:
-    """Algorithm 1 on f_1 for many problems at once: :func:`global_orientation` as array operations.
-
-    Theorem 2's analysis is :func:`analyse_minima` as array expressions, and every bracket is
-    searched in lockstep with the same steps and stopping rule as the scalar search, so the
-    cost is a fixed number of numpy calls per search step, whatever the number of problems.
-    """
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
+def global_orientation(a0, phi0, z_phi, p_phi, solver: Solver = "bisection", tolerance: float = TOLERANCE
+                       ) -> Orientations:
+    """Algorithm 1 on f_1 (docs/method.md#algorithm-1) for one problem (numbers) or many (arrays):
+    reduce to fbar with ``a = a0 p_phi``, ``C_phi = wrap(z_phi - phi0)``, bracket, minimise, map back.
+    A problem gets the same numbers, bit for bit, alone or in any batch."""
+    ops = backend(a0)
     a, c_phi = a0 * p_phi, wrap(z_phi - phi0)
-    bad = ~(np.isfinite(a) & np.isfinite(c_phi) & (a >= 0))
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise ValueError(f"expected a finite a >= 0 and a finite c_phi, got a={float(a[i])!r}, "
-                         f"c_phi={float(c_phi[i])!r}")
-    low, high, two = _batch_brackets(a, c_phi)
-    # the second brackets (problems with two minima) follow the first ones in one flat search
-    second = np.flatnonzero(two)
-    problem = np.concatenate([np.arange(len(a)), second])
-    search = _batch_bisection if solver == "bisection" else _batch_golden
-    varphi, iterations = search(a[problem], c_phi[problem], np.concatenate([low[0], low[1, second]]),
-                                np.concatenate([high[0], high[1, second]]), tolerance)
-    fbar = reduced_cost(a[problem], c_phi[problem], varphi)
-    best, other = varphi[:len(a)], np.full(len(a), math.nan)
-    other[second] = varphi[len(a):]
-    swap = second[fbar[len(a):] < fbar[second]]  # lowest minimum first; a tie keeps the first bracket
-    best[swap], other[swap] = other[swap], best[swap]
-    steps = iterations[:len(a)].copy()
-    steps[second] += iterations[len(a):]
-    return Orientations(wrap(z_phi + best), wrap(z_phi + other), a, c_phi, 1 + two, steps)
-
-
-def _batch_brackets(a: np.ndarray, c_phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`analyse_minima`'s brackets as arrays: ``low``, ``high`` (2, n) and ``two`` (n,).
-
-    Row 0 holds each problem's first bracket (its only one with one minimum), row 1 the second
-    where ``two`` is True (two minima).
-    """
-    pi = math.pi
-    h_edge = -a * np.sin(c_phi)
-    steep = a > 1
-    phi1, phi2, h1, h2 = _inflections(np.where(steep, a, 2.0), c_phi, _ARRAYS)  # a <= 1: unused values
-    split = steep & (phi1 < phi2)  # h increases on [-pi, phi1] and [phi2, pi]
-    margin1, margin2 = np.minimum(pi - h_edge, h1), np.minimum(-h2, h_edge + pi)
-    first, second = split & (margin1 > 0), split & (margin2 > 0)
-    neither = split & ~first & ~second  # rounding at a boundary: the larger margin, the first on a tie
-    first |= neither & (margin1 >= margin2)
-    second |= neither & (margin1 < margin2)
-    # one bracket: (-pi, pi) when a <= 1, (phi2, phi1) when phi1 >= phi2, else (-pi, phi1) or (phi2, pi)
-    low = np.where(steep & ~first, phi2, -pi)
-    high = np.where(steep & (~split | first), phi1, pi)
-    return np.stack([low, np.where(second, phi2, pi)]), np.stack([high, np.full_like(high, pi)]), first & second
-
-
-def _batch_bisection(a: np.ndarray, c_phi: np.ndarray, low: np.ndarray, high: np.ndarray, tolerance: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_bisection` of every bracket in lockstep: the roots of h and the steps each took.
-
-    The first :func:`_sure_steps` steps are taken without the stopping rule (no bracket can
-    meet it yet), in place; the remaining few test it bracket by bracket.
-    """
-    low, high = low.copy(), high.copy()
-    sure = _sure_steps(low, high, tolerance)
-    middle, h = np.empty_like(low), np.empty_like(low)
-    below = np.empty(len(low), dtype=bool)
-    for _ in range(sure):
-        np.add(low, high, out=middle)
-        middle *= 0.5
-        np.add(middle, c_phi, out=h)
-        np.sin(h, out=h)
-        h *= a
-        h += middle
-        np.less(h, 0.0, out=below)  # h(middle) = a sin(middle + c_phi) + middle < 0: the root is above
-        np.copyto(low, middle, where=below)
-        np.copyto(high, middle, where=~below)
-    iterations = np.full(len(low), sure, dtype=np.intp)
-    while True:
-        middle = 0.5 * (low + high)
-        active = (high - low > tolerance) & (middle != low) & (middle != high)
-        if not np.count_nonzero(active):
-            return middle, iterations
-        below = a * np.sin(middle + c_phi) + middle < 0
-        low = np.where(active & below, middle, low)
-        high = np.where(active & ~below, middle, high)
-        iterations += active
-
-
-def _sure_steps(low: np.ndarray, high: np.ndarray, tolerance: float) -> int:
-    """How many bisection steps every bracket takes for certain: all stay wider than the tolerance and 4 ulp.
-
-    A step halves the width up to the rounding of the midpoint, at most ``ulp/2`` of the endpoints'
-    sum; over any number of steps the width stays above ``w0 / 2^k - ulp``. While ``w0 / 2^k >=
-    4 m`` with ``m = max(tolerance, 4 ulp)`` it is above ``m``: the stopping rule cannot hold.
-    """
-    if not len(low):
-        return 0
-    ulp = float(np.spacing(2 * max(np.abs(low).max(), np.abs(high).max())))
-    margin = 4 * max(tolerance, 4 * ulp)
-    narrowest = float((high - low).min())
-    return max(0, math.floor(math.log2(narrowest / margin)) + 1) if narrowest >= margin else 0
-
-
-def _batch_golden(a: np.ndarray, c_phi: np.ndarray, low: np.ndarray, high: np.ndarray, tolerance: float
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_golden` of every bracket in lockstep: the minima of fbar and the steps each took."""
-    def f(x: np.ndarray) -> np.ndarray:
-        return -a * np.cos(x + c_phi) + 0.5 * x * x
-
-    x1 = high - _INVERSE_GOLDEN * (high - low)
-    x2 = low + _INVERSE_GOLDEN * (high - low)
-    f1, f2 = f(x1), f(x2)
-    iterations = np.zeros(len(low), dtype=np.intp)
-    while True:
-        active = (high - low > tolerance) & (x1 < x2)
-        if not active.any():
-            break
-        left = active & (f1 <= f2)  # the minimum is in [low, x2]
-        right = active & ~(f1 <= f2)  # ... in [x1, high]
-        high, low = np.where(left, x2, high), np.where(right, x1, low)
-        probe = np.where(left, high - _INVERSE_GOLDEN * (high - low), low + _INVERSE_GOLDEN * (high - low))
-        f_probe = f(probe)
-        x1, x2 = np.where(left, probe, np.where(right, x2, x1)), np.where(left, x1, np.where(right, probe, x2))
-        f1, f2 = np.where(left, f_probe, np.where(right, f2, f1)), np.where(left, f1, np.where(right, f_probe, f2))
-        iterations += active
-    candidates = np.stack([low, x1, x2, high])
-    best = np.argmin(f(candidates), axis=0)  # the first of equal values, as min() takes
-    return candidates[best, np.arange(len(low))], iterations
+    found = _brackets(ops, a, c_phi)
+    (varphi1, _, steps1), (varphi2, _, steps2), swap = _minima(ops, a, c_phi, found, solver, tolerance)
+    lowest, other = ops.where(swap, varphi2, varphi1), ops.where(swap, varphi1, varphi2)
+    return Orientations(wrap(z_phi + lowest), wrap(z_phi + other), a, c_phi, 1 + found.two, steps1 + steps2)
 
 
 def solve(problem: OneStepProblem, solver: Solver = "bisection", tolerance: float = TOLERANCE
@@ -598,10 +519,11 @@ def solve(problem: OneStepProblem, solver: Solver = "bisection", tolerance: floa
         return OneStepSolution(phi, t, features, cost(problem, phi, k), k, None, None, None, 0, k.a0)
     p_phi = float(problem.odometry_variances[1])
     found = global_orientation(k.a0, k.phi0, float(problem.odometry[2]), p_phi, solver, tolerance)
+    other_phi = found.other_phi if found.count == 2 else None
     features, t = recover(problem, found.phi, k)
     return OneStepSolution(
         phi=found.phi, t=t, features=features, cost=cost(problem, found.phi, k), constants=k,
-        minima=found.minima, other_phi=found.other_phi,
-        other_cost=cost(problem, found.other_phi, k) if found.other_phi is not None else None,
+        minima=analyse_minima(found.a, found.c_phi), other_phi=other_phi,
+        other_cost=cost(problem, other_phi, k) if other_phi is not None else None,
         iterations=found.iterations, phi_information=k.a0 * math.cos(found.phi - k.phi0) + 1.0 / p_phi,
     )
