@@ -12,11 +12,12 @@ input is read and writes them all or none.
 from __future__ import annotations
 
 import logging
+import os
 
 import click
 
 from ..__main__ import EXIT_INTERRUPTED
-from ..errors import InputError, MapjoinError
+from ..errors import InputError, MapjoinError, one_line, shown_name
 
 EXIT_TWO_MINIMA = 3
 EXIT_NOT_CONVERGED = 3  # the same code: a result written, but one to look at
@@ -34,15 +35,15 @@ class MapjoinGroup(click.Group):
         except MapjoinError as error:
             if isinstance(error, InputError) and error.argument in _REMEDIES:  # no option of the command named it
                 error = error.with_remedy(_REMEDIES[error.argument])
-            raise click.ClickException(str(error)) from error
+            raise click.ClickException(one_line(str(error))) from error  # a name with a line end stays one line
         except KeyboardInterrupt:
             click.echo("mapjoin: interrupted", err=True)
             raise click.exceptions.Exit(EXIT_INTERRUPTED) from None
         except OSError as error:
             if isinstance(error, BrokenPipeError):  # e.g. `mapjoin join ... | head`: the reader wants no more
                 raise click.exceptions.Exit(0) from None
-            name = f"{error.filename}: " if error.filename else ""
-            raise click.ClickException(f"{name}{error.strerror or error}") from error
+            name = f"{shown_name(os.fsdecode(error.filename))}: " if error.filename else ""
+            raise click.ClickException(one_line(f"{name}{error.strerror or error}")) from error
 
 
 def _show_version(ctx: click.Context, _parameter: click.Parameter, value: bool) -> None:

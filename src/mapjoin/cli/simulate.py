@@ -8,7 +8,7 @@ import click
 
 from .. import io as mapio
 from ..io.registry import LOCAL_MAPS, TRUTH, by_name, names
-from ..simulation import simulate as run_simulation, simulate_robots
+from ..simulation import MAX_STEPS, simulate as run_simulation, simulate_robots
 from . import common, main
 
 #: formats that write both the maps and the truth beside them
@@ -22,7 +22,7 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
                    "one stream of maps (no truth unless --truth).")
 @click.option("--maps", "count", type=click.IntRange(min=1), default=20, show_default=True,
               help="Number of local maps.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same output).")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Random seed (same seed, same output).")
 @click.option("--steps-per-map", type=click.IntRange(min=1), default=10, show_default=True,
               help="Robot steps in each local map.")
 @click.option("--format", "output_format", type=click.Choice(_FORMATS),
@@ -54,6 +54,9 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
       mapjoin simulate -o maps.csv --maps 1000 --truth truth.csv
       mapjoin simulate -o world/ --robots 3 --maps 30
     """
+    if count * steps_per_map * robots > MAX_STEPS:
+        raise click.UsageError(f"--maps x --steps-per-map x --robots = {count * steps_per_map * robots} robot steps; "
+                               f"at most {MAX_STEPS} are simulated")
     stream = mapio.is_special(output) or (os.path.splitext(output)[1].lower() in _STREAM_EXTENSIONS
                                           and not os.path.isdir(output))
     output_format = output_format or (common.output_format(output, None, LOCAL_MAPS) if stream

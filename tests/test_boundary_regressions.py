@@ -1,0 +1,184 @@
+"""Regression tests of the causes a wider hostile fuzz found after the first boundary work (issue 16).
+
+Each test is one cause; each ran into a traceback, a message on two lines or naming nothing, an
+unbounded allocation, or a number read as something other than what it says. Runs go through
+the command line (in-process unless the cause needs a real process) and must end in one line
+naming the input or option, exit 1.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mapjoin.cli import main
+from mapjoin.errors import InputError
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+def run(folder: Path, *args: str) -> tuple[int, list[str]]:
+    """``mapjoin -q ARGS`` in ``folder``: the exit code and the lines on stderr (never a Python exception)."""
+    cwd = os.getcwd()
+    os.chdir(folder)
+    try:
+        result = CliRunner().invoke(main, ["-q", *args])
+    finally:
+        os.chdir(cwd)
+    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
+    return result.exit_code, result.stderr.strip().splitlines()
+
+
+def refused(folder: Path, *args: str, naming: str) -> str:
+    """The one line of a run that fails (exit 1) naming ``naming``."""
+    code, lines = run(folder, *args)
+    assert code == 1 and len(lines) == 1 and naming in lines[0], (code, lines)
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("maps")
+    assert run(folder, "simulate", "--maps", "3", "--seed", "2", "-o", "maps.yaml")[0] == 0
+    assert run(folder, "convert", "maps.yaml", "-o", "ls/", "--to", "linearslam")[0] == 0
+    return folder
+
+
+# ---------------------------------------------------------------------------------------
+# stdin that is not UTF-8, under a locale whose stdin lets bad bytes through as surrogates
+
+
+def test_stdin_not_utf8_is_one_line_in_a_real_process(maps):
+    """Python's stdin decodes with errors="surrogateescape" under C.UTF-8 and POSIX locales: the YAML parser
+    then raised UnicodeEncodeError (a traceback). The bytes are now decoded, strictly, by mapjoin."""
+    data = (maps / "maps.yaml").read_bytes()
+    middle = data.index(b"\n", len(data) // 2)
+    env = dict(os.environ, PYTHONPATH=str(SRC), LC_ALL="C.UTF-8")
+    result = subprocess.run([sys.executable, "-m", "mapjoin", "join", "-", "-o", "out.csv"], cwd=maps, env=env,
+                            input=data[:middle] + b"\xe9\xff" + data[middle:], capture_output=True, timeout=120)
+    stderr = result.stderr.decode()
+    assert result.returncode == 1 and "Traceback" not in stderr, stderr
+    assert len(stderr.strip().splitlines()) == 1 and "<stdin>" in stderr and "UTF-8" in stderr, stderr
+    assert not (maps / "out.csv").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# Output names
+
+
+@pytest.mark.parametrize("option", ["-o", "--report", "--trajectory"])
+def test_an_empty_output_name_is_refused_naming_the_option(maps, option):
+    """"" was taken for the current folder: "is a folder; expected a file", naming nothing."""
+    args = {"-o": ["-o", ""], "--report": ["-o", "g.csv", "--report", ""], "--trajectory": ["--trajectory", ""]}
+    line = refused(maps, "join", "maps.yaml", *args[option], naming=option)
+    assert "empty" in line and not (maps / "g.csv").exists()
+
+
+def test_a_file_name_with_a_line_end_is_named_on_one_line(maps):
+    line = refused(maps, "join", "no\nsuch.yaml", naming="no\\nsuch.yaml")
+    assert "no such file" in line
+    line = refused(maps, "join", "maps.yaml", "-o", "a\nb.csv", "--report", "a\nb.csv", naming="a\\nb.csv")
+    assert not list(maps.glob("a*"))
+
+
+def test_a_very_long_file_name_is_cut_in_the_middle(maps):
+    name = "d/" * 3000 + "x.csv"
+    line = refused(maps, "join", "maps.yaml", "-o", name, naming="x.csv")
+    assert len(line) < 300 and line.startswith("Error: d/d/") and "..." in line
+
+
+# ---------------------------------------------------------------------------------------
+# YAML numbers: decimal only
+
+
+@pytest.mark.parametrize("value", ["0x10", "0b101", "1_000", "1:30", "1_0.5", "0o17", "1:30.5"])
+@pytest.mark.parametrize("field", ["x", "id"])
+def test_yaml_numbers_in_other_bases_or_with_underscores_are_refused(maps, value, field):
+    """YAML 1.1 reads 0x10 as 16, 1_000 as 1000 and 1:30 as 90 (base 60): silently accepted before."""
+    text = (maps / "maps.yaml").read_text()
+    match = list(re.finditer(rf"\b{field}: (-?[0-9.e-]+)", text))[2]
+    (maps / "bad.yaml").write_text(text[:match.start(1)] + value + text[match.end(1):])
+    line = refused(maps, "join", "bad.yaml", naming="bad.yaml")
+    assert repr(value) in line and f".{field}" in line
+
+
+def test_a_yaml_integer_with_a_leading_zero_is_decimal(maps):
+    """0777 was YAML 1.1's octal 511: a feature id other than the one written. It is 777, as written."""
+    text = (maps / "maps.yaml").read_text()
+    match = list(re.finditer(r"\bid: ([0-9]+)", text))[0]
+    (maps / "zero.yaml").write_text(text[:match.start(1)] + "0777" + text[match.end(1):])
+    (maps / "ten.yaml").write_text(text[:match.start(1)] + "777" + text[match.end(1):])
+    from mapjoin.io import read_maps
+
+    [zero, *_], [ten, *_] = read_maps(maps / "zero.yaml"), read_maps(maps / "ten.yaml")
+    assert 777 in ten.feature_ids.tolist()
+    np.testing.assert_array_equal(zero.feature_ids, ten.feature_ids)
+
+
+# ---------------------------------------------------------------------------------------
+# Linear SLAM: a long token costs memory in proportion to its own length
+
+
+def test_a_long_linearslam_token_does_not_widen_every_cell(maps):
+    """The fields went into a fixed-width string array, every cell as wide as the longest: one 3 MB token in a
+    map of d = 20 asked for 4.8 GB (53 s). The memory is now about the file's."""
+    from mapjoin.io import linearslam
+
+    text = (maps / "ls" / "localmap_2.txt").read_text()
+    lines = text.splitlines()
+    lines[-1] = "7" * 500_000 + "x " + lines[-1].split(" ", 1)[1]  # the first entry of the last row
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError, match=r"line \d+: expected a finite number"):
+            linearslam.read("\n".join(lines) + "\n", "localmap_2.txt")
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 40e6, f"peak {peak / 1e6:.0f} MB for a 0.5 MB token"
+
+
+# ---------------------------------------------------------------------------------------
+# g2o vertices
+
+
+@pytest.mark.parametrize("line,naming", [("VERTEX_SE2 1 inf 0 0", "line 2"), ("VERTEX_SE2 1 1 0 nan", "line 2"),
+                                         ("VERTEX_XY 10 2 1e308", "line 4")])
+def test_g2o_vertex_estimates_must_be_finite_and_in_range(tmp_path, line, naming):
+    """The estimates of VERTEX lines are not used by build, but inf or 1e308 there was accepted without a word."""
+    text = ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\nVERTEX_XY 10 2 1\nFIX 0\n"
+            "EDGE_SE2 0 1 1 0 0.1 10 0 0 10 0 100\nEDGE_SE2 1 2 1 0 0.1 10 0 0 10 0 100\n"
+            "EDGE_SE2_XY 0 10 2 1 25 0 25\nEDGE_SE2_XY 1 10 1 1 25 0 25\nEDGE_SE2_XY 2 10 0 1 25 0 25\n").splitlines()
+    number = int(naming.split()[1]) - 1
+    text[number] = line
+    (tmp_path / "raw.g2o").write_text("\n".join(text) + "\n")
+    refused(tmp_path, "build", "raw.g2o", "-o", "maps/", "--maps", "2", naming=f"raw.g2o, {naming}")
+    assert not (tmp_path / "maps").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# simulate's sizes and seed
+
+
+@pytest.mark.parametrize("args", [["--maps", "99999999999999999999"], ["--steps-per-map", "1000000000", "--maps", "2"],
+                                  ["--robots", "100000000", "--maps", "1000"], ["--seed", "-1"]])
+def test_simulate_refuses_a_size_or_seed_it_cannot_take_at_once(tmp_path, args):
+    """A huge --maps raised numpy's "Maximum allowed size exceeded" (a traceback), 10^8 maps ran out of memory,
+    and a negative --seed reached the library's ValueError (a traceback)."""
+    code, lines = run(tmp_path, "simulate", *args, "-o", "sim/")
+    assert code == 2 and args[0] in lines[-1], (code, lines)  # in-process, click adds its usage lines above
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_simulation_bound_is_the_product_of_maps_and_steps():
+    from mapjoin.simulation import MAX_STEPS, simulate
+
+    with pytest.raises(ValueError, match="at most"):
+        simulate(MAX_STEPS // 10 + 1, steps_per_map=10)
