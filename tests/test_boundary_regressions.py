@@ -182,3 +182,54 @@ def test_the_simulation_bound_is_the_product_of_maps_and_steps():
 
     with pytest.raises(ValueError, match="at most"):
         simulate(MAX_STEPS // 10 + 1, steps_per_map=10)
+
+
+# ---------------------------------------------------------------------------------------
+# An output's format is checked with the output, before any input is read
+
+
+@pytest.mark.parametrize("args,naming", [
+    (["join", "missing.yaml", "--report", "r.g2o"], "r.g2o"),
+    (["join", "missing.yaml", "-o", "g.mat"], "g.mat"),
+    (["join", "missing.yaml", "--trajectory", "t.yaml"], "t.yaml"),
+    (["join", "missing.yaml", "--associate", "--associations", "a.xyz"], "a.xyz"),
+    (["refine", "missing.yaml", "--report", "r.tum"], "r.tum"),
+    (["merge", "missing.csv", "other.csv", "--report", "m.mat"], "m.mat"),
+    (["build", "missing.isam", "-o", "maps/", "--global-map", "g.xyz"], "g.xyz"),
+    (["check-minima", "--batch", "missing.csv", "-o", "x.g2o"], "x.g2o"),
+    (["convert", "missing.yaml", "-o", "c.json"], "c.json"),
+    (["convert", "missing.yaml", "-o", "-", "--to", "mat"], "<stdout>"),
+    (["simulate", "--maps", "2", "-o", "s.csv", "--truth", "t.g2o"], "t.g2o"),
+])
+def test_an_output_format_that_cannot_hold_its_data_is_refused_before_reading(tmp_path, args, naming):
+    """The writers found these only after the work: below the work's warnings (two lines and more), and after
+    reading every input (here missing, so an error about the input came first)."""
+    refused(tmp_path, *args, naming=naming)
+    assert not list(tmp_path.iterdir())
+
+
+def test_build_with_a_bad_global_map_name_is_one_line_even_with_warnings(tmp_path):
+    (tmp_path / "raw.isam").write_text(
+        "ODOMETRY 0 1 1.0 0.0 0.1 10 0 0 10 0 100\nLANDMARK 0 10 2.0 1.0 25 0 25\nLANDMARK 1 10 1.0 1.0 25 0 25\n"
+        "ODOMETRY 1 2 1.0 0.0 0.1 10 0 0 10 0 100\nLANDMARK 2 10 0.2 1.2 25 0 25\nLANDMARK 2 11 1.0 -1.0 25 0 25\n"
+        "LANDMARK 1 11 2.0 -1.0 25 0 25\n")  # its chi^2 is far from its dof: build warns
+    result = CliRunner().invoke(main, ["build", str(tmp_path / "raw.isam"), "-o", str(tmp_path / "maps/"),
+                                       "--maps", "2", "--global-map", str(tmp_path / "g.mat")])
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 1 and len(lines) == 1 and "g.mat" in lines[0], lines
+
+
+def test_a_failed_fetch_leaves_no_cache_folder_behind(tmp_path):
+    """The cache folder (--into and its parents) was made before the download, and left when it failed."""
+    code, lines = run(tmp_path, "datasets", "fetch", "sim-535", "--source", str(tmp_path / "nowhere"),
+                      "--into", str(tmp_path / "a" / "b" / "cache"))
+    assert code == 1 and len(lines) == 1 and "nowhere" in lines[0], lines
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("args", [["compare", "", "g.csv"], ["check-minima", "--batch", ""],
+                                  ["plot", "g.csv", "-o", ""], ["build", "", "-o", "-"]])
+def test_an_empty_input_name_is_shown_as_such(tmp_path, args):
+    """An error about "" began with ': ' and named nothing."""
+    (tmp_path / "g.csv").write_text("")
+    assert refused(tmp_path, *args, naming="''").startswith("Error: '': ")

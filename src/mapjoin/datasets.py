@@ -179,23 +179,38 @@ def fetch(name: str, into: str | Path | None = None, source: str | None = None,
         return Fetched(dataset, target, len(present), sum((target / file).stat().st_size for file in present),
                        expected is not None, already_cached=True)
     base = dataset.url if source is None else f"{_as_url(source).rstrip('/')}/{dataset.folder}"
+    created = [folder for folder in (target.parent, *target.parent.parents) if not folder.exists()]
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         temporary = target.with_name(f".{target.name}.{secrets.token_hex(4)}.part")
         temporary.mkdir()
     except OSError as error:
+        _remove_empty(created)
         raise FetchError(f"{root}: cannot create the cache folder ({error.strerror or error}); choose another "
                          "with --into") from None
+    done = False
     try:
         downloads = _download_all(dataset, base, temporary, progress)
         if expected is not None:
             _verify(downloads, expected, base, target)
         _replace(temporary, target)
+        done = True
     finally:
         shutil.rmtree(temporary, ignore_errors=True)
+        if not done:  # a failed fetch leaves no trace: not even the cache folders it made
+            _remove_empty(created)
     arrived = {file: size for file, (_, size) in downloads.items() if size is not None}
     skipped = tuple(file for file, (_, size) in downloads.items() if size is None)
     return Fetched(dataset, target, len(arrived), sum(arrived.values()), expected is not None, skipped)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (innermost first, as listed) that are empty: those a failed fetch made."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
 
 
 def _as_url(source: str) -> str:

@@ -30,8 +30,8 @@ def one_line(text: str) -> str:
 
 def shown_name(name: str, limit: int = NAME_LIMIT) -> str:
     """How an error message names a file: on one line (:func:`one_line`) and, when longer than ``limit``, cut in
-    the middle, keeping its start and its last part, the file's own name."""
-    name = one_line(name)
+    the middle, keeping its start and its last part, the file's own name; an empty name as ``''``."""
+    name = one_line(name) or "''"
     if len(name) <= limit:
         return name
     keep = (limit - 3) // 2
@@ -67,7 +67,7 @@ class InputError(MapjoinError):
         self.argument = argument
         self._before_remedy = message
         self.detail = f"{message}give its {argument}" if argument else message
-        prefix = ", ".join(part for part in (source and shown_name(source), where) if part)
+        prefix = ", ".join(part for part in (None if source is None else shown_name(source), where) if part)
         super().__init__(f"{prefix}: {self.detail}" if prefix else self.detail)
 
     def naming(self, option: str) -> InputError:

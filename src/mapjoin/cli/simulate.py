@@ -72,6 +72,8 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--truth": truth_path},
                             folders={} if stream else {"-o": output})
+    common.check_output_formats((output if stream else None, output_format, LOCAL_MAPS, "--format"),
+                                (truth_path, None, TRUTH, None))
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
     maps = simulation.maps
     if local_ids:
@@ -97,6 +99,7 @@ def _simulate_robots(ctx: click.Context, output: str, robots: int, count: int, s
     truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     folders = [os.path.join(output, f"robot{r}") for r in range(1, robots + 1)]
     outputs = mapio.Outputs(files={"--truth": truth_path}, folders={"-o": output})
+    common.check_output_formats((truth_path, None, TRUTH, None))
     world = simulate_robots(robots, count, seed=seed, steps_per_map=steps_per_map)
     with outputs:
         for folder, run in zip(folders, world.robots):
