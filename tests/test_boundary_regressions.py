@@ -233,3 +233,11 @@ def test_an_empty_input_name_is_shown_as_such(tmp_path, args):
     """An error about "" began with ': ' and named nothing."""
     (tmp_path / "g.csv").write_text("")
     assert refused(tmp_path, *args, naming="''").startswith("Error: '': ")
+
+
+@pytest.mark.parametrize("args", [["join", "maps.yaml", "-o", "a\0b.csv"], ["check-minima", "--batch", "t\0.csv"],
+                                  ["datasets", "list", "--into", "c\0"], ["join", "m\0.yaml"]])
+def test_a_nul_character_in_an_argument_is_a_usage_error(maps, args):
+    """os raises ValueError ("embedded null byte") on such a name: a traceback from -o, --batch, --into, ..."""
+    code, lines = run(maps, *args)
+    assert code == 2 and "NUL" in lines[-1], (code, lines)

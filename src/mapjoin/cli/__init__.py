@@ -17,7 +17,7 @@ import os
 import click
 
 from ..__main__ import EXIT_INTERRUPTED
-from ..errors import InputError, MapjoinError, one_line, shown_name
+from ..errors import InputError, MapjoinError, one_line, shown, shown_name
 
 EXIT_TWO_MINIMA = 3
 EXIT_NOT_CONVERGED = 3  # the same code: a result written, but one to look at
@@ -28,6 +28,15 @@ _REMEDIES = {"format": "save it under a name with its format's extension"}
 
 class MapjoinGroup(click.Group):
     """A group that turns mapjoin's own errors into one line and exit code 1."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        """Refuse a NUL character in any argument first: no file name can hold one (``os`` raises ValueError on
+        it), and only a caller in the same process can pass one (a process's arguments cannot)."""
+        bad = next((arg for arg in args if "\0" in arg), None)
+        if bad is not None:
+            raise click.UsageError(f"the argument {shown(bad)} holds a NUL character, which no file name or value "
+                                   "can", ctx)
+        return super().parse_args(ctx, args)
 
     def invoke(self, ctx: click.Context):
         try:
