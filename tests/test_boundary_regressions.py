@@ -241,3 +241,57 @@ def test_a_nul_character_in_an_argument_is_a_usage_error(maps, args):
     """os raises ValueError ("embedded null byte") on such a name: a traceback from -o, --batch, --into, ..."""
     code, lines = run(maps, *args)
     assert code == 2 and "NUL" in lines[-1], (code, lines)
+
+
+def test_a_file_is_flushed_before_its_rename_and_the_folder_after(tmp_path, monkeypatch):
+    """The issue's "fsynced before the rename, and the folder after it", checked by the order of the calls."""
+    from mapjoin.io import Outputs, write_output
+
+    calls: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(descriptor: int) -> None:
+        calls.append(("fsync", os.readlink(f"/proc/self/fd/{descriptor}")))
+        real_fsync(descriptor)
+
+    def replace(source, target) -> None:
+        calls.append(("replace", os.fspath(target)))
+        real_replace(source, target)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    target = tmp_path / "out.csv"
+    with Outputs(files={"-o": str(target)}):
+        write_output("a,b\n", str(target))
+    kinds = [kind for kind, _ in calls]
+    assert kinds == ["fsync", "replace", "fsync"], calls
+    assert calls[0][1].startswith(str(tmp_path / ".out.csv.")) and calls[1][1] == str(target)
+    assert calls[2][1] == str(tmp_path) and target.read_text() == "a,b\n"
+
+
+# ---------------------------------------------------------------------------------------
+# Closed standard streams, in a real process
+
+
+def _process(args: list[str], cwd: Path, shell_redirect: str) -> subprocess.CompletedProcess:
+    line = " ".join([sys.executable, "-m", "mapjoin", *args]) + " " + shell_redirect
+    return subprocess.run(["bash", "-c", line], cwd=cwd, env=dict(os.environ, PYTHONPATH=str(SRC)),
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("args", [["--help"], ["--version"]])
+@pytest.mark.parametrize("redirect", [">&-", "> /dev/full"])
+def test_help_and_version_on_a_closed_or_full_stdout_are_one_line(tmp_path, args, redirect):
+    """click writes these while parsing, outside the commands' guard: an OSError traceback."""
+    result = _process(args, tmp_path, redirect)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()] and "stdout" in result.stderr
+
+
+@pytest.mark.parametrize("args", [["join", "-"], ["check-minima", "--batch", "-"], ["convert", "-", "--input-format",
+                                                                                   "csv", "-o", "-"]])
+def test_a_closed_stdin_is_one_line(tmp_path, args):
+    """sys.stdin is None when the process starts with descriptor 0 closed: an AttributeError traceback."""
+    result = _process(args, tmp_path, "<&-")
+    assert result.returncode == 1 and result.stderr.strip() == "Error: <stdin>: cannot read: stdin is closed", \
+        result.stderr

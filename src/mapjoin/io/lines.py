@@ -27,6 +27,8 @@ def text_lines(source: Source, name: str) -> Iterator[str]:
     errors name ``name``."""
     if not is_path(source):
         stream = sys.stdin if isinstance(source, (str, os.PathLike)) else source
+        if stream is None:  # the process was started with stdin closed (`mapjoin join - <&-`)
+            raise InputError("cannot read: stdin is closed", name)
         # a text stream's bytes, decoded strictly here: stdin's own decoding may let bad bytes through as
         # surrogates (errors="surrogateescape" under a C or POSIX locale), which no parser can take
         yield from _lines(getattr(stream, "buffer", stream), name)

@@ -49,6 +49,8 @@ def read_text(source: Source, name: str) -> str:
     if is_path(source):
         return read_file(os.fspath(source), name, False)
     stream = sys.stdin if isinstance(source, (str, os.PathLike)) else source
+    if stream is None:  # the process was started with stdin closed (`mapjoin ... - <&-`)
+        raise InputError("cannot read: stdin is closed", name)
     stream = getattr(stream, "buffer", stream)  # stdin's bytes: bounded in bytes, decoded once
     try:
         text = _bounded(stream.read)
