@@ -295,3 +295,23 @@ def test_a_closed_stdin_is_one_line(tmp_path, args):
     result = _process(args, tmp_path, "<&-")
     assert result.returncode == 1 and result.stderr.strip() == "Error: <stdin>: cannot read: stdin is closed", \
         result.stderr
+
+
+def test_a_file_larger_than_one_read_is_read_whole(maps, monkeypatch):
+    """One os.read gives at most 2 GiB on Linux: a larger file was read cut, silently. Here reads give 1000 bytes."""
+    from mapjoin.io import paths, read_maps
+
+    real_read = os.read
+    monkeypatch.setattr(paths.os, "read", lambda descriptor, size: real_read(descriptor, min(size, 1000)))
+    whole = (maps / "maps.yaml").read_bytes()
+    assert len(whole) > 3000
+    assert paths.read_file(str(maps / "maps.yaml"), "maps.yaml", True) == whole
+    monkeypatch.undo()
+    assert len(read_maps(maps / "maps.yaml")) == 3
+
+
+def test_a_long_source_in_a_fetch_error_is_cut(tmp_path):
+    """datasets' errors echoed the URL and the system's reason whole: 6 kB on one line for a 3 kB --source."""
+    code, lines = run(tmp_path, "datasets", "fetch", "sim-535", "--source", "x" * 3000, "--into", "cache")
+    assert code == 1 and len(lines) == 1 and len(lines[0]) < 800, (code, len(lines[0]))
+    assert not list(tmp_path.iterdir())

@@ -37,7 +37,7 @@ from functools import cache
 from importlib import resources
 from pathlib import Path
 
-from .errors import MapjoinError
+from .errors import MapjoinError, shown_name
 
 __all__ = ["DATASETS", "Dataset", "FetchError", "Fetched", "checksums", "default_cache", "fetch", "get",
            "is_cached"]
@@ -186,7 +186,7 @@ def fetch(name: str, into: str | Path | None = None, source: str | None = None,
         temporary.mkdir()
     except OSError as error:
         _remove_empty(created)
-        raise FetchError(f"{root}: cannot create the cache folder ({error.strerror or error}); choose another "
+        raise FetchError(f"{shown_name(str(root))}: cannot create the cache folder ({error.strerror or error}); choose another "
                          "with --into") from None
     done = False
     try:
@@ -253,10 +253,10 @@ def _download(url: str, path: Path, optional: bool, dataset: Dataset) -> tuple[s
         if _not_found(error):
             if optional:
                 return None, None
-            raise FetchError(f"{url}: not found; the source does not hold {dataset.name} in the expected layout "
+            raise FetchError(f"{shown_name(url)}: not found; the source does not hold {dataset.name} in the expected layout "
                              f"(<source>/{dataset.folder}/<file>)") from None
         reason = getattr(error, "reason", None) or error
-        raise FetchError(f"cannot download {url} ({reason}); check the network connection, or fetch from a mirror "
+        raise FetchError(f"cannot download {shown_name(url)} ({shown_name(str(reason))}); check the network connection, or fetch from a mirror "
                          f"or a local copy with --source URL (a URL or folder holding {dataset.folder}/, e.g. "
                          "--source file:///path/to/data)") from None
     return digest.hexdigest(), size
@@ -274,7 +274,7 @@ def _verify(downloads: dict[str, tuple[str | None, int | None]], expected: dict[
     """Every downloaded file's SHA-256 against the record; a FetchError names the first that differs."""
     for file, (digest, _) in downloads.items():
         if digest is not None and digest != expected[file]:
-            raise FetchError(f"{base}/{file}: SHA-256 {digest} differs from the recorded {expected[file]}; the "
+            raise FetchError(f"{shown_name(f'{base}/{file}')}: SHA-256 {digest} differs from the recorded {expected[file]}; the "
                              f"file is corrupt or not the published one, so nothing was written to {target}")
 
 
