@@ -466,7 +466,7 @@ def test_the_option_table_covers_every_command():
     assert len(OPTIONS) > 50
 
 
-@settings(FUZZ, max_examples=120)
+@settings(FUZZ, max_examples=80)
 @given(option=st.sampled_from(OPTIONS), value=st.sampled_from(HOSTILE_VALUES))
 def test_every_option_of_every_command_keeps_the_boundary(valid, tmp_path, option, value):
     from mapjoin.errors import one_line
