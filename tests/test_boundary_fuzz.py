@@ -108,7 +108,7 @@ def invoke(folder: Path, args: list[str], *, stdin: str | bytes | None = None, i
 @pytest.fixture(scope="module")
 def valid(tmp_path_factory) -> Path:
     """A folder of small valid inputs: local maps as YAML/CSV streams, .mat and Linear SLAM files, a global
-    map (CSV, YAML), a truth file, a minima table and iSAM/g2o raw data."""
+    map (CSV, YAML, JSON), truth files (YAML, CSV), minima tables (CSV, YAML, JSON) and iSAM/g2o raw data."""
     folder = tmp_path_factory.mktemp("valid")
     runner = CliRunner()
 
@@ -124,6 +124,8 @@ def valid(tmp_path_factory) -> Path:
         run("convert", "maps.yaml", "-o", "txt/", "--to", "linearslam")
         run("join", "maps.yaml", "-o", "global.csv", "--report", "report.csv")
         run("join", "maps.yaml", "-o", "global.yaml")
+        run("join", "maps.yaml", "-o", "global.json", "--report", "report.json")
+        run("simulate", "-o", "sim.csv", "--maps", "3", "--steps-per-map", "3", "--seed", "4", "--truth", "truth.csv")
     finally:
         os.chdir(Path(__file__).parent)
     shutil.copy(folder / "mats" / "localmap_1.mat", folder / "map1.mat")
@@ -134,6 +136,12 @@ def valid(tmp_path_factory) -> Path:
         "ODOMETRY 0 1 1.0 0.0 0.1 10 0 0 10 0 100\nLANDMARK 0 10 2.0 1.0 25 0 25\nLANDMARK 1 10 1.0 1.0 25 0 25\n"
         "ODOMETRY 1 2 1.0 0.0 0.1 10 0 0 10 0 100\nLANDMARK 2 10 0.2 1.2 25 0 25\nLANDMARK 2 11 1.0 -1.0 25 0 25\n"
         "LANDMARK 1 11 2.0 -1.0 25 0 25\n")
+    (folder / "raw.g2o").write_text(
+        "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0.1\nVERTEX_SE2 2 2 0 0.2\nVERTEX_XY 10 2 1\nVERTEX_XY 11 1 -1\nFIX 0\n"
+        "EDGE_SE2 0 1 1.0 0.0 0.1 100 0 0 100 0 1000\nEDGE_SE2 1 2 1.0 0.0 0.1 100 0 0 100 0 1000\n"
+        "EDGE_SE2_XY 0 10 2.0 1.0 50 0 50\nEDGE_SE2_XY 1 10 1.0 1.0 50 0 50\nEDGE_SE2_XY 2 10 0.2 1.2 50 0 50\n"
+        "EDGE_SE2_XY 2 11 1.0 -1.0 50 0 50\nEDGE_SE2_XY 1 11 2.0 -1.0 50 0 50\n")
+    (folder / "minima.yaml").write_text("- {join: 1, a: 2.5, c_phi: 1.0}\n- {join: 2, a: 0.5, c_phi: -3.0}\n")
     return folder
 
 
@@ -248,7 +256,7 @@ GLOBAL_MAP_COMMANDS: list[Callable[[str], list[str]]] = [
 ]
 
 
-@pytest.mark.parametrize("name", ["global.csv", "global.yaml"])
+@pytest.mark.parametrize("name", ["global.csv", "global.yaml", "global.json"])
 @FUZZ
 @given(data=st.data(), command=st.integers(0, len(GLOBAL_MAP_COMMANDS) - 1))
 def test_mutated_global_maps_keep_the_boundary(valid, tmp_path, name, data, command):
@@ -259,17 +267,17 @@ def test_mutated_global_maps_keep_the_boundary(valid, tmp_path, name, data, comm
     invoke(work, GLOBAL_MAP_COMMANDS[command](name), inputs=(name, "ref.csv", "truth.yaml"), names=(name,))
 
 
+@pytest.mark.parametrize("name", ["truth.yaml", "truth.csv"])
 @FUZZ
 @given(data=st.data())
-def test_mutated_truth_keeps_the_boundary(valid, tmp_path, data):
-    work = _fresh(valid, tmp_path, "truth.yaml")
+def test_mutated_truth_keeps_the_boundary(valid, tmp_path, name, data):
+    work = _fresh(valid, tmp_path, name)
     shutil.copy(valid / "global.csv", work / "global.csv")
-    (work / "truth.yaml").write_bytes(data.draw(text_mutation((valid / "truth.yaml").read_bytes())))
-    invoke(work, ["evaluate", "global.csv", "--truth", "truth.yaml"], inputs=("truth.yaml", "global.csv"),
-           names=("truth.yaml",))
+    (work / name).write_bytes(data.draw(text_mutation((valid / name).read_bytes())))
+    invoke(work, ["evaluate", "global.csv", "--truth", name], inputs=(name, "global.csv"), names=(name,))
 
 
-@pytest.mark.parametrize("name", ["minima.csv", "report.csv"])
+@pytest.mark.parametrize("name", ["minima.csv", "report.csv", "minima.yaml", "report.json"])
 @FUZZ
 @given(data=st.data())
 def test_mutated_minima_tables_keep_the_boundary(valid, tmp_path, name, data):
@@ -278,13 +286,14 @@ def test_mutated_minima_tables_keep_the_boundary(valid, tmp_path, name, data):
     invoke(work, ["check-minima", "--batch", name, "-o", "minima.json"], inputs=(name,), names=(name,))
 
 
+@pytest.mark.parametrize("name", ["raw.isam", "raw.g2o"])
 @FUZZ
 @given(data=st.data())
-def test_mutated_raw_data_keeps_the_boundary(valid, tmp_path, data):
-    work = _fresh(valid, tmp_path, "raw.isam")
-    (work / "raw.isam").write_bytes(data.draw(text_mutation((valid / "raw.isam").read_bytes())))
-    invoke(work, ["build", "raw.isam", "--raw-format", "isam", "-o", "maps/", "--maps", "2",
-                  "--global-map", "batch.csv"], inputs=("raw.isam",), names=("raw.isam",))
+def test_mutated_raw_data_keeps_the_boundary(valid, tmp_path, name, data):
+    work = _fresh(valid, tmp_path, name)
+    (work / name).write_bytes(data.draw(text_mutation((valid / name).read_bytes())))
+    invoke(work, ["build", name, "-o", "maps/", "--maps", "2", "--global-map", "batch.csv"], inputs=(name,),
+           names=(name,))
 
 
 FLOAT_OPTIONS = [
@@ -402,3 +411,86 @@ def test_outputs_are_checked_before_any_input_is_read(valid, tmp_path):
     work.mkdir()
     code, stderr = invoke(work, ["join", "does-not-exist.yaml", "-o", "missing/out.csv"])
     assert code == 1 and "missing" in stderr, stderr
+
+
+# ---------------------------------------------------------------------------------------
+# Every option of every command, and stdin
+
+
+#: a runnable command line of each command, whose options the next test sets one at a time
+BASE_LINES = {
+    "join": ["join", "maps.yaml", "-o", "o.csv"],
+    "refine": ["refine", "maps.yaml", "-o", "o.csv", "--max-iterations", "3"],
+    "convert": ["convert", "maps.yaml", "-o", "c.yaml"],
+    "simulate": ["simulate", "--maps", "2", "--steps-per-map", "3", "-o", "s.yaml"],
+    "build": ["build", "raw.isam", "--maps", "2", "-o", "b.yaml"],
+    "check-minima": ["check-minima", "--a", "2", "--c-phi", "0.5"],
+    "evaluate": ["evaluate", "global.csv", "--truth", "truth.yaml"],
+    "compare": ["compare", "global.csv", "global.yaml"],
+    "merge": ["merge", "global.csv", "global.yaml", "-o", "m.csv"],
+    "plot": ["plot", "global.csv", "-o", "p.png"],
+    "plot-join": ["plot-join", "maps.yaml", "-o", "pj.png"],
+    "plot-minima": ["plot-minima", "report.csv", "-o", "pm.png"],
+    "datasets list": ["datasets", "list", "--into", "cache"],
+    "datasets fetch": ["datasets", "fetch", "sim-535", "--source", "nowhere", "--into", "cache"],
+}
+
+HOSTILE_VALUES = (*HOSTILE_NUMBERS, "-", "/", ".", "missing/dir/x", "/dev/zero", "maps.yaml", "a\nb", "x" * 3000,
+                  "é", "2", "99999999999999999999999999999")
+
+
+def _options() -> list[tuple[str, tuple[str, ...]]]:
+    """(command, the option's names) for every option of every command that takes a value."""
+    import click
+
+    found = []
+    for command in BASE_LINES:
+        group, *sub = command.split()
+        cli_command = main.commands.get(group)
+        if cli_command is None:  # plot commands without matplotlib
+            continue
+        for name in sub:
+            cli_command = cli_command.commands[name]
+        for parameter in cli_command.params:
+            if isinstance(parameter, click.Option) and not parameter.is_flag and not parameter.count:
+                found.append((command, tuple(parameter.opts)))
+    return found
+
+
+OPTIONS = _options()
+
+
+def test_the_option_table_covers_every_command():
+    # compare has no option with a value (its runs are in the global-map fuzz above)
+    assert {command for command, _ in OPTIONS} >= set(BASE_LINES) - {"compare", "plot", "plot-join", "plot-minima"}
+    assert len(OPTIONS) > 50
+
+
+@settings(FUZZ, max_examples=80)
+@given(option=st.sampled_from(OPTIONS), value=st.sampled_from(HOSTILE_VALUES))
+def test_every_option_of_every_command_keeps_the_boundary(valid, tmp_path, option, value):
+    from mapjoin.errors import one_line
+
+    command, names = option
+    work = _fresh(valid, tmp_path, "maps.yaml")
+    for other in ("global.csv", "global.yaml", "truth.yaml", "raw.isam", "report.csv"):
+        shutil.copy(valid / other, work / other)
+    args = list(BASE_LINES[command])
+    given_as = next((name for name in names if name in args), None)
+    if given_as:
+        args[args.index(given_as) + 1] = value
+    else:
+        args += [names[-1], value]
+    inputs = [name for name in BASE_LINES[command] if (work / name).is_file() and name in args]  # still read
+    invoke(work, args, inputs=tuple(inputs),
+           names=(*names, one_line(value)[:20] or "''", "<stdout>", *BASE_LINES[command][1:]))
+
+
+@settings(FUZZ, max_examples=30)
+@given(data=st.data(), name=st.sampled_from(["maps.yaml", "maps.csv"]))
+def test_mutated_stdin_keeps_the_boundary(valid, tmp_path, data, name):
+    work = tmp_path / f"w{len(list(tmp_path.iterdir()))}"
+    work.mkdir()
+    stdin = data.draw(text_mutation((valid / name).read_bytes()))
+    invoke(work, ["join", "-", "--input-format", name.split(".")[1], "-o", "out.csv"], stdin=stdin,
+           names=("<stdin>",))

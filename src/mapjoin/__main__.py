@@ -95,6 +95,14 @@ def _exit_code(error: BaseException) -> int:
         return error.exit_code
     if isinstance(error, SystemExit):
         return error.code if isinstance(error.code, int) else 1
+    if isinstance(error, OSError) and error.filename in (None, "<stdout>"):
+        # click's own writes outside the commands (whose OSErrors cli.MapjoinGroup turns into one line): --help and
+        # --version on a closed or full stdout
+        _silence_stdout()
+        if isinstance(error, BrokenPipeError):
+            return 0
+        print(f"mapjoin: error: cannot write to stdout ({error.strerror or error})", file=sys.stderr)
+        return 1
     raise error
 
 

@@ -37,7 +37,7 @@ from functools import cache
 from importlib import resources
 from pathlib import Path
 
-from .errors import MapjoinError
+from .errors import MapjoinError, shown_name
 
 __all__ = ["DATASETS", "Dataset", "FetchError", "Fetched", "checksums", "default_cache", "fetch", "get",
            "is_cached"]
@@ -187,23 +187,38 @@ def fetch(name: str, into: str | Path | None = None, source: str | None = None,
         return Fetched(dataset, target, len(present), sum((target / file).stat().st_size for file in present),
                        expected is not None, already_cached=True)
     base = dataset.url if source is None else f"{_as_url(source).rstrip('/')}/{dataset.folder}"
+    created = [folder for folder in (target.parent, *target.parent.parents) if not folder.exists()]
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         temporary = target.with_name(f".{target.name}.{secrets.token_hex(4)}.part")
         temporary.mkdir()
     except OSError as error:
-        raise FetchError(f"{root}: cannot create the cache folder ({error.strerror or error}); choose another "
-                         "cache folder", argument="into") from None
+        _remove_empty(created)
+        raise FetchError(f"{shown_name(str(root))}: cannot create the cache folder ({error.strerror or error}); "
+                         "choose another cache folder", argument="into") from None
+    done = False
     try:
         downloads = _download_all(dataset, base, temporary, progress)
         if expected is not None:
             _verify(downloads, expected, base, target)
         _replace(temporary, target)
+        done = True
     finally:
         shutil.rmtree(temporary, ignore_errors=True)
+        if not done:  # a failed fetch leaves no trace: not even the cache folders it made
+            _remove_empty(created)
     arrived = {file: size for file, (_, size) in downloads.items() if size is not None}
     skipped = tuple(file for file, (_, size) in downloads.items() if size is None)
     return Fetched(dataset, target, len(arrived), sum(arrived.values()), expected is not None, skipped)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (innermost first, as listed) that are empty: those a failed fetch made."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
 
 
 def _as_url(source: str) -> str:
@@ -246,11 +261,13 @@ def _download(url: str, path: Path, optional: bool, dataset: Dataset) -> tuple[s
         if _not_found(error):
             if optional:
                 return None, None
-            raise FetchError(f"{url}: not found; the source does not hold {dataset.name} in the expected layout "
+            raise FetchError(f"{shown_name(url)}: not found; the source does not hold {dataset.name} in the "
+                             "expected layout "
                              f"(<source>/{dataset.folder}/<file>)") from None
         reason = getattr(error, "reason", None) or error
-        raise FetchError(f"cannot download {url} ({reason}); check the network connection, or fetch from a mirror "
-                         f"or a local copy (a URL or folder holding {dataset.folder}/)", argument="source") from None
+        raise FetchError(f"cannot download {shown_name(url)} ({shown_name(str(reason))}); check the network "
+                         f"connection, or fetch from a mirror or a local copy (a URL or folder holding "
+                         f"{dataset.folder}/)", argument="source") from None
     return digest.hexdigest(), size
 
 
@@ -266,7 +283,7 @@ def _verify(downloads: dict[str, tuple[str | None, int | None]], expected: dict[
     """Every downloaded file's SHA-256 against the record; a FetchError names the first that differs."""
     for file, (digest, _) in downloads.items():
         if digest is not None and digest != expected[file]:
-            raise FetchError(f"{base}/{file}: SHA-256 {digest} differs from the recorded {expected[file]}; the "
+            raise FetchError(f"{shown_name(f'{base}/{file}')}: SHA-256 {digest} differs from the recorded {expected[file]}; the "
                              f"file is corrupt or not the published one, so nothing was written to {target}")
 
 

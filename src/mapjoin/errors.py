@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-__all__ = ["ECHO_LIMIT", "MapjoinError", "InputError", "JoinError", "counted", "shown"]
+__all__ = ["ECHO_LIMIT", "NAME_LIMIT", "MapjoinError", "InputError", "JoinError", "counted", "one_line", "shown",
+           "shown_name"]
 
 #: the most characters of an input value an error message shows (:func:`shown`)
 ECHO_LIMIT = 40
@@ -15,6 +16,26 @@ def shown(value: object, limit: int = ECHO_LIMIT, *, quoted: bool = True) -> str
     text = repr(value) if isinstance(value, str) and quoted else str(value)
     text = text if text.isprintable() else repr(text)[1:-1]
     return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+#: the most characters of a file name an error message shows (:func:`shown_name`)
+NAME_LIMIT = 160
+
+
+def one_line(text: str) -> str:
+    """``text`` with its control characters (line ends included) escaped as Python writes them, so that a
+    message about a file named ``a<newline>b`` stays one line."""
+    return text if text.isprintable() else "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def shown_name(name: str, limit: int = NAME_LIMIT) -> str:
+    """How an error message names a file: on one line (:func:`one_line`) and, when longer than ``limit``, cut in
+    the middle, keeping its start and its last part, the file's own name; an empty name as ``''``."""
+    name = one_line(name) or "''"
+    if len(name) <= limit:
+        return name
+    keep = (limit - 3) // 2
+    return f"{name[:keep]}...{name[len(name) - (limit - 3 - keep):]}"
 
 
 def counted(count: int, singular: str, plural: str | None = None) -> str:
@@ -46,7 +67,7 @@ class InputError(MapjoinError):
         self.argument = argument
         self._before_remedy = message
         self.detail = f"{message}give its {argument}" if argument else message
-        prefix = ", ".join(part for part in (source, where) if part)
+        prefix = ", ".join(part for part in (None if source is None else shown_name(source), where) if part)
         super().__init__(f"{prefix}: {self.detail}" if prefix else self.detail)
 
     def naming(self, option: str) -> InputError:

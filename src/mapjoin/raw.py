@@ -182,6 +182,9 @@ def _read_g2o(fields: list[list[str]], name: str) -> RawData:
     _require_declared(edge_ids, edge_lines, pose_vertices, "VERTEX_SE2", where)
     _require_declared(sighting_poses, sighting_lines, pose_vertices, "VERTEX_SE2", where)
     _require_declared(sighting_points, sighting_lines, point_vertices, "VERTEX_XY", where)
+    # the vertices' estimates are not used (each map is solved from its odometry), but are input all the same
+    _require_within(vertices[:, 1:], vertex_lines, where, "VERTEX_SE2 estimate", POSE)
+    _require_within(points[:, 1:], point_lines, where, "VERTEX_XY estimate", COORDINATE)
     return _assemble(
         name, "line",
         odometry_ids=edge_ids, odometry=edges[:, 2:5],

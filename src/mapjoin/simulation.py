@@ -67,8 +67,11 @@ import numpy as np
 from .maps import GroundTruth, LocalMap, locate
 from .se2 import relative, to_frame, wrap
 
-__all__ = ["Robots", "Simulation", "simulate", "simulate_robots"]
+__all__ = ["MAX_STEPS", "Robots", "Simulation", "simulate", "simulate_robots"]
 
+#: the most robot steps one simulation takes (maps x steps per map): 10^7, the largest run benchmarked (10^6 maps
+#: of 10 steps, spherical); more is a typo that would exhaust the memory or numpy's sizes, refused at once
+MAX_STEPS = 10**7
 _MIN_LAP_STEPS = 32   # smallest figure-eight: 16 steps per circle, 22.5 degrees per step
 _CHUNK = 512          # maps processed together (bounds memory; results do not depend on it)
 
@@ -120,6 +123,8 @@ def simulate(maps: int = 20, *, seed: int = 0, features: int | None = None,
     _check_int(maps, "maps", 1)
     _check_int(seed, "seed", 0)
     _check_int(steps_per_map, "steps_per_map", 1)
+    if maps * steps_per_map > MAX_STEPS:
+        raise ValueError(f"maps * steps_per_map must be at most {MAX_STEPS} steps, got {maps} * {steps_per_map}")
     _check_int(min_shared, "min_shared", 0)
     if features is not None:
         _check_int(features, "features", 0)

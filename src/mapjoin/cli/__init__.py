@@ -12,11 +12,12 @@ input is read and writes them all or none.
 from __future__ import annotations
 
 import logging
+import os
 
 import click
 
 from ..__main__ import EXIT_INTERRUPTED
-from ..errors import InputError, MapjoinError
+from ..errors import InputError, MapjoinError, one_line, shown, shown_name
 
 EXIT_TWO_MINIMA = 3
 EXIT_NOT_CONVERGED = 3  # the same code: a result written, but one to look at
@@ -28,21 +29,30 @@ _REMEDIES = {"format": "save it under a name with its format's extension"}
 class MapjoinGroup(click.Group):
     """A group that turns mapjoin's own errors into one line and exit code 1."""
 
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        """Refuse a NUL character in any argument first: no file name can hold one (``os`` raises ValueError on
+        it), and only a caller in the same process can pass one (a process's arguments cannot)."""
+        bad = next((arg for arg in args if "\0" in arg), None)
+        if bad is not None:
+            raise click.UsageError(f"the argument {shown(bad)} holds a NUL character, which no file name or value "
+                                   "can", ctx)
+        return super().parse_args(ctx, args)
+
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
         except MapjoinError as error:
             if isinstance(error, InputError) and error.argument in _REMEDIES:  # no option of the command named it
                 error = error.with_remedy(_REMEDIES[error.argument])
-            raise click.ClickException(str(error)) from error
+            raise click.ClickException(one_line(str(error))) from error  # a name with a line end stays one line
         except KeyboardInterrupt:
             click.echo("mapjoin: interrupted", err=True)
             raise click.exceptions.Exit(EXIT_INTERRUPTED) from None
         except OSError as error:
             if isinstance(error, BrokenPipeError):  # e.g. `mapjoin join ... | head`: the reader wants no more
                 raise click.exceptions.Exit(0) from None
-            name = f"{error.filename}: " if error.filename else ""
-            raise click.ClickException(f"{name}{error.strerror or error}") from error
+            name = f"{shown_name(os.fsdecode(error.filename))}: " if error.filename else ""
+            raise click.ClickException(one_line(f"{name}{error.strerror or error}")) from error
 
 
 def _show_version(ctx: click.Context, _parameter: click.Parameter, value: bool) -> None:

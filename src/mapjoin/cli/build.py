@@ -74,6 +74,7 @@ def build(ctx: click.Context, raw_path: str, output: str, map_count: int | None,
     outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--global-map": global_path},
                             folders={} if stream else {"-o": output})
     outputs.guard([raw_path])
+    common.check_output_formats((global_path, None, GLOBAL_MAP, None))
     with common.options_for(format="--format"):
         fmt = (common.output_format(output, output_format, LOCAL_MAPS) if stream
                else output_format or LOCAL_MAPS.default)

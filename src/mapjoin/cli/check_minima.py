@@ -59,6 +59,7 @@ def check_minima(ctx: click.Context, maps: tuple[str, ...], a: float | None, c_p
     if batch is not None:
         outputs = mapio.Outputs(files={"-o": output})
         outputs.guard([batch])
+        common.check_output_formats((output, None, TABLE, None))
         fmt = common.output_format(output, None, TABLE)
         table = mapio.read_minima_table(batch)
         rows = _batch_rows(table, solver)

@@ -269,6 +269,23 @@ def progress_bar(ctx: click.Context, length: int, label: str) -> Iterator[Callab
         yield update
 
 
+def check_output_formats(*targets: tuple[str | None, str | None, Kind, str | None]) -> None:
+    """Refuse, before any input is read, an output whose format (explicit, else its extension's) cannot hold its
+    data, e.g. a table as .mat, a global map as .tum, a .mat file on stdout: the writers would find it only after
+    the work, below its warnings. ``targets``: (path or None, explicit format, kind, the option that would settle
+    it or None)."""
+    from ..io import registry
+
+    for path, explicit, kind, option in targets:
+        if path:
+            with options_for(**({"format": option} if option else {})):
+                name = mapio.source_name(path, "<stdout>")
+                fmt, _ = registry.codec(output_format(path, explicit, kind), kind, name, writing=True)
+                if fmt.binary and mapio.is_special(path):
+                    raise InputError(f"a {fmt.extensions[0]} file cannot be written to stdout or a special file; "
+                                     "give a file path", name)
+
+
 def output_format(path: str, explicit: str | None, kind: Kind) -> str:
     """The format to write ``path`` in: ``explicit``, else ``kind``'s default for stdout or a special file (a
     device, a FIFO: written through), else its extension's."""

@@ -45,6 +45,7 @@ def convert(ctx: click.Context, inputs: tuple[str, ...], output: str, to_format:
     if to_format is None:
         with common.options_for(format="--to"):
             to_format = LOCAL_MAPS.default if is_directory else common.output_format(output, None, LOCAL_MAPS)
+    common.check_output_formats((None if is_directory else output, to_format, LOCAL_MAPS, "--to"))
     maps = common.read_local_maps(inputs, input_format, outputs)
     with outputs:
         written = mapio.write_maps(maps, output, to_format, covariances=not no_covariances)

@@ -7,7 +7,7 @@ import time
 import click
 
 from .. import io as mapio
-from ..io.registry import GLOBAL_MAP, TABLE
+from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
 from ..association import DEFAULT_GATE as DEFAULT_ASSOCIATION_GATE
 from ..joining import join as join_maps
 from ..maps import Range
@@ -79,6 +79,9 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                                "--on-inconsistent skip; drop those (refine the written map's inputs with their ids)")
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path,
                                    "--associations": associations_path})
+    common.check_output_formats((output, output_format, GLOBAL_MAP, "--format"), (report_path, None, TABLE, None),
+                                (trajectory_path, None, TRAJECTORY, "--trajectory"),
+                                (associations_path, None, TABLE, None))
     start = time.perf_counter()
     maps = common.read_local_maps(inputs, input_format, outputs)
     read = time.perf_counter() - start

@@ -56,6 +56,7 @@ def merge(ctx: click.Context, inputs: tuple[str, ...], output: str, output_forma
     if len(inputs) < 2:
         raise click.UsageError("merge needs at least two global maps (A B)")
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path})
+    common.check_output_formats((output, output_format, GLOBAL_MAP, "--format"), (report_path, None, TABLE, None))
     paths = outputs.guard(list(inputs))
     start = time.perf_counter()
     maps = [mapio.read_global_map(path) for path in paths]

@@ -7,7 +7,7 @@ import time
 import click
 
 from .. import io as mapio
-from ..io.registry import GLOBAL_MAP, TABLE
+from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
 from . import common, main
 from .common import (covariance_option, gate_option, global_map_format_option, global_map_output_option,
                      input_format_option, inputs_argument, json_option, on_inconsistent_option, progress_bar, solver_option, trajectory_option)
@@ -60,6 +60,8 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     strategy = common.start_of(strategy, True, on_inconsistent)
     common.check_jobs(jobs, strategy)
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path})
+    common.check_output_formats((output, output_format, GLOBAL_MAP, "--format"), (report_path, None, TABLE, None),
+                                (trajectory_path, None, TRAJECTORY, "--trajectory"))
     if on_inconsistent == "skip" and strategy != "sequential":
         raise click.UsageError("--on-inconsistent skip re-joins the chain map by map; use --start sequential")
     start = time.perf_counter()

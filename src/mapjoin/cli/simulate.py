@@ -8,7 +8,7 @@ import click
 
 from .. import io as mapio
 from ..io.registry import LOCAL_MAPS, TRUTH, by_name, names
-from ..simulation import simulate as run_simulation, simulate_robots
+from ..simulation import MAX_STEPS, simulate as run_simulation, simulate_robots
 from . import common, main
 
 #: formats that write both the maps and the truth beside them
@@ -22,7 +22,7 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
                    "one stream of maps (no truth unless --truth).")
 @click.option("--maps", "count", type=click.IntRange(min=1), default=20, show_default=True,
               help="Number of local maps.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same output).")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Random seed (same seed, same output).")
 @click.option("--steps-per-map", type=click.IntRange(min=1), default=10, show_default=True,
               help="Robot steps in each local map.")
 @click.option("--format", "output_format", type=click.Choice(_FORMATS),
@@ -54,6 +54,9 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
       mapjoin simulate -o maps.csv --maps 1000 --truth truth.csv
       mapjoin simulate -o world/ --robots 3 --maps 30
     """
+    if count * steps_per_map * robots > MAX_STEPS:
+        raise click.UsageError(f"--maps x --steps-per-map x --robots = {count * steps_per_map * robots} robot steps; "
+                               f"at most {MAX_STEPS} are simulated")
     stream = mapio.is_special(output) or (os.path.splitext(output)[1].lower() in _STREAM_EXTENSIONS
                                           and not os.path.isdir(output))
     output_format = output_format or (common.output_format(output, None, LOCAL_MAPS) if stream
@@ -69,6 +72,8 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     outputs = mapio.Outputs(files={**({"-o": output} if stream else {}), "--truth": truth_path},
                             folders={} if stream else {"-o": output})
+    common.check_output_formats((output if stream else None, output_format, LOCAL_MAPS, "--format"),
+                                (truth_path, None, TRUTH, None))
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
     maps = simulation.maps
     if local_ids:
@@ -94,6 +99,7 @@ def _simulate_robots(ctx: click.Context, output: str, robots: int, count: int, s
     truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     folders = [os.path.join(output, f"robot{r}") for r in range(1, robots + 1)]
     outputs = mapio.Outputs(files={"--truth": truth_path}, folders={"-o": output})
+    common.check_output_formats((truth_path, None, TRUTH, None))
     world = simulate_robots(robots, count, seed=seed, steps_per_map=steps_per_map)
     with outputs:
         for folder, run in zip(folders, world.robots):

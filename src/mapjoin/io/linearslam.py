@@ -129,7 +129,8 @@ def _text_integer(lines: Sequence[str], index: int, expected: str, source: str) 
 
 
 def _text_rows(lines: Sequence[str], first: int, count: int, width: int, expected: str, source: str) -> np.ndarray:
-    """Lines ``first .. first+count-1`` (0-based) as a (count x width) array of their whitespace-separated fields."""
+    """Lines ``first .. first+count-1`` (0-based) as a (count x width) array of their whitespace-separated fields
+    (str objects)."""
     cells = [line.split() for line in lines[first:first + count]]
     bad = next((i for i, row in enumerate(cells) if len(row) != width), None)
     if bad is None and len(cells) < count:
@@ -138,7 +139,9 @@ def _text_rows(lines: Sequence[str], first: int, count: int, width: int, expecte
         got = (f"{len(cells[bad])} fields: {shown(lines[first + bad].strip())}" if bad < len(cells)
                else "the end of the file")
         raise InputError(f"expected {expected} ({width} fields), got {got}", source, f"line {first + bad + 1}")
-    return np.array(list(chain.from_iterable(cells)), dtype=str).reshape(count, width)
+    # objects, not a fixed-width string array: that would give every cell the width of the longest one (one
+    # 3 MB token in a 20x20 matrix: 4.8 GB)
+    return np.array(list(chain.from_iterable(cells)), dtype=object).reshape(count, width)
 
 
 def _text_numbers(cells: np.ndarray, first: int, source: str, first_field: int = 1) -> np.ndarray:

@@ -26,7 +26,12 @@ def text_lines(source: Source, name: str) -> Iterator[str]:
     """The lines of a path, ``-`` (stdin) or a stream (text or bytes), with their line ends, read a block at a time;
     errors name ``name``."""
     if not is_path(source):
-        yield from _lines(sys.stdin if isinstance(source, (str, os.PathLike)) else source, name)
+        stream = sys.stdin if isinstance(source, (str, os.PathLike)) else source
+        if stream is None:  # the process was started with stdin closed (`mapjoin join - <&-`)
+            raise InputError("cannot read: stdin is closed", name)
+        # a text stream's bytes, decoded strictly here: stdin's own decoding may let bad bytes through as
+        # surrogates (errors="surrogateescape" under a C or POSIX locale), which no parser can take
+        yield from _lines(getattr(stream, "buffer", stream), name)
         return
     try:
         file = open(os.fspath(source), encoding="utf-8-sig", newline="")  # noqa: SIM115 -- closed below

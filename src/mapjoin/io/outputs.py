@@ -210,6 +210,8 @@ class Outputs:
 
     def _declare(self, path: str, label: str, *, folder: bool) -> None:
         """Check one output and remember it: a usable target, not the same file as an output before it."""
+        if not path:  # "" would name the current folder
+            raise InputError("is empty; expected a file name (or - for stdout)", label)
         if path == STDIN:
             if self._stdout is not None:
                 raise InputError(f"{self._stdout} and {label} both write to stdout; give one of them a file", _STDOUT)

@@ -49,6 +49,8 @@ def read_text(source: Source, name: str) -> str:
     if is_path(source):
         return read_file(os.fspath(source), name, False)
     stream = sys.stdin if isinstance(source, (str, os.PathLike)) else source
+    if stream is None:  # the process was started with stdin closed (`mapjoin ... - <&-`)
+        raise InputError("cannot read: stdin is closed", name)
     stream = getattr(stream, "buffer", stream)  # stdin's bytes: bounded in bytes, decoded once
     try:
         text = _bounded(stream.read)
@@ -82,7 +84,12 @@ def _read_bytes(path: str) -> bytes:
         status = os.fstat(descriptor)
         if not stat.S_ISREG(status.st_mode):
             return _bounded(lambda size: os.read(descriptor, size))
-        data = os.read(descriptor, status.st_size + 1)  # fewer bytes than asked: the end of a regular file
+        data = os.read(descriptor, status.st_size + 1)  # fewer bytes than asked: the end of a regular file ...
+        if 0 < len(data) < status.st_size:  # ... or the most one read gives (2 GiB on Linux): read on to the end
+            parts = [data]
+            while parts[-1] and sum(map(len, parts)) <= status.st_size:
+                parts.append(os.read(descriptor, status.st_size + 1 - sum(map(len, parts))))
+            data = b"".join(parts)
         if len(data) > status.st_size:  # it grew while being read
             data += _bounded(lambda size: os.read(descriptor, size))
         return data

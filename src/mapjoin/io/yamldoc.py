@@ -34,6 +34,11 @@ _YAML_FLOAT = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$")
 #: a float as repr writes it (and a YAML 1.1 float): the loader reads these with ``float``, and so may a fast path
 PLAIN_FLOAT = r"[-+]?[0-9]+\.[0-9]*(?:[eE][-+][0-9]+)?"
 _PLAIN_FLOAT = re.compile(PLAIN_FLOAT)
+#: the numbers mapjoin reads from YAML: decimal, ASCII digits only; YAML 1.1's other forms (0x10, 0b101, 010
+#: in octal (= 8), 1_000, 1:30 in base 60) are read as text, so the field's check refuses them naming the value
+_DECIMAL_INT = re.compile(r"[-+]?[0-9]+")
+_DECIMAL_FLOAT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
+_SPECIAL_FLOAT = re.compile(r"[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)")
 
 
 @functools.cache
@@ -61,17 +66,25 @@ def _yaml_classes() -> tuple[type, type]:
                                                         key.start_mark)
             return super().construct_mapping(node, deep)
 
-        def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
-            try:  # the common decimal forms; .inf, .nan and base 60 take PyYAML's slower path
+        def construct_yaml_int(self, node: yaml.ScalarNode) -> int | str:
+            """A decimal integer (``010`` is ten, not YAML 1.1's octal eight); any other form stays text."""
+            return int(node.value) if _DECIMAL_INT.fullmatch(node.value) else self.construct_scalar(node)
+
+        def construct_yaml_float(self, node: yaml.ScalarNode) -> float | str:
+            """A decimal float, or .inf/.nan (which the field checks refuse as not finite); any other form stays
+            text (``float`` alone would also read ``1_0.5`` and fullwidth digits)."""
+            if _DECIMAL_FLOAT.fullmatch(node.value):
                 return float(node.value)
-            except ValueError:
+            if _SPECIAL_FLOAT.fullmatch(node.value):
                 return super().construct_yaml_float(node)
+            return self.construct_scalar(node)
 
     class Dumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # type: ignore[misc]
         """Safe dumper that quotes strings the loader would read as floats."""
 
     Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML_FLOAT, list("-+.0123456789"))
     Loader.add_constructor("tag:yaml.org,2002:float", Loader.construct_yaml_float)
+    Loader.add_constructor("tag:yaml.org,2002:int", Loader.construct_yaml_int)
     Dumper.add_implicit_resolver("tag:yaml.org,2002:float", _YAML_FLOAT, list("-+.0123456789"))
     return Loader, Dumper
 

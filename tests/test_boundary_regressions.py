@@ -1,0 +1,317 @@
+"""Regression tests of the causes a wider hostile fuzz found after the first boundary work (issue 16).
+
+Each test is one cause; each ran into a traceback, a message on two lines or naming nothing, an
+unbounded allocation, or a number read as something other than what it says. Runs go through
+the command line (in-process unless the cause needs a real process) and must end in one line
+naming the input or option, exit 1.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mapjoin.cli import main
+from mapjoin.errors import InputError
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+def run(folder: Path, *args: str) -> tuple[int, list[str]]:
+    """``mapjoin -q ARGS`` in ``folder``: the exit code and the lines on stderr (never a Python exception)."""
+    cwd = os.getcwd()
+    os.chdir(folder)
+    try:
+        result = CliRunner().invoke(main, ["-q", *args])
+    finally:
+        os.chdir(cwd)
+    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
+    return result.exit_code, result.stderr.strip().splitlines()
+
+
+def refused(folder: Path, *args: str, naming: str) -> str:
+    """The one line of a run that fails (exit 1) naming ``naming``."""
+    code, lines = run(folder, *args)
+    assert code == 1 and len(lines) == 1 and naming in lines[0], (code, lines)
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("maps")
+    assert run(folder, "simulate", "--maps", "3", "--seed", "2", "-o", "maps.yaml")[0] == 0
+    assert run(folder, "convert", "maps.yaml", "-o", "ls/", "--to", "linearslam")[0] == 0
+    return folder
+
+
+# ---------------------------------------------------------------------------------------
+# stdin that is not UTF-8, under a locale whose stdin lets bad bytes through as surrogates
+
+
+def test_stdin_not_utf8_is_one_line_in_a_real_process(maps):
+    """Python's stdin decodes with errors="surrogateescape" under C.UTF-8 and POSIX locales: the YAML parser
+    then raised UnicodeEncodeError (a traceback). The bytes are now decoded, strictly, by mapjoin."""
+    data = (maps / "maps.yaml").read_bytes()
+    middle = data.index(b"\n", len(data) // 2)
+    env = dict(os.environ, PYTHONPATH=str(SRC), LC_ALL="C.UTF-8")
+    result = subprocess.run([sys.executable, "-m", "mapjoin", "join", "-", "-o", "out.csv"], cwd=maps, env=env,
+                            input=data[:middle] + b"\xe9\xff" + data[middle:], capture_output=True, timeout=120)
+    stderr = result.stderr.decode()
+    assert result.returncode == 1 and "Traceback" not in stderr, stderr
+    assert len(stderr.strip().splitlines()) == 1 and "<stdin>" in stderr and "UTF-8" in stderr, stderr
+    assert not (maps / "out.csv").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# Output names
+
+
+@pytest.mark.parametrize("option", ["-o", "--report", "--trajectory"])
+def test_an_empty_output_name_is_refused_naming_the_option(maps, option):
+    """"" was taken for the current folder: "is a folder; expected a file", naming nothing."""
+    args = {"-o": ["-o", ""], "--report": ["-o", "g.csv", "--report", ""], "--trajectory": ["--trajectory", ""]}
+    line = refused(maps, "join", "maps.yaml", *args[option], naming=option)
+    assert "empty" in line and not (maps / "g.csv").exists()
+
+
+def test_a_file_name_with_a_line_end_is_named_on_one_line(maps):
+    line = refused(maps, "join", "no\nsuch.yaml", naming="no\\nsuch.yaml")
+    assert "no such file" in line
+    line = refused(maps, "join", "maps.yaml", "-o", "a\nb.csv", "--report", "a\nb.csv", naming="a\\nb.csv")
+    assert not list(maps.glob("a*"))
+
+
+def test_a_very_long_file_name_is_cut_in_the_middle(maps):
+    name = "d/" * 3000 + "x.csv"
+    line = refused(maps, "join", "maps.yaml", "-o", name, naming="x.csv")
+    assert len(line) < 300 and line.startswith("Error: d/d/") and "..." in line
+
+
+# ---------------------------------------------------------------------------------------
+# YAML numbers: decimal only
+
+
+@pytest.mark.parametrize("value", ["0x10", "0b101", "1_000", "1:30", "1_0.5", "0o17", "1:30.5"])
+@pytest.mark.parametrize("field", ["x", "id"])
+def test_yaml_numbers_in_other_bases_or_with_underscores_are_refused(maps, value, field):
+    """YAML 1.1 reads 0x10 as 16, 1_000 as 1000 and 1:30 as 90 (base 60): silently accepted before."""
+    text = (maps / "maps.yaml").read_text()
+    match = list(re.finditer(rf"\b{field}: (-?[0-9.e-]+)", text))[2]
+    (maps / "bad.yaml").write_text(text[:match.start(1)] + value + text[match.end(1):])
+    line = refused(maps, "join", "bad.yaml", naming="bad.yaml")
+    assert repr(value) in line and f".{field}" in line
+
+
+def test_a_yaml_integer_with_a_leading_zero_is_decimal(maps):
+    """0777 was YAML 1.1's octal 511: a feature id other than the one written. It is 777, as written."""
+    text = (maps / "maps.yaml").read_text()
+    match = list(re.finditer(r"\bid: ([0-9]+)", text))[0]
+    (maps / "zero.yaml").write_text(text[:match.start(1)] + "0777" + text[match.end(1):])
+    (maps / "ten.yaml").write_text(text[:match.start(1)] + "777" + text[match.end(1):])
+    from mapjoin.io import read_maps
+
+    [zero, *_], [ten, *_] = read_maps(maps / "zero.yaml"), read_maps(maps / "ten.yaml")
+    assert 777 in ten.feature_ids.tolist()
+    np.testing.assert_array_equal(zero.feature_ids, ten.feature_ids)
+
+
+# ---------------------------------------------------------------------------------------
+# Linear SLAM: a long token costs memory in proportion to its own length
+
+
+def test_a_long_linearslam_token_does_not_widen_every_cell(maps):
+    """The fields went into a fixed-width string array, every cell as wide as the longest: one 3 MB token in a
+    map of d = 20 asked for 4.8 GB (53 s). The memory is now about the file's."""
+    from mapjoin.io import linearslam
+
+    text = (maps / "ls" / "localmap_2.txt").read_text()
+    lines = text.splitlines()
+    lines[-1] = "7" * 500_000 + "x " + lines[-1].split(" ", 1)[1]  # the first entry of the last row
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError, match=r"line \d+: expected a finite number"):
+            linearslam.read("\n".join(lines) + "\n", "localmap_2.txt")
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 40e6, f"peak {peak / 1e6:.0f} MB for a 0.5 MB token"
+
+
+# ---------------------------------------------------------------------------------------
+# g2o vertices
+
+
+@pytest.mark.parametrize("line,naming", [("VERTEX_SE2 1 inf 0 0", "line 2"), ("VERTEX_SE2 1 1 0 nan", "line 2"),
+                                         ("VERTEX_XY 10 2 1e308", "line 4")])
+def test_g2o_vertex_estimates_must_be_finite_and_in_range(tmp_path, line, naming):
+    """The estimates of VERTEX lines are not used by build, but inf or 1e308 there was accepted without a word."""
+    text = ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\nVERTEX_XY 10 2 1\nFIX 0\n"
+            "EDGE_SE2 0 1 1 0 0.1 10 0 0 10 0 100\nEDGE_SE2 1 2 1 0 0.1 10 0 0 10 0 100\n"
+            "EDGE_SE2_XY 0 10 2 1 25 0 25\nEDGE_SE2_XY 1 10 1 1 25 0 25\nEDGE_SE2_XY 2 10 0 1 25 0 25\n").splitlines()
+    number = int(naming.split()[1]) - 1
+    text[number] = line
+    (tmp_path / "raw.g2o").write_text("\n".join(text) + "\n")
+    refused(tmp_path, "build", "raw.g2o", "-o", "maps/", "--maps", "2", naming=f"raw.g2o, {naming}")
+    assert not (tmp_path / "maps").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# simulate's sizes and seed
+
+
+@pytest.mark.parametrize("args", [["--maps", "99999999999999999999"], ["--steps-per-map", "1000000000", "--maps", "2"],
+                                  ["--robots", "100000000", "--maps", "1000"], ["--seed", "-1"]])
+def test_simulate_refuses_a_size_or_seed_it_cannot_take_at_once(tmp_path, args):
+    """A huge --maps raised numpy's "Maximum allowed size exceeded" (a traceback), 10^8 maps ran out of memory,
+    and a negative --seed reached the library's ValueError (a traceback)."""
+    code, lines = run(tmp_path, "simulate", *args, "-o", "sim/")
+    assert code == 2 and args[0] in lines[-1], (code, lines)  # in-process, click adds its usage lines above
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_simulation_bound_is_the_product_of_maps_and_steps():
+    from mapjoin.simulation import MAX_STEPS, simulate
+
+    with pytest.raises(ValueError, match="at most"):
+        simulate(MAX_STEPS // 10 + 1, steps_per_map=10)
+
+
+# ---------------------------------------------------------------------------------------
+# An output's format is checked with the output, before any input is read
+
+
+@pytest.mark.parametrize("args,naming", [
+    (["join", "missing.yaml", "--report", "r.g2o"], "r.g2o"),
+    (["join", "missing.yaml", "-o", "g.mat"], "g.mat"),
+    (["join", "missing.yaml", "--trajectory", "t.yaml"], "t.yaml"),
+    (["join", "missing.yaml", "--associate", "--associations", "a.xyz"], "a.xyz"),
+    (["refine", "missing.yaml", "--report", "r.tum"], "r.tum"),
+    (["merge", "missing.csv", "other.csv", "--report", "m.mat"], "m.mat"),
+    (["build", "missing.isam", "-o", "maps/", "--global-map", "g.xyz"], "g.xyz"),
+    (["check-minima", "--batch", "missing.csv", "-o", "x.g2o"], "x.g2o"),
+    (["convert", "missing.yaml", "-o", "c.json"], "c.json"),
+    (["convert", "missing.yaml", "-o", "-", "--to", "mat"], "<stdout>"),
+    (["simulate", "--maps", "2", "-o", "s.csv", "--truth", "t.g2o"], "t.g2o"),
+])
+def test_an_output_format_that_cannot_hold_its_data_is_refused_before_reading(tmp_path, args, naming):
+    """The writers found these only after the work: below the work's warnings (two lines and more), and after
+    reading every input (here missing, so an error about the input came first)."""
+    refused(tmp_path, *args, naming=naming)
+    assert not list(tmp_path.iterdir())
+
+
+def test_build_with_a_bad_global_map_name_is_one_line_even_with_warnings(tmp_path):
+    (tmp_path / "raw.isam").write_text(
+        "ODOMETRY 0 1 1.0 0.0 0.1 10 0 0 10 0 100\nLANDMARK 0 10 2.0 1.0 25 0 25\nLANDMARK 1 10 1.0 1.0 25 0 25\n"
+        "ODOMETRY 1 2 1.0 0.0 0.1 10 0 0 10 0 100\nLANDMARK 2 10 0.2 1.2 25 0 25\nLANDMARK 2 11 1.0 -1.0 25 0 25\n"
+        "LANDMARK 1 11 2.0 -1.0 25 0 25\n")  # its chi^2 is far from its dof: build warns
+    result = CliRunner().invoke(main, ["build", str(tmp_path / "raw.isam"), "-o", str(tmp_path / "maps/"),
+                                       "--maps", "2", "--global-map", str(tmp_path / "g.mat")])
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 1 and len(lines) == 1 and "g.mat" in lines[0], lines
+
+
+def test_a_failed_fetch_leaves_no_cache_folder_behind(tmp_path):
+    """The cache folder (--into and its parents) was made before the download, and left when it failed."""
+    code, lines = run(tmp_path, "datasets", "fetch", "sim-535", "--source", str(tmp_path / "nowhere"),
+                      "--into", str(tmp_path / "a" / "b" / "cache"))
+    assert code == 1 and len(lines) == 1 and "nowhere" in lines[0], lines
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("args", [["compare", "", "g.csv"], ["check-minima", "--batch", ""],
+                                  ["plot", "g.csv", "-o", ""], ["build", "", "-o", "-"]])
+def test_an_empty_input_name_is_shown_as_such(tmp_path, args):
+    """An error about "" began with ': ' and named nothing."""
+    (tmp_path / "g.csv").write_text("")
+    assert refused(tmp_path, *args, naming="''").startswith("Error: '': ")
+
+
+@pytest.mark.parametrize("args", [["join", "maps.yaml", "-o", "a\0b.csv"], ["check-minima", "--batch", "t\0.csv"],
+                                  ["datasets", "list", "--into", "c\0"], ["join", "m\0.yaml"]])
+def test_a_nul_character_in_an_argument_is_a_usage_error(maps, args):
+    """os raises ValueError ("embedded null byte") on such a name: a traceback from -o, --batch, --into, ..."""
+    code, lines = run(maps, *args)
+    assert code == 2 and "NUL" in lines[-1], (code, lines)
+
+
+def test_a_file_is_flushed_before_its_rename_and_the_folder_after(tmp_path, monkeypatch):
+    """The issue's "fsynced before the rename, and the folder after it", checked by the order of the calls."""
+    from mapjoin.io import Outputs, write_output
+
+    calls: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(descriptor: int) -> None:
+        calls.append(("fsync", os.readlink(f"/proc/self/fd/{descriptor}")))
+        real_fsync(descriptor)
+
+    def replace(source, target) -> None:
+        calls.append(("replace", os.fspath(target)))
+        real_replace(source, target)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    target = tmp_path / "out.csv"
+    with Outputs(files={"-o": str(target)}):
+        write_output("a,b\n", str(target))
+    kinds = [kind for kind, _ in calls]
+    assert kinds == ["fsync", "replace", "fsync"], calls
+    assert calls[0][1].startswith(str(tmp_path / ".out.csv.")) and calls[1][1] == str(target)
+    assert calls[2][1] == str(tmp_path) and target.read_text() == "a,b\n"
+
+
+# ---------------------------------------------------------------------------------------
+# Closed standard streams, in a real process
+
+
+def _process(args: list[str], cwd: Path, shell_redirect: str) -> subprocess.CompletedProcess:
+    line = " ".join([sys.executable, "-m", "mapjoin", *args]) + " " + shell_redirect
+    return subprocess.run(["bash", "-c", line], cwd=cwd, env=dict(os.environ, PYTHONPATH=str(SRC)),
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("args", [["--help"], ["--version"]])
+@pytest.mark.parametrize("redirect", [">&-", "> /dev/full"])
+def test_help_and_version_on_a_closed_or_full_stdout_are_one_line(tmp_path, args, redirect):
+    """click writes these while parsing, outside the commands' guard: an OSError traceback."""
+    result = _process(args, tmp_path, redirect)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()] and "stdout" in result.stderr
+
+
+@pytest.mark.parametrize("args", [["join", "-"], ["check-minima", "--batch", "-"], ["convert", "-", "--input-format",
+                                                                                   "csv", "-o", "-"]])
+def test_a_closed_stdin_is_one_line(tmp_path, args):
+    """sys.stdin is None when the process starts with descriptor 0 closed: an AttributeError traceback."""
+    result = _process(args, tmp_path, "<&-")
+    assert result.returncode == 1 and result.stderr.strip() == "Error: <stdin>: cannot read: stdin is closed", \
+        result.stderr
+
+
+def test_a_file_larger_than_one_read_is_read_whole(maps, monkeypatch):
+    """One os.read gives at most 2 GiB on Linux: a larger file was read cut, silently. Here reads give 1000 bytes."""
+    from mapjoin.io import paths, read_maps
+
+    real_read = os.read
+    monkeypatch.setattr(paths.os, "read", lambda descriptor, size: real_read(descriptor, min(size, 1000)))
+    whole = (maps / "maps.yaml").read_bytes()
+    assert len(whole) > 3000
+    assert paths.read_file(str(maps / "maps.yaml"), "maps.yaml", True) == whole
+    monkeypatch.undo()
+    assert len(read_maps(maps / "maps.yaml")) == 3
+
+
+def test_a_long_source_in_a_fetch_error_is_cut(tmp_path):
+    """datasets' errors echoed the URL and the system's reason whole: 6 kB on one line for a 3 kB --source."""
+    code, lines = run(tmp_path, "datasets", "fetch", "sim-535", "--source", "x" * 3000, "--into", "cache")
+    assert code == 1 and len(lines) == 1 and len(lines[0]) < 800, (code, len(lines[0]))
+    assert not list(tmp_path.iterdir())
