@@ -42,6 +42,7 @@ CHUNK = 4096
 _COLUMNS = ("start_id", "end_id", "common", "new", "a", "c_phi", "minima", "phi", "cost", "phi2", "cost2",
             "iterations", "level", "features_cost")
 _BLOCK = 4096  # report rows made into records at a time
+_P_BLOCK = 1024  # joins whose p-values are computed together (a term per degree of freedom each)
 _INTEGER = frozenset({"start_id", "end_id", "common", "new", "minima", "iterations", "level"})
 
 
@@ -57,7 +58,9 @@ class CompactReport(Sequence[JoinRecord]):
         self._columns = columns
         self._chi2 = columns["cost"]
         self._dof = degrees_of_freedom(columns["common"])
-        self._p = p_values(self._chi2, self._dof)
+        # p_values works on one term per degree of freedom: a block of joins at a time bounds that (same values)
+        self._p = np.concatenate([np.zeros(0)] + [p_values(self._chi2[i:i + _P_BLOCK], self._dof[i:i + _P_BLOCK])
+                                                  for i in range(0, len(self._chi2), _P_BLOCK)])
         self._flag = flags(self._p, columns["minima"], gate)
 
     def __len__(self) -> int:
@@ -120,8 +123,12 @@ class _Columns:
             self._parts[name].append(values)
 
     def arrays(self, dtypes: dict[str, type]) -> dict[str, np.ndarray]:
-        return {name: np.concatenate(parts) if parts else np.zeros(0, dtypes.get(name, float))
-                for name, parts in self._parts.items()}
+        """Each column as one array; its parts are let go as it is made (so the peak holds one column twice)."""
+        columns = {}
+        for name, parts in self._parts.items():
+            columns[name] = np.concatenate(parts) if parts else np.zeros(0, dtypes.get(name, float))
+            parts.clear()
+        return columns
 
 
 class _Chain:
@@ -233,14 +240,15 @@ class _Chain:
 
 def join_stream(maps: Iterable[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
                 solver: Solver = "bisection", progress: Callable[[int], None] | None = None, *,
-                gate: float = DEFAULT_GATE, on_inconsistent: Policy = "warn", chunk: int = CHUNK) -> StreamedJoin:
+                gate: float = DEFAULT_GATE, on_inconsistent: Policy = "warn", chunk: int | None = None) -> StreamedJoin:
     """:func:`mapjoin.joining.join` of ``maps`` with the sequential strategy, taking them from the iterable
     ``chunk`` at a time (module docstring): the same global map and report, with memory bounded by the global
-    map. ``on_inconsistent``: ``warn`` or ``stop`` (``skip`` re-joins the whole chain: join a list instead).
+    map; ``chunk`` maps at a time (default :data:`CHUNK`). ``on_inconsistent``: ``warn`` or ``stop`` (``skip`` re-joins the whole chain: join a list instead).
     An error in the input (raised by the iterator) or the chain stops the join before anything is returned.
     """
     if on_inconsistent == "skip":
         raise ValueError("on_inconsistent='skip' re-joins the whole chain: it needs the maps in memory")
+    chunk = CHUNK if chunk is None else chunk
     if chunk < 1:
         raise ValueError(f"chunk must be at least 1, got {chunk}")
     chain = _Chain()
