@@ -15,7 +15,8 @@ from cli_runner import run
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapjoin import InputError, JoinError, io as mapio
+from mapjoin import InputError, JoinError
+from mapjoin import io as mapio
 from mapjoin.io import csv_blocks, csv_maps
 from mapjoin.io.outputs import Outputs, Parts
 from mapjoin.joining import join, join_sequential
@@ -242,9 +243,8 @@ def test_parts_are_written_all_or_nothing(tmp_path):
             raise ValueError("stop")
         yield "b\n"
 
-    with pytest.raises(ValueError):
-        with Outputs(files={"-o": str(target)}) as outputs:
-            outputs.write(Parts(parts(True)), str(target))
+    with pytest.raises(ValueError), Outputs(files={"-o": str(target)}) as outputs:
+        outputs.write(Parts(parts(True)), str(target))
     assert list(tmp_path.iterdir()) == []
     with Outputs(files={"-o": str(target)}) as outputs:
         outputs.write(Parts(parts(False)), str(target))

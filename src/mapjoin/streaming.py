@@ -25,10 +25,25 @@ from typing import overload
 
 import numpy as np
 
-from .consistency import DEFAULT_GATE, Policy, degrees_of_freedom, enforce, flags, p_values
+from .consistency import (
+    DEFAULT_GATE,
+    Policy,
+    degrees_of_freedom,
+    enforce,
+    flags,
+    p_values,
+)
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances
 from .errors import JoinError
-from .joining import JoinRecord, JoinResult, _join_segment, _Pieces, _Segment, check_chain, pose_twice
+from .joining import (
+    JoinRecord,
+    JoinResult,
+    _join_segment,
+    _Pieces,
+    _Segment,
+    check_chain,
+    pose_twice,
+)
 from .maps import GlobalMap, LocalMap, Provenance
 from .onestep import Solver, as_complex
 

@@ -446,8 +446,7 @@ def _write_file(path: str, content: Content, name: str) -> None:
     """Create ``path`` (it must not exist) holding ``content``; errors name ``name``."""
     try:
         with open(path, "xb") as file:
-            for data in _encoded(content):
-                file.write(data)
+            file.writelines(_encoded(content))
     except OSError as error:
         raise InputError(f"cannot write ({error.strerror or error})", name) from error
 
@@ -488,8 +487,7 @@ def _write_through(through: _Through) -> None:
         if stream is sys.stdout:
             _write_stdout(content)
         else:
-            for part in content if isinstance(content, Parts) else [content]:
-                stream.write(part)
+            stream.writelines(content if isinstance(content, Parts) else [content])
     except BrokenPipeError:
         raise
     except OSError as error:
@@ -516,8 +514,7 @@ def _write_stdout(content: Content) -> None:
 
 def _write_special(path: str, content: Content) -> None:
     with open(path, "wb") as file:
-        for data in _encoded(content):
-            file.write(data)
+        file.writelines(_encoded(content))
 
 
 def _sync_folder(folder: str) -> None:
