@@ -65,6 +65,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "join_and_refine": ("refine", "join_and_refine"),
     "RefineResult": ("refine", "RefineResult"),
     "simulate": ("simulation", "simulate"),
+    "simulate_stream": ("simulation", "simulate_stream"),
     "evaluate": ("evaluation", "evaluate"),
     "compare": ("evaluation", "compare"),
 }
