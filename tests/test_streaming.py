@@ -249,3 +249,29 @@ def test_parts_are_written_all_or_nothing(tmp_path):
     with Outputs(files={"-o": str(target)}) as outputs:
         outputs.write(Parts(parts(False)), str(target))
     assert target.read_text() == "a\nb\n"
+
+
+@pytest.mark.parametrize("writer", ["global map", "report"])
+def test_long_outputs_written_in_blocks_are_the_text_written_at_once(data_dir, monkeypatch, writer):
+    """The global map (with and without covariances) and the report are written a block of rows at a time, so
+    that 10⁶ maps' outputs are never held as text: blocks of 5 rows give the text of one block of them all."""
+    maps = mapio.read_maps(str(data_dir / "DLR_200_local_maps"))
+    fast = join(maps)
+    if writer == "global map":
+        from mapjoin.refine import refine
+
+        module, outputs = "mapjoin.io.global_maps", [(fast.global_map, mapio.write_global_map),
+                                                       (refine(maps).global_map, mapio.write_global_map)]
+    else:
+        module, outputs = "mapjoin.io.tables", [(fast.report, mapio.write_table),
+                                                (join_stream(maps).result.report, mapio.write_table)]
+    texts = []
+    for rows in (1 << 30, 5):
+        monkeypatch.setattr(f"{module}._ROWS_PER_PART", rows)
+        written = []
+        for data, write in outputs:
+            stream = io.StringIO()
+            write(data, stream, "csv")
+            written.append(stream.getvalue())
+        texts.append(written)
+    assert texts[0] == texts[1] and all(text.count("\n") > 150 for text in texts[0])
