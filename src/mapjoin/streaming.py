@@ -1,4 +1,4 @@
-"""The sequential join of a stream of local maps, read as it goes (docs/joining.md#streaming).
+"""The sequential join of a stream of local maps, read as it goes (docs/joining.md, "Streaming").
 
 :func:`join_stream` takes the maps from an iterator a chunk at a time and keeps only what later
 joins need: the global map so far (features by compact id, in growable arrays), the chain's
@@ -25,25 +25,10 @@ from typing import overload
 
 import numpy as np
 
-from .consistency import (
-    DEFAULT_GATE,
-    Policy,
-    degrees_of_freedom,
-    enforce,
-    flags,
-    p_values,
-)
+from .consistency import DEFAULT_GATE, Policy, degrees_of_freedom, enforce, flags, p_values
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances
 from .errors import JoinError
-from .joining import (
-    JoinRecord,
-    JoinResult,
-    _join_segment,
-    _Pieces,
-    _Segment,
-    check_chain,
-    pose_twice,
-)
+from .joining import JoinRecord, JoinResult, _join_segment, _Pieces, _Segment, check_chain, pose_twice
 from .maps import GlobalMap, LocalMap, Provenance
 from .onestep import Solver, as_complex
 
