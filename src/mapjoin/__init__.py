@@ -44,6 +44,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "COVARIANCE_MODES": ("covariance", "COVARIANCE_MODES"),
     "spherical_variances": ("covariance", "spherical_variances"),
     "read_maps": ("io", "read_maps"),
+    "iter_maps": ("io", "iter_maps"),
     "write_maps": ("io", "write_maps"),
     "read_global_map": ("io", "read_global_map"),
     "write_global_map": ("io", "write_global_map"),
@@ -51,6 +52,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "read_truth": ("io", "read_truth"),
     "write_truth": ("io", "write_truth"),
     "join": ("joining", "join"),
+    "join_stream": ("streaming", "join_stream"),
     "join_associated": ("association", "join_associated"),
     "local_ids": ("association", "local_ids"),
     "JoinResult": ("joining", "JoinResult"),
@@ -63,6 +65,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "join_and_refine": ("refine", "join_and_refine"),
     "RefineResult": ("refine", "RefineResult"),
     "simulate": ("simulation", "simulate"),
+    "simulate_stream": ("simulation", "simulate_stream"),
     "evaluate": ("evaluation", "evaluate"),
     "compare": ("evaluation", "compare"),
 }

@@ -117,9 +117,13 @@ def check_chain(maps: Sequence[LocalMap]) -> None:
             f"but the map before it ({previous.name}) ends at pose {previous.end_id}")
     again = first_duplicate(np.concatenate([starts[:1], ends]))  # the chain's poses in order
     if again is not None:
-        local_map = maps[again - 1]
-        raise JoinError(f"pose {local_map.end_id} appears twice in the chain (again as the end of "
-                        f"{local_map.name}); each map must end at a new pose")
+        raise pose_twice(maps[again - 1])
+
+
+def pose_twice(local_map: LocalMap) -> JoinError:
+    """The error for ``local_map``, whose end pose is already in the chain before it."""
+    return JoinError(f"pose {local_map.end_id} appears twice in the chain (again as the end of "
+                     f"{local_map.name}); each map must end at a new pose")
 
 
 @dataclass
@@ -332,29 +336,85 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     each map's features before its join.
     """
     feature_ids, pieces = _prepare(maps, covariance)
-    offsets = np.searchsorted(pieces.feature_piece, np.arange(len(maps) + 1))
     # a feature is common in join k iff a map before k saw it: its first row is in an earlier map
     first_row = np.unique(pieces.feature_ids, return_index=True)[1]  # compact ids are 0 .. n-1
+    offsets = np.searchsorted(pieces.feature_piece, np.arange(len(maps) + 1))
     seen_before = first_row[pieces.feature_ids] < offsets[pieces.feature_piece]
     if associate is not None:  # local ids say nothing: each map's rows stay in _prepare's order, as the associator's
         seen_before[:] = False
-    order = np.lexsort((~seen_before, pieces.feature_piece))  # stable: the input order within each part
-    ids, z, var = pieces.feature_ids[order], pieces.features[order], pieces.feature_variances[order]
-    information, squared = 1.0 / var, squared_norm(z)
-    starts = offsets.tolist()
-    ends_common = (offsets[:-1] + np.bincount(pieces.feature_piece[seen_before], minlength=len(maps))).tolist()
-
+    segment = _Segment.of(pieces, seen_before, len(maps))
     if associate is not None:  # compact ids are handed out as features are matched: at most one per row
-        ids[:starts[1]], feature_ids = associate.first(starts[1]), np.zeros(len(ids), dtype=np.int64)
+        first = segment.starts[1]
+        segment.ids[:first], feature_ids = associate.first(first), np.zeros(len(segment.ids), dtype=np.int64)
     positions = np.zeros(len(feature_ids), dtype=complex)
     position_variances = np.zeros(len(feature_ids))
+    report = _join_segment(segment, maps, positions, position_variances, solver, 1, progress, warn=warn,
+                           unlinked=unlinked, associate=associate)
+    if associate is not None:
+        feature_ids = np.arange(associate.count)
+        positions, position_variances = positions[:associate.count], position_variances[:associate.count]
+    pieces = replace(pieces, feature_piece=np.zeros(len(feature_ids), dtype=np.intp),
+                     feature_ids=np.arange(len(feature_ids)), features=positions,
+                     feature_variances=position_variances, pose_xy=np.array(segment.pose_xy, dtype=complex),
+                     pose_phi=np.array(segment.pose_phi), pose_variances=np.column_stack([segment.var_xy,
+                                                                                          segment.var_phi]))
+    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"),
+                      _report(report, unlinked, gate))
+
+
+@dataclass
+class _Segment:
+    """Maps 0 .. n-1 of a chain laid out for the sequential joins of maps 1 .. n-1 onto the map so far.
+
+    Feature rows go map after map, each map's common features (seen by an earlier map) first,
+    then its new ones, each part in the order given (by id): map k's rows are
+    ``starts[k] .. starts[k+1]``, its common ones end at ``ends_common[k]``. ``ids`` are compact
+    ids (indices into the global map's arrays). The end poses are Python numbers, as join k
+    reads pose k-1 and moves pose k. A stream (:mod:`mapjoin.streaming`) lays out each chunk of
+    maps as a segment whose map 0 is the previous chunk's last map, without feature rows.
+    """
+
+    ids: np.ndarray
+    z: np.ndarray
+    var: np.ndarray
+    information: np.ndarray
+    squared: np.ndarray
+    starts: list[int]
+    ends_common: list[int]
+    pose_xy: list[complex]
+    pose_phi: list[float]
+    var_xy: list[float]
+    var_phi: list[float]
+
+    @classmethod
+    def of(cls, pieces: _Pieces, seen_before: np.ndarray, count: int) -> _Segment:
+        """The segment of ``count`` single-map pieces (rows grouped by piece, by id within one); ``seen_before``:
+        each row's feature was seen by an earlier map."""
+        offsets = np.searchsorted(pieces.feature_piece, np.arange(count + 1))
+        order = np.lexsort((~seen_before, pieces.feature_piece))  # stable: the given order within each part
+        z, var = pieces.features[order], pieces.feature_variances[order]
+        ends_common = offsets[:-1] + np.bincount(pieces.feature_piece[seen_before], minlength=count)
+        return cls(pieces.feature_ids[order], z, var, 1.0 / var, squared_norm(z), offsets.tolist(),
+                   ends_common.tolist(), pieces.pose_xy.tolist(), pieces.pose_phi.tolist(),
+                   pieces.pose_variances[:, 0].tolist(), pieces.pose_variances[:, 1].tolist())
+
+
+def _join_segment(segment: _Segment, maps: Sequence[LocalMap], positions: np.ndarray, position_variances: np.ndarray,
+                  solver: Solver, number: int, progress: Callable[[int], None] | None = None, *, warn: bool = True,
+                  unlinked: frozenset[int] = frozenset(), associate: _Associator | None = None) -> list[tuple]:
+    """Join maps 1 .. n-1 of ``segment`` (``maps`` are its maps) onto the global map so far, in place: its
+    ``positions`` and ``position_variances`` (by compact id) and the segment's poses; map 0's own feature
+    rows, if any, are placed first (the chain's first map). ``number`` is the join number of map 1. The joins'
+    report rows (:func:`_report` numbers them)."""
+    ids, z, var, information, squared = segment.ids, segment.z, segment.var, segment.information, segment.squared
+    starts, ends_common = segment.starts, segment.ends_common
+    pose_xy, pose_phi, var_xy, var_phi = segment.pose_xy, segment.pose_phi, segment.var_xy, segment.var_phi
     positions[ids[:starts[1]]], position_variances[ids[:starts[1]]] = z[:starts[1]], var[:starts[1]]
-    pose_xy, pose_phi = pieces.pose_xy.tolist(), pieces.pose_phi.tolist()
-    var_xy, var_phi = pieces.pose_variances[:, 0].tolist(), pieces.pose_variances[:, 1].tolist()
     report: list[tuple] = []
     if progress:
-        progress(1)
+        progress(number)
     for k in range(1, len(maps)):
+        join_number = number + k - 1
         rows = slice(starts[k], starts[k + 1])
         if associate is not None:  # map k's rows: its matches of the map so far first, then its new features
             order_k, ids[rows], common = associate.next(k, positions, position_variances, pose_xy[k - 1],
@@ -368,8 +428,8 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         z0, var0 = positions[shared], position_variances[shared]
         joins = _solve_joins(None, 1, z0, var0, z[rows][:common], var[rows][:common], pose_xy[k - 1],
                              pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1], solver,
-                             [(local_map.name, local_map.start_id, local_map.end_id, local_map.size)], k, warn,
-                             k not in unlinked)
+                             [(local_map.name, local_map.start_id, local_map.end_id, local_map.size)], join_number,
+                             warn, join_number not in unlinked)
         move = (joins.turn, joins.t, joins.t_variance, joins.phi_variance)
         placed, spread = _place(*move, z[rows], var[rows], squared[rows])
         positions[shared], position_variances[shared] = fuse(z0, var0, placed[:common], information[rows][:common])
@@ -380,16 +440,8 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         pose_xy[k - 1], pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1] = move[1], joins.phi, move[2], move[3]
         report += joins.rows
         if progress:
-            progress(k + 1)
-    if associate is not None:
-        feature_ids = np.arange(associate.count)
-        positions, position_variances = positions[:associate.count], position_variances[:associate.count]
-    pieces = replace(pieces, feature_piece=np.zeros(len(feature_ids), dtype=np.intp),
-                     feature_ids=np.arange(len(feature_ids)), features=positions,
-                     feature_variances=position_variances, pose_xy=np.array(pose_xy, dtype=complex),
-                     pose_phi=np.array(pose_phi), pose_variances=np.column_stack([var_xy, var_phi]))
-    return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"),
-                      _report(report, unlinked, gate))
+            progress(join_number + 1)
+    return report
 
 
 def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, associate: _Associator | None = None

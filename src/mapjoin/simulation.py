@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +68,7 @@ import numpy as np
 from .maps import GroundTruth, LocalMap, locate
 from .se2 import relative, to_frame, wrap
 
-__all__ = ["MAX_STEPS", "Robots", "Simulation", "simulate", "simulate_robots"]
+__all__ = ["MAX_STEPS", "Robots", "Simulation", "SimulationStream", "simulate", "simulate_robots", "simulate_stream"]
 
 #: the most robot steps one simulation takes (maps x steps per map): 10^7, the largest run benchmarked (10^6 maps
 #: of 10 steps, spherical); more is a typo that would exhaust the memory or numpy's sizes, refused at once
@@ -89,14 +90,31 @@ class Simulation:
     truth: GroundTruth
 
 
-def simulate(maps: int = 20, *, seed: int = 0, features: int | None = None,
-             steps_per_map: int = 10, laps: float = 2.0, step_length: float = 1.0,
-             sensor_range: float = 5.0, min_range: float = 0.5, density: float = 0.12,
-             odometry_noise: tuple[float, float, float] = (0.05, 0.02, 0.01),
-             sensor_noise: tuple[float, float] = (0.05, 0.01),
-             min_shared: int = 3, noiseless: bool = False,
-             full_covariance: bool = True) -> Simulation:
-    """Simulate a seeded run on a figure-eight and cut it into ``maps`` local maps.
+@dataclass(frozen=True)
+class SimulationStream:
+    """A simulated run whose local maps are made as they are taken (:func:`simulate_stream`): ``chunks``
+    yields them in chain order, a list of a few hundred at a time, once; ``truth`` as in :class:`Simulation`."""
+
+    chunks: Iterator[list[LocalMap]]
+    truth: GroundTruth
+
+
+def simulate(maps: int = 20, **options) -> Simulation:
+    """Simulate a seeded run on a figure-eight and cut it into ``maps`` local maps: :func:`simulate_stream`'s
+    run (the same arguments), every map made at once."""
+    run = simulate_stream(maps, **options)
+    return Simulation(tuple(local_map for chunk in run.chunks for local_map in chunk), run.truth)
+
+
+def simulate_stream(maps: int = 20, *, seed: int = 0, features: int | None = None,
+                    steps_per_map: int = 10, laps: float = 2.0, step_length: float = 1.0,
+                    sensor_range: float = 5.0, min_range: float = 0.5, density: float = 0.12,
+                    odometry_noise: tuple[float, float, float] = (0.05, 0.02, 0.01),
+                    sensor_noise: tuple[float, float] = (0.05, 0.01),
+                    min_shared: int = 3, noiseless: bool = False,
+                    full_covariance: bool = True) -> SimulationStream:
+    """Simulate a seeded run on a figure-eight and cut it into ``maps`` local maps, made a chunk at a time as
+    they are taken, so that a long run is written without holding its maps (``mapjoin simulate -o -``).
 
     Parameters (metres, radians; see the module docstring for the model):
 
@@ -173,14 +191,24 @@ def simulate(maps: int = 20, *, seed: int = 0, features: int | None = None,
                         _figure_eight(np.arange(maps + 1) * n, lap, step_length), name="sim truth")
 
     # --- local maps ------------------------------------------------------------------
-    odometry_xi = None if noiseless else rng.standard_normal((maps, n, 3))
+    # the odometry noise of every map is drawn first, then each chunk's sensor noise: to make a chunk at a time,
+    # a copy of the generator draws the odometry noise chunk by chunk, and rng skips it (drawn and dropped)
+    odometry = None
+    if not noiseless:
+        odometry = np.random.Generator(type(rng.bit_generator)())
+        odometry.bit_generator.state = rng.bit_generator.state
+        for first in range(0, maps, _CHUNK):
+            rng.standard_normal((min(_CHUNK, maps - first), n, 3))
     sigmas = (sigma_forward, sigma_lateral, sigma_heading, sigma_range, sigma_bearing)
-    local_maps: list[LocalMap] = []
-    for first in range(0, maps, _CHUNK):
-        chunk = np.arange(first, min(first + _CHUNK, maps))
-        local_maps.extend(_chunk_maps(chunk, n, lap, step_length, true_features, visible, sigmas,
-                                      None if noiseless else rng, odometry_xi, full_covariance))
-    return Simulation(tuple(local_maps), truth)
+
+    def chunks() -> Iterator[list[LocalMap]]:
+        for first in range(0, maps, _CHUNK):
+            chunk = np.arange(first, min(first + _CHUNK, maps))
+            yield _chunk_maps(chunk, n, lap, step_length, true_features, visible, sigmas, None if noiseless else rng,
+                              None if odometry is None else odometry.standard_normal((len(chunk), n, 3)),
+                              full_covariance)
+
+    return SimulationStream(chunks(), truth)
 
 
 @dataclass(frozen=True)
@@ -394,7 +422,8 @@ def _top_up(rng: np.random.Generator, visible: _Visibility, required: np.ndarray
 def _chunk_maps(chunk: np.ndarray, n: int, lap: int, step_length: float, true_features: np.ndarray,
                 visible: _Visibility, sigmas: tuple[float, ...], rng: np.random.Generator | None,
                 odometry_xi: np.ndarray | None, full_covariance: bool) -> list[LocalMap]:
-    """The local maps with 0-based indices ``chunk`` (vectorised over maps and features)."""
+    """The local maps with 0-based indices ``chunk`` (vectorised over maps and features); ``odometry_xi``: their
+    odometry noise (len(chunk) x n x 3 standard normal draws)."""
     sf, sl, sh, sr, sb = sigmas
     c = len(chunk)
     steps = chunk[:, None] * n + np.arange(n + 1)                       # c x (n+1)
@@ -466,7 +495,7 @@ def _chunk_maps(chunk: np.ndarray, n: int, lap: int, step_length: float, true_fe
     # errors drawn with the same Jacobian and factors: exactly N(0, P)
     error = np.zeros((c, rows))
     if rng is not None:
-        error = np.einsum("crk,ck->cr", jac, odometry_xi[chunk].reshape(c, 3 * n))
+        error = np.einsum("crk,ck->cr", jac, odometry_xi.reshape(c, 3 * n))
         xi = rng.standard_normal((g, 2))
         error[group_map, row] += l00 * xi[:, 0]
         error[group_map, row + 1] += l10 * xi[:, 0] + l11 * xi[:, 1]

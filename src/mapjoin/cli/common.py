@@ -241,6 +241,16 @@ def read_local_maps(inputs: tuple[str, ...], input_format: str | None, outputs: 
         return mapio.read_map_paths(paths, format=input_format)
 
 
+@contextlib.contextmanager
+def local_map_stream(inputs: tuple[str, ...], input_format: str | None, outputs: mapio.Outputs
+                     ) -> Iterator[Iterator[LocalMap]]:
+    """:func:`read_local_maps` one map at a time (``join`` reads them as it joins them): the maps are read
+    inside the ``with`` block, so their errors name the command's options as :func:`read_local_maps`' do."""
+    paths = outputs.guard(mapio.resolve_inputs(inputs))
+    with options_for(format="--input-format"):
+        yield mapio.iter_map_paths(paths, format=input_format)
+
+
 def say(ctx: click.Context, message: str) -> None:
     """A human message on stderr, unless -q."""
     if not ctx.obj["quiet"]:

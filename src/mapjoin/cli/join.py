@@ -10,6 +10,7 @@ from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
 from ..association import DEFAULT_GATE as DEFAULT_ASSOCIATION_GATE
 from ..joining import join as join_maps
+from ..streaming import join_stream
 from ..maps import Range
 from . import common, main
 from .common import (TABLE_EXTENSIONS, covariance_option, gate_option, global_map_format_option,
@@ -83,26 +84,33 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                                 (trajectory_path, None, TRAJECTORY, "--trajectory"),
                                 (associations_path, None, TABLE, None))
     start = time.perf_counter()
-    maps = common.read_local_maps(inputs, input_format, outputs)
-    read = time.perf_counter() - start
-    with progress_bar(ctx, len(maps), "joining") as progress:
-        if exact:
-            from ..refine import join_and_refine  # scipy.sparse: imported only when refining
+    if strategy == "sequential" and not (exact or associate or on_inconsistent == "skip"):
+        with common.local_map_stream(inputs, input_format, outputs) as stream:  # read as they are joined
+            streamed = join_stream(stream, covariance, solver, gate=gate, on_inconsistent=on_inconsistent)
+        result, global_map, read = streamed.result, streamed.result.global_map, streamed.read_seconds
+        origin_id, count = streamed.origin_id, len(global_map.pose_ids)
+    else:
+        maps = common.read_local_maps(inputs, input_format, outputs)
+        read = time.perf_counter() - start
+        origin_id, count = maps[0].start_id, len(maps)
+        with progress_bar(ctx, len(maps), "joining") as progress:
+            if exact:
+                from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
-            refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
-                                      join_progress=progress, progress=common.iteration_printer(ctx),
-                                      gate=gate, on_inconsistent=on_inconsistent,
-                                      **common.solve_arguments(max_iterations, tolerance, no_covariances))
-            result, global_map = refined.fast_join, refined.global_map
-        elif associate:
-            from ..association import join_associated
+                refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
+                                          join_progress=progress, progress=common.iteration_printer(ctx),
+                                          gate=gate, on_inconsistent=on_inconsistent,
+                                          **common.solve_arguments(max_iterations, tolerance, no_covariances))
+                result, global_map = refined.fast_join, refined.global_map
+            elif associate:
+                from ..association import join_associated
 
-            result = join_associated(maps, covariance, solver, strategy, gate=association_gate, progress=progress)
-            global_map = result.global_map
-        else:
-            result = join_maps(maps, covariance, solver, strategy, jobs, progress, gate=gate,
-                               on_inconsistent=on_inconsistent)
-            global_map = result.global_map
+                result = join_associated(maps, covariance, solver, strategy, gate=association_gate, progress=progress)
+                global_map = result.global_map
+            else:
+                result = join_maps(maps, covariance, solver, strategy, jobs, progress, gate=gate,
+                                   on_inconsistent=on_inconsistent)
+                global_map = result.global_map
     if exact:
         common.warn_if_doubtful(refined)
         say(ctx, f"refined to the exact join: chi^2 {refined.costs[0]:.6f} -> {refined.cost:.6f} in "
@@ -112,7 +120,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
         mapio.write_global_map(global_map, output, common.output_format(output, output_format, GLOBAL_MAP))
         if report_path:
             mapio.write_table(result.report, report_path, common.output_format(report_path, None, TABLE))
-        common.write_trajectory(global_map, maps[0].start_id, trajectory_path)
+        common.write_trajectory(global_map, origin_id, trajectory_path)
         if associations_path:
             mapio.write_table(result.rows(maps), associations_path,
                               common.output_format(associations_path, None, TABLE))
@@ -123,12 +131,12 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                      f"C_phi={r.c_phi:+.4f}, minima={r.minima}, phi*={r.phi:+.6f}{second}")
     two = sum(r.minima == 2 for r in result.report)
     g = global_map
-    common.summary(ctx, f"joined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
+    common.summary(ctx, f"joined {common.counted(count, 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
                         f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
                         f"({two} with two minima, {common.inconsistency(result.report)}), covariance {covariance}, "
                         f"{strategy}, read {read:.3f} s, joined {elapsed - read:.3f} s -> "
                         f"{'stdout' if output == '-' else output}",
-                   {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids),
+                   {"maps": count, "features": len(g.feature_ids), "poses": len(g.pose_ids),
                     "joins": len(result.report), "two_minima": two,
                     "inconsistent": sum(bool(r.flag) for r in result.report), "covariance": covariance,
                     "strategy": strategy,

@@ -8,7 +8,7 @@ import click
 
 from .. import io as mapio
 from ..io.registry import LOCAL_MAPS, TRUTH, by_name, names
-from ..simulation import MAX_STEPS, simulate as run_simulation, simulate_robots
+from ..simulation import MAX_STEPS, simulate as run_simulation, simulate_robots, simulate_stream
 from . import common, main
 
 #: formats that write both the maps and the truth beside them
@@ -74,6 +74,14 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
                             folders={} if stream else {"-o": output})
     common.check_output_formats((output if stream else None, output_format, LOCAL_MAPS, "--format"),
                                 (truth_path, None, TRUTH, None))
+    if stream and not local_ids:  # made and written a chunk at a time: a run of any length fits in memory
+        run = simulate_stream(count, seed=seed, steps_per_map=steps_per_map)
+        with outputs:
+            mapio.write_map_stream(run.chunks, output, output_format, covariances=not no_covariances)
+            if truth_path:
+                mapio.write_truth(run.truth, truth_path)
+        _summary(ctx, count, seed, output, truth_path)
+        return
     simulation = run_simulation(count, seed=seed, steps_per_map=steps_per_map)
     maps = simulation.maps
     if local_ids:
@@ -87,6 +95,10 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
             mapio.write_truth(simulation.truth, truth_path)
         if local_ids and not stream:
             mapio.write_table(correspondence_rows(correspondence), os.path.join(output, "associations.csv"), "csv")
+    _summary(ctx, count, seed, output, truth_path)
+
+
+def _summary(ctx: click.Context, count: int, seed: int, output: str, truth_path: str | None) -> None:
     common.summary(ctx, f"simulated {common.counted(count, 'local map')} (seed {seed})"
                    + (f" -> {output}" if output != "-" else "") + (f", truth -> {truth_path}" if truth_path else ""),
                    {"maps": count, "seed": seed, "output": output, "truth": truth_path},

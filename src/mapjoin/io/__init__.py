@@ -40,7 +40,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from itertools import chain
 from typing import Any, TextIO
 
@@ -54,7 +54,7 @@ from .g2o import g2o_feature_offset
 from .inputs import resolve_inputs
 from .lines import text_lines
 from .mat_maps import STAB_NOISE
-from .outputs import Outputs, check_not_overwriting, is_special, transaction, write_output
+from .outputs import Outputs, Parts, check_not_overwriting, is_special, transaction, write_output
 from .paths import STDIN, Source, is_path, read_file, read_text, source_name
 from .registry import MAP_FORMATS, TABLE_FORMATS, Codec, Format, Kind, detect_format, map_file_name
 from .tables import MinimaTable, read_minima_csv, read_minima_records
@@ -84,6 +84,7 @@ __all__ = [
     "read_truth_folder",
     "resolve_inputs",
     "write_global_map",
+    "write_map_stream",
     "write_maps",
     "write_table",
     "write_output",
@@ -224,10 +225,17 @@ def write_maps(maps: Sequence[LocalMap], target: Source, format: str, *, covaria
 
 def _spherical(maps: Sequence[LocalMap]) -> list[LocalMap]:
     """The maps without their full covariances (already checked: not checked again), with one warning."""
-    dropped = sum(local_map.covariance is not None for local_map in maps)
+    _warn_dropped_covariances(sum(local_map.covariance is not None for local_map in maps))
+    return _without_covariances(maps)
+
+
+def _warn_dropped_covariances(dropped: int) -> None:
     if dropped:
         log.warning("dropped the full covariances of %s as asked: only their spherical variances are "
                     "written", counted(dropped, "map"))
+
+
+def _without_covariances(maps: Sequence[LocalMap]) -> list[LocalMap]:
     return [local_map if local_map.covariance is None else
             LocalMap(*(getattr(local_map, key) for key in _LOCAL_MAP_FIELDS), None, checked=True)
             for local_map in maps]
@@ -235,6 +243,44 @@ def _spherical(maps: Sequence[LocalMap]) -> list[LocalMap]:
 
 _LOCAL_MAP_FIELDS = ("name", "start_id", "end_id", "end_pose", "feature_ids", "features", "feature_variances",
                      "pose_variances")
+
+
+def write_map_stream(chunks: Iterable[Sequence[LocalMap]], target: Source, format: str, *,
+                     covariances: bool = True) -> list[str]:
+    """:func:`write_maps` of maps given a chunk at a time, to one file or stream (YAML or CSV): each chunk is
+    encoded as it is written (:class:`.outputs.Parts`), so a run of any length is written with the memory of
+    a chunk. The text is the one :func:`write_maps` writes for all the maps at once."""
+    name = source_name(target, "<stdout>")
+    fmt, codec = registry.codec(detect_format(name, format), registry.LOCAL_MAPS, name, writing=True)
+    if fmt.one_map_per_file or fmt.binary:
+        raise InputError(f"a {fmt.name} file holds one local map; write a stream of maps as "
+                         f"{registry.extensions_text(registry.LOCAL_MAPS)}", name)
+    return _write(fmt, Parts(_encoded_chunks(chunks, codec, fmt.name in _HEADED, covariances)), target)
+
+
+_HEADED = frozenset({"csv"})  # formats whose text starts with a header line: written once
+
+
+def _encoded_chunks(chunks: Iterable[Sequence[LocalMap]], codec: Codec, headed: bool, covariances: bool
+                    ) -> Iterator[str]:
+    """Each chunk's text (a headed format's header once: every chunk's must be the first's), then the warning
+    for the covariances dropped (``covariances=False``)."""
+    dropped, header = 0, None
+    for chunk in chunks:
+        if not covariances:
+            dropped += sum(local_map.covariance is not None for local_map in chunk)
+            chunk = _without_covariances(chunk)
+        text = codec.dump(chunk)
+        if headed:
+            head, _, body = text.partition("\n")
+            if header is None:
+                header = head
+            elif head != header:
+                raise ValueError("the chunks' headers differ (some maps with a covariance, some without)")
+            else:
+                text = body
+        yield text
+    _warn_dropped_covariances(dropped)
 
 
 def _warn_dropped_variances(maps: Sequence[LocalMap], fmt: Format) -> None:

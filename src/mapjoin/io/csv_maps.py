@@ -63,10 +63,17 @@ _ALIASES = {"var": "var_xy"}  # the name YAML gives a feature's variance
 _ENTITY_COLUMNS = ("id", "x", "y", "phi", "var_xy", "var_phi")  # empty on cov rows
 
 
-def read(text: str, source: str) -> list[LocalMap]:
-    """The local maps of a CSV file, in the order their rows first appear; all checked at once."""
-    table = csvtable.Table(text, source, None)
-    _name_columns(table)
+def read(text: str, source: str, *, line_offset: int = 0, first_number: int = 1, several: bool | None = None,
+         warn: bool = True) -> list[LocalMap]:
+    """The local maps of a CSV file, in the order their rows first appear; all checked at once.
+
+    A block of a longer stream (:mod:`.csv_blocks`) passes its place in it: ``line_offset`` (added to the
+    line numbers), ``first_number`` (its first map's position), ``several`` (whether the stream holds more
+    than one map, which decides the names; None: this text says) and ``warn`` (False: unknown columns were
+    warned about already).
+    """
+    table = csvtable.Table(text, source, None, line_offset)
+    _name_columns(table, warn)
     kinds = table.text("kind")
     features, poses, entries = (np.flatnonzero(kinds == kind) for kind in ("feature", "pose", "cov"))
     bad = np.flatnonzero((kinds != "feature") & (kinds != "pose") & (kinds != "cov"))
@@ -125,8 +132,9 @@ def read(text: str, source: str) -> list[LocalMap]:
     by_map = np.argsort(group[features], kind="stable")  # the feature rows, map after map (groups' order)
     offsets = (np.cumsum(sizes) - sizes)[in_order]
     sizes, given = sizes[in_order], covariance.given[in_order]
-    labels = [map_name(source, label if named else None, number if len(first) > 1 else None)
-              for number, label in enumerate(names[pose_rows].tolist(), 1)]
+    several = len(first) > 1 if several is None else several
+    labels = [map_name(source, label if named else None, number if several else None)
+              for number, label in enumerate(names[pose_rows].tolist(), first_number)]
     start_ids, end_ids = ids[pose_rows, 0].tolist(), ids[pose_rows, 1].tolist()
     stacks = []
     for places in size_groups(2 * sizes + given):
@@ -155,7 +163,7 @@ def read(text: str, source: str) -> list[LocalMap]:
     return unstack(stacks, start_ids, end_ids)
 
 
-def _name_columns(table: csvtable.Table) -> None:
+def _name_columns(table: csvtable.Table, warn: bool = True) -> None:
     """Check the header names the required columns; ``var`` read as ``var_xy``; unknown columns ignored (one
     warning), a near miss of a known one refused."""
     where = f"line {table.header_line}"
@@ -171,8 +179,9 @@ def _name_columns(table: csvtable.Table) -> None:
         raise InputError(f"expected the header to name the columns {', '.join(_REQUIRED)} (any order; optional: "
                          f"map, var_xy, var_phi, i, j, cov), missing {', '.join(missing)}; got {got}", table.source,
                          where)
-    warn_ignored(table.source, "column", ignored_fields(table.columns, (*_KNOWN, *_ALIASES), table.source, where,
-                                                        "column"))
+    ignored = ignored_fields(table.columns, (*_KNOWN, *_ALIASES), table.source, where, "column")
+    if warn:
+        warn_ignored(table.source, "column", ignored)
 
 
 def _variances(table: csvtable.Table, column: str, rows: np.ndarray, optional: np.ndarray) -> np.ndarray:

@@ -32,9 +32,10 @@ class Table:
     """A CSV file as a 2-D object array of cells with the line of each row.
 
     ``headers`` are the headers accepted; None accepts any (the reader checks its columns).
+    ``line_offset`` is added to every line number (a block of a longer stream: :mod:`.csv_blocks`).
     """
 
-    def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]] | None):
+    def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]] | None, line_offset: int = 0):
         self.source = source
         self.plain = text.isascii() and "_" not in text  # then every number is plain (no cell to check)
         reader = csv.reader(io.StringIO(text, newline=""))
@@ -44,13 +45,13 @@ class Table:
             for row in reader:
                 if row:
                     rows.append(row)
-                    lines.append(reader.line_num)
+                    lines.append(reader.line_num + line_offset)
         except csv.Error as error:
-            raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num}") from None
+            raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num + line_offset}") from None
         if " " in text or "\t" in text:  # spaces around separators are not part of a cell
             rows = [[cell.strip(" \t") for cell in row] for row in rows]
         header = tuple(rows[0]) if rows else ()
-        self.header_line = lines[0] if lines else 1
+        self.header_line = lines[0] if lines else 1 + line_offset
         if headers is not None and header not in headers:
             expected = " or ".join(",".join(header) for header in headers)
             raise InputError(f"expected the header {expected}, got {shown(','.join(header)) if header else 'nothing'}",

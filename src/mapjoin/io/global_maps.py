@@ -45,7 +45,7 @@ Ground truth: the same without variances: CSV ``kind,id,x,y,phi``; YAML
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -53,6 +53,7 @@ import numpy as np
 from ..maps import GlobalMap, GroundTruth, Provenance
 from . import csvtable, yamldoc
 from .csvtable import COV_ENTRIES
+from .outputs import Parts
 
 __all__ = ["dump_global_csv", "dump_global_json", "dump_global_yaml", "dump_truth_csv", "dump_truth_yaml",
            "looks_like_json", "read_global_csv", "read_global_yaml", "read_truth_csv", "read_truth_yaml"]
@@ -159,26 +160,37 @@ def read_global_csv(text: str, source: str) -> GlobalMap:
         table.covariances(poses, 3, "pose") if with_covariances else None, name=source)
 
 
-def dump_global_csv(global_map: GlobalMap) -> str:
+def dump_global_csv(global_map: GlobalMap) -> Parts:
     """A global map as CSV: features, then poses; var_* and cov_* columns when it carries
-    covariances, else weight_* columns."""
-    feature_columns: list[Sequence[Any] | None] = [
-        global_map.feature_ids.tolist(), *global_map.features.T.tolist(), None,
-        global_map.feature_variances.tolist(), None]
-    pose_columns: list[Sequence[Any] | None] = [
-        global_map.pose_ids.tolist(), *global_map.poses.T.tolist(), *global_map.pose_variances.T.tolist()]
+    covariances, else weight_* columns. Made a block of rows at a time as it is written
+    (:class:`.outputs.Parts`): the text of millions of features is never held at once."""
+    feature_columns: list[np.ndarray | None] = [
+        global_map.feature_ids, *global_map.features.T, None, global_map.feature_variances, None]
+    pose_columns: list[np.ndarray | None] = [global_map.pose_ids, *global_map.poses.T, *global_map.pose_variances.T]
     header = _GLOBAL_WEIGHT_CSV_HEADER
     if global_map.has_covariances:
         header = _GLOBAL_COV_CSV_HEADER
         feature_columns += _covariance_columns(global_map.feature_covariances, 2)
         pose_columns += _covariance_columns(global_map.pose_covariances, 3)
-    return csvtable.to_text([header, *csvtable.kind_rows("feature", len(global_map.feature_ids), feature_columns),
-                      *csvtable.kind_rows("pose", len(global_map.pose_ids), pose_columns)])
+    return Parts(_csv_parts(header, [("feature", feature_columns), ("pose", pose_columns)]))
 
 
-def _covariance_columns(blocks: np.ndarray | None, size: int) -> list[Sequence[float] | None]:
+_ROWS_PER_PART = 1 << 16  # rows made into text at a time
+
+
+def _csv_parts(header: tuple[str, ...], kinds: list[tuple[str, list[np.ndarray | None]]]) -> Iterator[str]:
+    """The header, then each kind's rows (columns of equal length; None: an empty column), a block at a time."""
+    yield csvtable.to_text([header])
+    for kind, columns in kinds:
+        count = len(columns[0])
+        for start in range(0, count, _ROWS_PER_PART):
+            block = [None if column is None else column[start:start + _ROWS_PER_PART].tolist() for column in columns]
+            yield csvtable.to_text(csvtable.kind_rows(kind, min(_ROWS_PER_PART, count - start), block))
+
+
+def _covariance_columns(blocks: np.ndarray | None, size: int) -> list[np.ndarray | None]:
     """The ``cov_*`` columns of symmetric ``size`` x ``size`` blocks (upper triangle; None: empty)."""
-    return [None if blocks is None or max(i, j) >= size else blocks[:, i, j].tolist()
+    return [None if blocks is None or max(i, j) >= size else blocks[:, i, j]
             for i, j in COV_ENTRIES.values()]
 
 

@@ -32,7 +32,7 @@ import os
 import shutil
 import stat
 import sys
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass, field
 from typing import TextIO
@@ -40,7 +40,7 @@ from typing import TextIO
 from ..errors import InputError
 from .paths import STDIN, Source, is_path, source_name
 
-__all__ = ["Outputs", "check_not_overwriting", "is_special", "transaction", "write_output"]
+__all__ = ["Outputs", "Parts", "check_not_overwriting", "is_special", "transaction", "write_output"]
 
 _STDOUT = "<stdout>"
 
@@ -148,11 +148,33 @@ def _refuse_input(index: _FileIndex, output: str) -> None:
         raise _clash(output, which, only_case, _KEEP_INPUT)
 
 
+class Parts:
+    """Text made a part at a time (an iterable of ``str``), for an output too long to hold: a file is written as
+    the parts come (when staged); stdout and special files get them when the outputs are committed."""
+
+    def __init__(self, parts: Iterable[str]) -> None:
+        self._parts = parts
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._parts)
+
+
+Content = str | bytes | Parts
+
+
+def _encoded(content: Content) -> Iterator[bytes]:
+    """``content`` as UTF-8 bytes, a part at a time."""
+    if isinstance(content, Parts):
+        yield from (part.encode("utf-8") for part in content)
+    else:
+        yield content if isinstance(content, bytes) else content.encode("utf-8")
+
+
 @dataclass
 class _Through:
     """A write held until commit: to a stream (``-``: stdout) or through a special file."""
     target: Source
-    content: str | bytes
+    content: Content
 
 
 @dataclass
@@ -256,8 +278,9 @@ class Outputs:
                                      "kept", folders[parents[parent]])
         return list(inputs)
 
-    def write(self, content: str | bytes, target: Source) -> list[str]:
-        """Stage ``content`` (text as UTF-8; bytes as they are) for ``target``; the paths it will be written to."""
+    def write(self, content: Content, target: Source) -> list[str]:
+        """Stage ``content`` (text as UTF-8; bytes as they are; :class:`Parts`) for ``target``; the paths it will be
+        written to."""
         if is_special(target):
             if is_path(target):
                 _refuse_input(self._inputs, os.fspath(target))
@@ -347,7 +370,7 @@ class Outputs:
         self._staging = _Staging()
 
 
-def write_output(content: str | bytes, target: Source) -> list[str]:
+def write_output(content: Content, target: Source) -> list[str]:
     """Write ``content`` to a path, ``-`` (stdout) or a text stream; the paths written.
 
     Inside an :class:`Outputs` block the write is staged and committed with the others; outside,
@@ -421,12 +444,11 @@ def _write_error(name: str, operation: Callable[..., object], *args: object, **o
         raise InputError(f"cannot write ({error.strerror or error})", name) from error
 
 
-def _write_file(path: str, content: str | bytes, name: str) -> None:
+def _write_file(path: str, content: Content, name: str) -> None:
     """Create ``path`` (it must not exist) holding ``content``; errors name ``name``."""
-    data = content if isinstance(content, bytes) else content.encode("utf-8")
     try:
         with open(path, "xb") as file:
-            file.write(data)
+            file.writelines(_encoded(content))
     except OSError as error:
         raise InputError(f"cannot write ({error.strerror or error})", name) from error
 
@@ -467,32 +489,34 @@ def _write_through(through: _Through) -> None:
         if stream is sys.stdout:
             _write_stdout(content)
         else:
-            stream.write(content)
+            stream.writelines(content if isinstance(content, Parts) else [content])
     except BrokenPipeError:
         raise
     except OSError as error:
         raise InputError(f"cannot write ({error.strerror or error})", source_name(target, _STDOUT)) from error
 
 
-def _write_stdout(content: str | bytes) -> None:
+def _write_stdout(content: Content) -> None:
     """Write ``content`` to stdout, all of it, and flush it. Text goes as UTF-8 to the binary layer, in a loop:
     unbuffered (``python -u``, ``PYTHONUNBUFFERED``), a text write to a pipe whose reader stops drops what the
     one ``write`` call did not take, and the closed pipe would go unnoticed."""
     binary = getattr(sys.stdout, "buffer", None)
     if binary is None:  # a text stream standing in for stdout
-        sys.stdout.write(content if isinstance(content, str) else content.decode("utf-8"))
+        for data in _encoded(content):
+            sys.stdout.write(data.decode("utf-8"))
         sys.stdout.flush()
         return
     sys.stdout.flush()
-    data = memoryview(content if isinstance(content, bytes) else content.encode("utf-8"))
-    while data:
-        data = data[binary.write(data) or 0:]
+    for part in _encoded(content):
+        data = memoryview(part)
+        while data:
+            data = data[binary.write(data) or 0:]
     binary.flush()
 
 
-def _write_special(path: str, content: str | bytes) -> None:
+def _write_special(path: str, content: Content) -> None:
     with open(path, "wb") as file:
-        file.write(content if isinstance(content, bytes) else content.encode("utf-8"))
+        file.writelines(_encoded(content))
 
 
 def _sync_folder(folder: str) -> None:

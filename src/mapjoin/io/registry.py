@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from ..errors import InputError
-from . import csv_maps, csvtable, g2o, global_maps, linearslam, mat_maps, tables, trajectory, yaml_maps, yamldoc
+from . import csv_blocks, csv_maps, csvtable, g2o, global_maps, linearslam, mat_maps, tables, trajectory, yaml_maps, yamldoc
 from .paths import STDIN
 
 __all__ = ["FORMATS", "GLOBAL_MAP", "LOCAL_MAPS", "LOCAL_MAP_FILE", "MAP_FORMATS", "TABLE", "TABLE_FORMATS", "TRAJECTORY",
@@ -84,7 +84,7 @@ FORMATS: tuple[Format, ...] = (
            global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_yaml),
            truth=Codec(global_maps.read_truth_yaml, global_maps.dump_truth_yaml), table=Codec(None, tables.dump_yaml)),
     Format("csv", "CSV", (".csv",), sniff=csvtable.names_kind_column, sniff_text="a CSV header naming a kind column",
-           local_maps=Codec(csv_maps.read, csv_maps.dump),
+           local_maps=Codec(csv_maps.read, csv_maps.dump, read_lines=csv_blocks.read_lines),
            global_map=Codec(global_maps.read_global_csv, global_maps.dump_global_csv),
            truth=Codec(global_maps.read_truth_csv, global_maps.dump_truth_csv), table=Codec(None, tables.dump_csv),
            trajectory=Codec(None, trajectory.dump_csv)),

@@ -12,7 +12,7 @@ Theorem 2 (``a`` in [0, 1e100], ``|c_phi|`` <= 1e6), or a YAML/JSON list of mapp
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import InputError, shown
 from ..maps import ANGLE, MINIMA_A
 from . import csvtable, yamldoc
+from .outputs import Parts
 
 __all__ = ["MinimaTable", "dump_csv", "dump_json", "dump_yaml", "read_minima_csv", "read_minima_records"]
 
@@ -107,10 +108,24 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def dump_csv(rows: Sequence[Any]) -> str:
-    """Dataclass instances as a CSV table, their field names as header."""
-    names, values = _table(rows)
-    return csvtable.to_text([names, *values]) if names else ""
+def dump_csv(rows: Sequence[Any]) -> Parts:
+    """Dataclass instances as a CSV table, their field names as header; made a block of rows at a time as it is
+    written (:class:`.outputs.Parts`: the report of a stream of 10^6 joins is never held as text at once)."""
+    return Parts(_csv_parts(rows))
+
+
+_ROWS_PER_PART = 1 << 14  # rows made into text at a time
+
+
+def _csv_parts(rows: Sequence[Any]) -> Iterator[str]:
+    """:func:`dump_csv`'s text, a block of rows at a time (every block's rows of the first block's kind)."""
+    header: list[str] | None = None
+    for start in range(0, len(rows), _ROWS_PER_PART):
+        names, values = _table(rows[start:start + _ROWS_PER_PART])
+        if header is not None and names != header:
+            raise TypeError("table rows must all be of one kind, with the same fields")
+        yield csvtable.to_text(values if header is not None else [names, *values])
+        header = names
 
 
 def dump_yaml(rows: Sequence[Any]) -> str:
