@@ -6,6 +6,7 @@ import contextlib
 import logging
 import math
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
@@ -258,12 +259,26 @@ def say(ctx: click.Context, message: str) -> None:
 
 
 @contextlib.contextmanager
-def progress_bar(ctx: click.Context, length: int, label: str) -> Iterator[Callable[[int], None] | None]:
+def progress_bar(ctx: click.Context, length: int | None, label: str) -> Iterator[Callable[[int], None] | None]:
     """A progress callback drawing a bar on stderr when it is a terminal (and not -q), else None.
     The bar's line ends when the count reaches ``length``, so that what the command does and
-    says next (e.g. a refinement after the fast join) comes below it."""
-    if ctx.obj["quiet"] or not sys.stderr.isatty() or length < 2:
+    says next (e.g. a refinement after the fast join) comes below it. ``length`` None (a stream, whose
+    length is known only at its end): a count of what is done, redrawn at most ten times a second."""
+    if ctx.obj["quiet"] or not sys.stderr.isatty() or (length is not None and length < 2):
         yield None
+        return
+    if length is None:
+        shown = [0.0, 0]
+
+        def count(done: int) -> None:
+            now = time.monotonic()
+            if now - shown[0] >= 0.1:
+                shown[0], shown[1] = now, done
+                click.echo(f"\r\x1b[K{label}: {done}", err=True, nl=False)
+
+        yield count
+        if shown[1]:
+            click.echo("\r\x1b[K", err=True, nl=False)
         return
     with click.progressbar(length=length, label=label, file=sys.stderr) as bar:
         done = 0

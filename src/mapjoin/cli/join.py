@@ -85,8 +85,9 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                                 (associations_path, None, TABLE, None))
     start = time.perf_counter()
     if strategy == "sequential" and not (exact or associate or on_inconsistent == "skip"):
-        with common.local_map_stream(inputs, input_format, outputs) as stream:  # read as they are joined
-            streamed = join_stream(stream, covariance, solver, gate=gate, on_inconsistent=on_inconsistent)
+        with common.local_map_stream(inputs, input_format, outputs) as stream, \
+                progress_bar(ctx, None, "maps joined") as progress:  # read as they are joined: a count, not a bar
+            streamed = join_stream(stream, covariance, solver, progress, gate=gate, on_inconsistent=on_inconsistent)
         result, global_map, read = streamed.result, streamed.result.global_map, streamed.read_seconds
         origin_id, count = streamed.origin_id, len(global_map.pose_ids)
     else:
