@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_outputs import run as run_in
 
 from mapjoin.cli import main
 from mapjoin.errors import InputError
@@ -27,14 +28,8 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 
 def run(folder: Path, *args: str) -> tuple[int, list[str]]:
     """``mapjoin -q ARGS`` in ``folder``: the exit code and the lines on stderr (never a Python exception)."""
-    cwd = os.getcwd()
-    os.chdir(folder)
-    try:
-        result = CliRunner().invoke(main, ["-q", *args])
-    finally:
-        os.chdir(cwd)
-    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
-    return result.exit_code, result.stderr.strip().splitlines()
+    code, stderr = run_in(folder, *args)
+    return code, stderr.strip().splitlines()
 
 
 def refused(folder: Path, *args: str, naming: str) -> str:

@@ -28,6 +28,7 @@ def run(folder: Path, *args: str) -> tuple[int, str]:
         result = CliRunner().invoke(main, ["-q", *args])
     finally:
         os.chdir(cwd)
+    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
     return result.exit_code, result.stderr
 
 

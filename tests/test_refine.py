@@ -27,8 +27,20 @@ from mapjoin import GlobalMap, JoinError, LocalMap
 from mapjoin import io as mapio
 from mapjoin.cli import main
 from mapjoin.joining import join, join_sequential
-from mapjoin.refine import DEFAULT_START, RefineResult, default_start, exact_cost, join_and_refine, refine
-from mapjoin.refine.groups import _GROUP_OVERHEAD, _block_whitening, _triangular_inverse, size_classes
+from mapjoin.refine import (
+    DEFAULT_START,
+    RefineResult,
+    default_start,
+    exact_cost,
+    join_and_refine,
+    refine,
+)
+from mapjoin.refine.groups import (
+    _GROUP_OVERHEAD,
+    _block_whitening,
+    _triangular_inverse,
+    size_classes,
+)
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.solver import TOLERANCE, minimise
 from mapjoin.refine.sparse import Supernodes, closed_pattern, selected_inverse
@@ -457,6 +469,16 @@ def test_levenberg_marquardt_recovers_from_a_far_start():
     assert rejected >= 1  # steps were refused on the way
 
 
+def refined_from_the_truth(run):
+    """The exact solve of a simulation's maps started at its ground truth (the reference optimum)."""
+    problem = ExactProblem(run.maps)
+    where = np.searchsorted(run.truth.feature_ids, problem.feature_ids)
+    truth = GlobalMap(feature_ids=problem.feature_ids, features=run.truth.features[where],
+                      feature_variances=np.ones(problem.n_features), pose_ids=problem.pose_ids,
+                      poses=run.truth.poses[problem.pose_ids], pose_variances=np.ones((problem.n_maps, 2)))
+    return refine(run.maps, truth, covariances=False)
+
+
 def test_an_overshooting_gauss_newton_step_is_shortened_not_damped():
     """Two laps of a simulated run (400 maps) from the sequential join: early Gauss-Newton
     steps overshoot; halved (a line search; the damping stays zero) the solver reaches, in 11
@@ -464,12 +486,7 @@ def test_an_overshooting_gauss_newton_step_is_shortened_not_damped():
     10^4 maps from the tree's join it crept for 100 without converging)."""
     run = simulate(400, seed=3)
     result = join_and_refine(run.maps, start="sequential", covariances=False)
-    problem = ExactProblem(run.maps)
-    where = np.searchsorted(run.truth.feature_ids, problem.feature_ids)
-    truth = GlobalMap(feature_ids=problem.feature_ids, features=run.truth.features[where],
-                      feature_variances=np.ones(problem.n_features), pose_ids=problem.pose_ids,
-                      poses=run.truth.poses[problem.pose_ids], pose_variances=np.ones((problem.n_maps, 2)))
-    reference = refine(run.maps, truth, covariances=False)
+    reference = refined_from_the_truth(run)
     assert result.converged and reference.converged and result.rejected >= 1 and result.iterations <= 12
     assert result.cost == pytest.approx(reference.cost, rel=1e-9)
     np.testing.assert_allclose(result.global_map.features, reference.global_map.features, rtol=0, atol=1e-5)
@@ -526,16 +543,11 @@ def test_the_default_start_reaches_the_optimum_a_start_at_the_truth_reaches(seed
     taken far from the optimum led it from the tree's start into a local minimum 10 % above it."""
     run = simulate(1000, seed=seed)
     result = join_and_refine(run.maps, covariances=False)
-    problem = ExactProblem(run.maps)
-    where = np.searchsorted(run.truth.feature_ids, problem.feature_ids)
-    truth = GlobalMap(feature_ids=problem.feature_ids, features=run.truth.features[where],
-                      feature_variances=np.ones(problem.n_features), pose_ids=problem.pose_ids,
-                      poses=run.truth.poses[problem.pose_ids], pose_variances=np.ones((problem.n_maps, 2)))
-    reference = refine(run.maps, truth, covariances=False)
+    reference = refined_from_the_truth(run)
     assert result.start == DEFAULT_START == "tree" and result.converged and reference.converged, result.reason
     assert result.cost == pytest.approx(reference.cost, rel=1e-9)
     np.testing.assert_allclose(result.global_map.features, reference.global_map.features, rtol=0, atol=1e-6)
-    assert relative_gradient(problem, result.global_map) < 1e-10
+    assert relative_gradient(ExactProblem(run.maps), result.global_map) < 1e-10
 
 
 def test_the_cli_names_its_start_and_skips_with_the_sequential_one(simulated_folder, tmp_path):
