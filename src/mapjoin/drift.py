@@ -154,10 +154,15 @@ def _statistic(end_poses: np.ndarray, posteriors: tuple[np.ndarray, np.ndarray, 
         seen = sightings.maps[right]
         var1.append(arrays[3] + drift.variance(junction + 1, seen + 1, drift.dead_reckoned(seen,
                                                                                             sightings.points[right])))
-    odometry = [np.array([problem[8 + i] for problem in problems], dtype=complex if i == 0 else float)
-                for i in range(4)]
     count = len(problems)
-    joins = _solve_joins(np.concatenate(pair), count, np.concatenate(z0), np.concatenate(var0), np.concatenate(z1),
+    if count == 1:  # one problem on Python numbers (the same numbers as in a batch, at a fraction of its cost)
+        odometry = [complex(problems[0][8]), *(float(value) for value in problems[0][9:12])]
+        together = None
+    else:
+        odometry = [np.array([problem[8 + i] for problem in problems], dtype=complex if i == 0 else float)
+                    for i in range(4)]
+        together = np.concatenate(pair)
+    joins = _solve_joins(together, count, np.concatenate(z0), np.concatenate(var0), np.concatenate(z1),
                          np.concatenate(var1), *odometry, solver, [("", 0, 0, 0)] * count, 0, warn=False)
     return (np.array([row[_COST] for row in joins.rows], dtype=float),
             np.array([row[_FEATURES] for row in joins.rows], dtype=float))
