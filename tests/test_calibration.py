@@ -13,7 +13,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_consistency import _brute_force
 
-from mapjoin.consistency import WARM_UP, chi2_median, p_values, variance_factors
+from mapjoin.consistency import (
+    WARM_UP,
+    calibrated,
+    chi2_median,
+    p_values,
+    variance_factors,
+)
 from mapjoin.drift import ChainDrift
 from mapjoin.joining import join, join_sequential
 from mapjoin.maps import LocalMap
@@ -237,3 +243,33 @@ def test_the_tree_statistic_does_not_depend_on_jobs():
     maps = list(simulate(64, seed=2, laps=1.5).maps)
     one, two = join(maps, strategy="tree", gate=1.0).report, join(maps, strategy="tree", jobs=2, gate=1.0).report
     assert [(r.chi2, r.features_cost, r.p) for r in one] == [(r.chi2, r.features_cost, r.p) for r in two]
+
+
+def test_calibrated_retests_exactly_the_joins_whose_own_cost_fails():
+    """The retest is asked once, for the joins whose own p (of cost / s) is below the gate, and its
+    minima replace theirs (without the link where the join had none); the others keep their own."""
+    rng = np.random.default_rng(4)
+    dof = rng.integers(2, 30, 60)
+    cost = rng.chisquare(dof)
+    cost[[20, 41]] *= 50.0
+    link = np.ones(60, dtype=bool)
+    link[41] = False
+    asked = []
+
+    def retest(joins):
+        asked.append(joins.tolist())
+        return cost[joins] / 100.0, cost[joins] / 200.0
+
+    s = variance_factors(cost, dof)
+    own = p_values(cost / s, dof)
+    test = calibrated(cost, cost / 2, dof, link, 1e-6, retest)
+    assert asked == [np.flatnonzero(own < 1e-6).tolist()] and 20 in asked[0] and 41 in asked[0]
+    expected = cost.copy()
+    expected[asked[0]] = np.where(link[asked[0]], cost[asked[0]] / 100.0, cost[asked[0]] / 200.0)
+    np.testing.assert_array_equal(test.chi2, expected)
+    np.testing.assert_array_equal(test.variance_factor, s)
+    np.testing.assert_array_equal(test.p, p_values(expected / s, dof))
+    assert test.features_cost[20] == cost[20] / 200.0 and test.features_cost[0] == cost[0] / 2
+    asked.clear()
+    calibrated(cost / 1e3, cost, dof, link, 1e-6, retest)
+    assert asked == []  # nothing fails: no retest

@@ -152,8 +152,8 @@ def _statistic(end_poses: np.ndarray, posteriors: tuple[np.ndarray, np.ndarray, 
         var0.append(arrays[1] + drift.variance(seen + 1, junction, drift.dead_reckoned(seen, sightings.points[left])))
         z1.append(arrays[2])
         seen = sightings.maps[right]
-        var1.append(arrays[3] + drift.variance(junction + 1, seen + 1, drift.dead_reckoned(seen,
-                                                                                            sightings.points[right])))
+        reckoned = drift.dead_reckoned(seen, sightings.points[right])
+        var1.append(arrays[3] + drift.variance(junction + 1, seen + 1, reckoned))
     count = len(problems)
     if count == 1:  # one problem on Python numbers (the same numbers as in a batch, at a fraction of its cost)
         odometry = [complex(problems[0][8]), *(float(value) for value in problems[0][9:12])]
