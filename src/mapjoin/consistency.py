@@ -123,14 +123,16 @@ def variance_factors(chi2: np.ndarray, dof: np.ndarray, warm_up: int = WARM_UP) 
     low: list[float] = []  # max-heap (negated) of the lower half of the q so far
     high: list[float] = []  # min-heap of the upper half
     medians = [1.0]  # medians[i]: the median of the first i tested q (none: unused)
-    push, pushpop, pop, record = heapq.heappush, heapq.heappushpop, heapq.heappop, medians.append
+    push, pushpop, record = heapq.heappush, heapq.heappushpop, medians.append
+    odd = True  # the count after this value: odd, the lower half holds one more
     for value in q[tested].tolist():
-        push(low, -pushpop(high, value))
-        if len(low) > len(high) + 1:
-            push(high, -pop(low))
-            record((high[0] - low[0]) / 2)
+        if odd:
+            push(low, -pushpop(high, value))
+            record(-low[0])
         else:
-            record(-low[0] if len(low) > len(high) else (high[0] - low[0]) / 2)
+            push(high, -pushpop(low, -value))
+            record((high[0] - low[0]) / 2)
+        odd = not odd
     before = np.cumsum(tested) - tested  # tested joins before each join
     return np.where(before >= max(warm_up, 1), np.maximum(np.array(medians)[before], 1.0), 1.0)
 
