@@ -4,6 +4,7 @@ CSV reader stream with the same output as at once."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import logging
 import tracemalloc
@@ -275,3 +276,24 @@ def test_long_outputs_written_in_blocks_are_the_text_written_at_once(data_dir, m
             written.append(stream.getvalue())
         texts.append(written)
     assert texts[0] == texts[1] and all(text.count("\n") > 150 for text in texts[0])
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 64])
+def test_a_streamed_join_tests_its_joins_as_the_join_in_memory(chunk):
+    """The consistency check of a streamed run with loop closures (three laps of 300 maps) equals the in-memory
+    join's: chi2, features_cost, variance_factor, p and flag of every join. The maps' variances are a quarter of
+    the simulator's, so the variance factor grows above 1 and varies, and joins whose own cost fails are retested
+    with the chain's drift (chi2 below cost): both paths are taken, across chunks of every size."""
+    maps = [dataclasses.replace(m, feature_variances=m.feature_variances / 4, pose_variances=m.pose_variances / 4)
+            for m in simulate(300, seed=3, steps_per_map=4, laps=3.0, full_covariance=False).maps]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(logging.getLogger("mapjoin"), "disabled", True)  # the loop closures' warnings
+        in_memory = join_sequential(maps)
+        streamed = join_stream(iter(maps), chunk=chunk)
+    records = list(in_memory.report)
+    assert sum(r.chi2 < r.cost for r in records) >= 10  # retested with the drift
+    assert len({r.variance_factor for r in records}) > 10 and max(r.variance_factor for r in records) > 1.5
+    assert sum(r.flag for r in records) > 0
+    for column in ("chi2", "features_cost", "variance_factor", "p", "flag"):
+        assert [getattr(r, column) for r in streamed.result.report] == [getattr(r, column) for r in records], column
+    _assert_same_join(streamed.result, in_memory)

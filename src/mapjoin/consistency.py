@@ -10,14 +10,21 @@ given variances), ``min F`` would be chi-square distributed with
 - ``dof = 2n - 1`` without it (chi = 0, a map joined by its features alone): 4n + 2 observed
   minus 2n + 3 unknowns
 
-(docs/method.md#chi-square-check). ``p`` is the upper tail probability of the statistic under
-that distribution; a join is *flagged* when ``p < gate`` or when its 1-D problem has two
-minima (Theorem 2: odometry heading and feature evidence then disagree by more than 72°).
+(docs/method.md#chi-square-check). Two corrections make the statistic fit that distribution
+on real maps (docs/method.md#calibration, measured over all clean joins of the five datasets):
 
-The real maps are not the spherical model (correlations dropped, propagated variances
-that are weights), so the statistic's tails are heavier than chi-square; the default
-:data:`DEFAULT_GATE` comes from the measurement over all clean joins of the five real
-datasets in docs/method.md#chi-square-check, not from the nominal rate.
+- an a-posteriori variance factor (:func:`variance_factors`): the maps' own variances may be
+  too small by a common factor (DLR's exact chi2/dof is 4); each join is tested against
+  ``s`` times chi-square(dof), ``s`` the median, over the joins before it, of
+  ``cost / median(chi-square(dof))`` (the joins' own minima; at least 1, and 1 during the first
+  :data:`WARM_UP` joins);
+- the variances of common features last seen many maps away include the chain's odometry
+  drift since (:mod:`mapjoin.drift`). That only lowers the minimum, so it is computed only for
+  the joins whose own minimum fails the gate (:func:`calibrated`).
+
+``chi2`` is the statistic tested, ``p`` the upper tail probability of ``chi2 / s``; a join is
+*flagged* when ``p < gate`` or when its 1-D problem has two minima (Theorem 2: odometry heading
+and feature evidence then disagree by more than 72°).
 
 The cost splits into the features' share ``features_cost = c0 - 2 a0`` (the chi = 0
 minimum, ``2n - 1`` dof) and the heading link's share ``chi2 - features_cost`` (>= 0). The
@@ -27,6 +34,7 @@ minimum, ``2n - 1`` dof) and the heading link's share ``chi2 - features_cost`` (
 from __future__ import annotations
 
 import dataclasses
+import heapq
 import logging
 import math
 from collections.abc import Callable
@@ -41,13 +49,15 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("mapjoin")
 
-__all__ = ["DEFAULT_GATE", "POLICIES", "Policy", "blame", "degrees_of_freedom", "describe", "enforce", "flags",
-           "p_values"]
+__all__ = ["DEFAULT_GATE", "POLICIES", "WARM_UP", "Calibrated", "Policy", "VarianceFactors", "blame", "calibrated",
+           "chi2_median", "degrees_of_freedom", "describe", "enforce", "flags", "p_values", "variance_factors"]
 
 #: a join is flagged when its p-value is below this (docs/method.md#chi-square-check, measured)
 DEFAULT_GATE = 1e-10
 Policy = Literal["warn", "skip", "stop"]
 POLICIES: tuple[str, ...] = ("warn", "skip", "stop")
+#: tested joins (dof > 0) before the variance factor is estimated; until then it is 1
+WARM_UP = 10
 
 
 def degrees_of_freedom(common: np.ndarray, link: np.ndarray | bool = True) -> np.ndarray:
@@ -88,6 +98,101 @@ def p_values(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
     return np.where(dof > 0, np.minimum(p, 1.0), 1.0)
 
 
+def chi2_median(dof: np.ndarray) -> np.ndarray:
+    """The median of chi-square(``dof``), by the Wilson-Hilferty approximation ``dof (1 - 2/(9 dof))^3``
+    (within 1.4 % for dof >= 2, 3.5 % high at dof 1); 0 where ``dof`` is 0."""
+    dof = np.asarray(dof, dtype=float)
+    safe = np.where(dof > 0, dof, 1.0)
+    return np.where(dof > 0, safe * (1.0 - 2.0 / (9.0 * safe)) ** 3, 0.0)
+
+
+def variance_factors(chi2: np.ndarray, dof: np.ndarray, warm_up: int = WARM_UP) -> np.ndarray:
+    """Each join's a-posteriori variance factor ``s`` (docs/method.md#calibration), from the joins before it.
+
+    If the statistic is ``s`` times a chi-square variable, ``q = chi2 / median(chi-square(dof))``
+    has median ``s`` whatever each join's dof, so the running median of ``q`` over the tested
+    joins (dof > 0) so far estimates ``s`` robustly: loop closures and bad maps, a minority, do
+    not move it. ``s`` is 1 until ``warm_up`` joins have been tested, and never below 1: a factor
+    below 1 would sharpen the test where the maps' variances are pessimistic, and then the joins
+    the model describes worst (loop closures) would be flagged. Online (join k uses joins before
+    k only), so that ``stop`` and ``skip`` decide each join as it happens. O(joins log joins).
+    """
+    return VarianceFactors(warm_up).extend(chi2, dof)
+
+
+class VarianceFactors:
+    """:func:`variance_factors` of a run whose joins come a block at a time (a stream): the running
+    median's two halves are kept between blocks (one float per tested join), so each block's factors
+    are those of the whole run so far."""
+
+    def __init__(self, warm_up: int = WARM_UP) -> None:
+        self._warm_up = max(warm_up, 1)
+        self._low: list[float] = []  # max-heap (negated) of the lower half of the q so far
+        self._high: list[float] = []  # min-heap of the upper half
+        self._median = 1.0  # the median of the q so far (none yet: unused)
+        self._tested = 0
+
+    def extend(self, chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
+        """The factors of the next joins (``chi2``, ``dof``: one each), from every join before each."""
+        chi2, dof = np.asarray(chi2, dtype=float), np.asarray(dof, dtype=np.int64)
+        q = chi2 / np.where(dof > 0, chi2_median(dof), 1.0)
+        tested = dof > 0
+        low, high = self._low, self._high
+        medians = [self._median]  # medians[i]: the median after the first i tested q of this block
+        push, pushpop, record = heapq.heappush, heapq.heappushpop, medians.append
+        odd = self._tested % 2 == 0  # the count after this value: odd, the lower half holds one more
+        for value in q[tested].tolist():
+            if odd:
+                push(low, -pushpop(high, value))
+                record(-low[0])
+            else:
+                push(high, -pushpop(low, -value))
+                record((high[0] - low[0]) / 2)
+            odd = not odd
+        before = np.cumsum(tested) - tested  # tested joins of this block before each join
+        factors = np.where(self._tested + before >= self._warm_up, np.maximum(np.array(medians)[before], 1.0), 1.0)
+        self._median, self._tested = medians[-1], self._tested + int(tested.sum())
+        return factors
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibrated:
+    """The calibrated test of a run's joins (arrays over the joins, docs/method.md#calibration)."""
+
+    chi2: np.ndarray
+    features_cost: np.ndarray
+    variance_factor: np.ndarray
+    p: np.ndarray
+
+    def __post_init__(self) -> None:
+        if not self.chi2.shape == self.features_cost.shape == self.variance_factor.shape == self.p.shape:
+            raise ValueError("Calibrated: one value per join in each array")
+
+
+def calibrated(cost: np.ndarray, features_cost: np.ndarray, dof: np.ndarray, link: np.ndarray, gate: float,
+               retest: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None,
+               variance_factor: np.ndarray | None = None) -> Calibrated:
+    """Each join's statistic, variance factor and p-value (docs/method.md#calibration).
+
+    ``cost`` is each join's own minimum (``features_cost``, ``c0 - 2 a0``, where ``link`` is False) and
+    ``s`` = :func:`variance_factors` of these. A join whose own ``p`` (of ``cost / s``) is at least
+    ``gate`` keeps it: the drift-aware minimum is never larger, so it would pass too. The others are
+    tested on the drift-aware minimum ``retest(joins)`` gives (with and without the heading link, the
+    latter the new ``features_cost``), all in one call: the drift is computed for them only.
+    ``variance_factor``: ``s`` when the joins are a block of a longer run (:class:`VarianceFactors`).
+    """
+    s = variance_factors(cost, dof) if variance_factor is None else variance_factor
+    p = p_values(cost / s, dof)
+    chi2, features_cost = cost.copy(), np.asarray(features_cost, dtype=float).copy()
+    failing = np.flatnonzero(p < gate)
+    if retest is not None and failing.size:
+        linked, free = retest(failing)
+        chi2[failing] = np.where(link[failing], linked, free)
+        features_cost[failing] = free
+        p[failing] = p_values(chi2[failing] / s[failing], dof[failing])
+    return Calibrated(chi2, features_cost, s, p)
+
+
 def flags(p: np.ndarray, minima: np.ndarray, gate: float = DEFAULT_GATE) -> np.ndarray:
     """Flagged joins: ``p < gate`` or two minima (always)."""
     if not 0.0 <= gate <= 1.0:
@@ -95,16 +200,17 @@ def flags(p: np.ndarray, minima: np.ndarray, gate: float = DEFAULT_GATE) -> np.n
     return (np.asarray(p) < gate) | (np.asarray(minima) == 2)
 
 
-def blame(features_cost: float, common: int, gate: float = DEFAULT_GATE) -> Literal["odometry", "features"]:
+def blame(features_cost: float, common: int, gate: float = DEFAULT_GATE,
+          variance_factor: float = 1.0) -> Literal["odometry", "features"]:
     """Which side of a flagged join contradicts the other.
 
-    ``odometry`` when the features alone fit (the chi = 0 minimum ``features_cost`` passes the gate
-    with its ``2n - 1`` degrees of freedom): the heading link is what the features disagree with,
-    so the map can be joined by its features. ``features`` otherwise: the map's features disagree
-    with the map so far whatever the heading.
+    ``odometry`` when the features alone fit (the chi = 0 minimum ``features_cost``, divided by the
+    join's ``variance_factor``, passes the gate with its ``2n - 1`` degrees of freedom): the heading
+    link is what the features disagree with, so the map can be joined by its features. ``features``
+    otherwise: the map's features disagree with the map so far whatever the heading.
     """
     dof = degrees_of_freedom(np.array([common]), False)
-    if dof[0] > 0 and p_values(np.array([features_cost]), dof)[0] >= gate:
+    if dof[0] > 0 and p_values(np.array([features_cost / variance_factor]), dof)[0] >= gate:
         return "odometry"
     return "features"
 
@@ -122,8 +228,9 @@ def _why(record: JoinRecord, gate: float) -> tuple[str, tuple]:
         return ("join %d has two minima (C_phi = %+.3f rad): its odometry heading and its features contradict "
                 "each other grossly", (record.join, record.c_phi))
     link = record.chi2 - record.features_cost if record.action == "joined" else 0.0
-    return ("join %d is inconsistent: chi^2 = %.6g for %d degrees of freedom (p = %.3g < %g; heading link's "
-            "share %.6g, C_phi = %+.3f rad)", (record.join, record.chi2, record.dof, record.p, gate, link, record.c_phi))
+    return ("join %d is inconsistent: chi^2 = %.6g for %d degrees of freedom, variance factor %.3g (p = %.3g < %g; "
+            "heading link's share %.6g, C_phi = %+.3f rad)",
+            (record.join, record.chi2, record.dof, record.variance_factor, record.p, gate, link, record.c_phi))
 
 
 def _warn(flagged: list[JoinRecord], gate: float) -> None:
@@ -168,7 +275,8 @@ def enforce(result: JoinResult, policy: Policy, gate: float,
         if pending is None:
             break
         number = pending.join
-        if number not in unlinked and blame(pending.features_cost, pending.common, gate) == "odometry":
+        if number not in unlinked and blame(pending.features_cost, pending.common, gate,
+                                            pending.variance_factor) == "odometry":
             unlinked.add(number)
             log.warning("%s: %s; its features alone fit, so it is joined by them without the heading link "
                         "(phi* = phi0)", pending.map, describe(pending, gate))

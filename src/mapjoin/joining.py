@@ -30,10 +30,11 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from .arithmetic import backend
-from .consistency import DEFAULT_GATE, Policy, degrees_of_freedom, enforce, flags, p_values
+from .consistency import DEFAULT_GATE, Policy, calibrated, degrees_of_freedom, enforce, flags
 from .errors import JoinError
 from .covariance import (DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances, fuse, placed_variances,
                          squared_norm, translation_variance)
+from .drift import Retest, SequentialRecord, TreeRecord
 from .maps import GlobalMap, LocalMap, Provenance, first_duplicate, locate
 from .onestep import Solver, as_complex, global_orientation, linked_cost, point_constants
 from .se2 import wrap
@@ -60,12 +61,16 @@ class JoinRecord:
     start pose in left's frame, ``cost`` f_1(phi*); ``phi2``/``cost2`` the other local
     minimum when ``minima`` is 2.
 
-    The consistency check (:mod:`mapjoin.consistency`, docs/method.md#chi-square-check):
-    ``features_cost`` is the minimum without the heading link (c0 - 2 a0), ``chi2`` the
-    statistic (``cost``, or ``features_cost`` for a map joined by its features alone), ``dof``
-    its degrees of freedom, ``p`` its upper tail probability, ``flag`` whether the join failed
-    the gate (or has two minima). ``action``: ``joined``, ``features only`` (joined without the
-    heading link) or ``left out`` (its features dropped, its end pose kept), as the policy decided.
+    The consistency check (:mod:`mapjoin.consistency`, docs/method.md#calibration): ``dof`` the
+    degrees of freedom, ``variance_factor`` the a-posteriori variance factor ``s`` from the joins
+    before it; ``chi2`` the statistic: the join's own minimum (``cost``, or ``c0 - 2 a0`` for a map
+    joined by its features alone) when that passes the gate (``p`` of ``chi2 / s`` at least
+    ``gate``), else the same minimum with the chain's drift added to the common features'
+    variances (docs/method.md#drift), which is never larger; ``features_cost`` the minimum without
+    the heading link (c0 - 2 a0) of the same problem; ``p`` the upper tail probability of
+    ``chi2 / s``, ``flag`` whether the join failed the gate (or has two minima). ``action``:
+    ``joined``, ``features only`` (joined without the heading link) or ``left out`` (its features
+    dropped, its end pose kept), as the policy decided.
     """
 
     join: int
@@ -86,13 +91,15 @@ class JoinRecord:
     features_cost: float = math.nan
     chi2: float = math.nan
     dof: int = 0
+    variance_factor: float = 1.0
     p: float = 1.0
     flag: bool = False
     action: str = "joined"
 
 
 _ROW = [field.name for field in dataclasses.fields(JoinRecord)][1:]  # a report row: the fields after ``join``
-_COMMON, _MINIMA, _COST, _LEVEL = (_ROW.index(name) for name in ("common", "minima", "cost", "level"))
+_COMMON, _MINIMA, _COST, _LEVEL, _FEATURES = (_ROW.index(name) for name in
+                                              ("common", "minima", "cost", "level", "features_cost"))
 
 
 @dataclass(frozen=True)
@@ -231,20 +238,22 @@ def _warn_if_unlinked(name: str, common: int) -> None:
 
 
 def _report(rows: Sequence[tuple], unlinked: frozenset[int] = frozenset(),
-            gate: float = DEFAULT_GATE) -> tuple[JoinRecord, ...]:
+            gate: float = DEFAULT_GATE, retest: Retest | None = None) -> tuple[JoinRecord, ...]:
     """The report: the joins' rows numbered from 1, each with its consistency check
-    (:mod:`mapjoin.consistency`); ``unlinked`` are the numbers of the joins made by features alone."""
+    (:mod:`mapjoin.consistency`); ``unlinked`` are the numbers of the joins made by features alone;
+    ``retest`` (:mod:`mapjoin.drift`) the drift-aware statistic of the joins whose own cost fails."""
     if not rows:
         return ()
     link = np.array([number not in unlinked for number in range(1, len(rows) + 1)])
     common, minima = np.array([row[_COMMON] for row in rows]), np.array([row[_MINIMA] for row in rows])
-    chi2 = np.array([row[_COST] for row in rows], dtype=float)
     dof = degrees_of_freedom(common, link)
-    p = p_values(chi2, dof)
-    flagged = flags(p, minima, gate)
-    return tuple(JoinRecord(number, *row, chi2=c, dof=d, p=q, flag=f, action="joined" if ln else "features only")
-                 for number, (row, c, d, q, f, ln) in enumerate(zip(rows, chi2.tolist(), dof.tolist(), p.tolist(),
-                                                                     flagged.tolist(), link.tolist()), start=1))
+    test = calibrated(np.array([row[_COST] for row in rows], dtype=float),
+                      np.array([row[_FEATURES] for row in rows], dtype=float), dof, link, gate, retest)
+    flagged = flags(test.p, minima, gate)
+    return tuple(JoinRecord(number, *row[:_FEATURES], fc, c, d, s, q, f, "joined" if ln else "features only")
+                 for number, (row, fc, c, d, s, q, f, ln) in enumerate(zip(
+                     rows, test.features_cost.tolist(), test.chi2.tolist(), dof.tolist(),
+                     test.variance_factor.tolist(), test.p.tolist(), flagged.tolist(), link.tolist()), start=1))
 
 
 def _place(turn, t, t_variance, phi_variance, points, variances, squared):
@@ -348,8 +357,11 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
         segment.ids[:first], feature_ids = associate.first(first), np.zeros(len(segment.ids), dtype=np.int64)
     positions = np.zeros(len(feature_ids), dtype=complex)
     position_variances = np.zeros(len(feature_ids))
+    record = SequentialRecord(pieces)
     report = _join_segment(segment, maps, positions, position_variances, solver, 1, progress, warn=warn,
-                           unlinked=unlinked, associate=associate)
+                           unlinked=unlinked, associate=associate, record=record)
+    retest = record.retest(segment.ids, segment.z, segment.var, pieces.feature_piece, segment.starts,
+                           segment.ends_common, solver)
     if associate is not None:
         feature_ids = np.arange(associate.count)
         positions, position_variances = positions[:associate.count], position_variances[:associate.count]
@@ -359,7 +371,7 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
                      pose_phi=np.array(segment.pose_phi), pose_variances=np.column_stack([segment.var_xy,
                                                                                           segment.var_phi]))
     return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "sequential"),
-                      _report(report, unlinked, gate))
+                      _report(report, unlinked, gate, retest))
 
 
 @dataclass
@@ -401,11 +413,12 @@ class _Segment:
 
 def _join_segment(segment: _Segment, maps: Sequence[LocalMap], positions: np.ndarray, position_variances: np.ndarray,
                   solver: Solver, number: int, progress: Callable[[int], None] | None = None, *, warn: bool = True,
-                  unlinked: frozenset[int] = frozenset(), associate: _Associator | None = None) -> list[tuple]:
+                  unlinked: frozenset[int] = frozenset(), associate: _Associator | None = None,
+                  record: SequentialRecord | None = None) -> list[tuple]:
     """Join maps 1 .. n-1 of ``segment`` (``maps`` are its maps) onto the global map so far, in place: its
     ``positions`` and ``position_variances`` (by compact id) and the segment's poses; map 0's own feature
     rows, if any, are placed first (the chain's first map). ``number`` is the join number of map 1. The joins'
-    report rows (:func:`_report` numbers them)."""
+    report rows (:func:`_report` numbers them). ``record`` keeps what each join read (:mod:`mapjoin.drift`)."""
     ids, z, var, information, squared = segment.ids, segment.z, segment.var, segment.information, segment.squared
     starts, ends_common = segment.starts, segment.ends_common
     pose_xy, pose_phi, var_xy, var_phi = segment.pose_xy, segment.pose_phi, segment.var_xy, segment.var_phi
@@ -430,6 +443,9 @@ def _join_segment(segment: _Segment, maps: Sequence[LocalMap], positions: np.nda
                              pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1], solver,
                              [(local_map.name, local_map.start_id, local_map.end_id, local_map.size)], join_number,
                              warn, join_number not in unlinked)
+        if record is not None:
+            record.joined(z0, var0, pose_xy[k - 1], pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1],
+                          joins.t_variance, joins.phi_variance)
         move = (joins.turn, joins.t, joins.t_variance, joins.phi_variance)
         placed, spread = _place(*move, z[rows], var[rows], squared[rows])
         positions[shared], position_variances[shared] = fuse(z0, var0, placed[:common], information[rows][:common])
@@ -444,10 +460,11 @@ def _join_segment(segment: _Segment, maps: Sequence[LocalMap], positions: np.nda
     return report
 
 
-def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, associate: _Associator | None = None
-                ) -> tuple[_Pieces, list[tuple]]:
+def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, associate: _Associator | None = None,
+                record: TreeRecord | None = None) -> tuple[_Pieces, list[tuple]]:
     """Join pieces 2i and 2i+1 for every i (an odd last piece passes through): one level of the tree.
-    ``associate`` first renames right pieces' features to the ids of their matches in the left ones."""
+    ``associate`` first renames right pieces' features to the ids of their matches in the left ones;
+    ``record`` keeps what the joins read (:mod:`mapjoin.drift`)."""
     if associate is not None:
         pieces = associate.level(pieces, level)
     count = pieces.count // 2
@@ -464,12 +481,15 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, as
     left_end = ends[0:2 * count:2]
     sizes = np.bincount(pieces.feature_piece, minlength=pieces.count)[1:2 * count:2].tolist()
     rights = zip(pieces.first[1:2 * count:2].tolist(), pieces.last[1:2 * count:2].tolist(), sizes)
-    joins = _solve_joins(parent[rc], count, pieces.features[lc], pieces.feature_variances[lc],
-                         pieces.features[rc], pieces.feature_variances[rc], pieces.pose_xy[left_end],
-                         pieces.pose_phi[left_end], pieces.pose_variances[left_end, 0],
-                         pieces.pose_variances[left_end, 1], solver,
+    problem = (pieces.features[lc], pieces.feature_variances[lc], pieces.features[rc], pieces.feature_variances[rc])
+    odometry = (pieces.pose_xy[left_end], pieces.pose_phi[left_end], pieces.pose_variances[left_end, 0],
+                pieces.pose_variances[left_end, 1])
+    joins = _solve_joins(parent[rc], count, *problem, *odometry, solver,
                          [(labels.run(first, last), labels.start_ids[first], labels.end_ids[last], size)
                           for first, last, size in rights], level)
+    if record is not None:
+        record.level(level, parent[rc], pieces.feature_ids[lc], None if associate is None else associate.row_ids.copy(),
+                     pieces.last[0:2 * count:2], *problem, odometry, joins.t_variance, joins.phi_variance)
 
     features, feature_variances = pieces.features.copy(), pieces.feature_variances.copy()
     pair, z = parent[right_rows], pieces.features[right_rows]
@@ -494,25 +514,27 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, as
 
 
 def _join_levels(pieces: _Pieces, labels: _Labels, solver: Solver, level: int,
-                 progress: Callable[[int], None] | None = None, associate: _Associator | None = None
-                 ) -> tuple[_Pieces, list[tuple]]:
+                 progress: Callable[[int], None] | None = None, associate: _Associator | None = None,
+                 record: TreeRecord | None = None) -> tuple[_Pieces, list[tuple]]:
     """Join levels from ``level`` on until one piece is left; the joins' report rows."""
     records: list[tuple] = []
     while pieces.count > 1:
         level += 1
-        pieces, joined = _join_level(pieces, labels, solver, level, associate)
+        pieces, joined = _join_level(pieces, labels, solver, level, associate, record)
         records += joined
         if progress:
             progress(len(records) + 1)
     return pieces, records
 
 
-def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[tuple]]:
-    """A worker process's share: one aligned block of pieces joined into one. It does not warn: the parent
-    (:func:`join_tree`) warns for its rows, so that one process's logging says (and counts) everything."""
+def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[tuple], TreeRecord]:
+    """A worker process's share: one aligned block of pieces joined into one, and what its joins read
+    (:mod:`mapjoin.drift`). It does not warn: the parent (:func:`join_tree`) warns for its rows, so that one
+    process's logging says (and counts) everything."""
     pieces, labels, solver = job
     log.disabled = True
-    return _join_levels(pieces, labels, solver, 0)
+    record = TreeRecord()
+    return (*_join_levels(pieces, labels, solver, 0, record=record), record)
 
 
 def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
@@ -533,6 +555,7 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
     feature_ids, pieces = _prepare(maps, covariance)
     labels = _Labels.of(maps)
     records: list[tuple] = []
+    record, chain = TreeRecord(), pieces
     depth = 0
     if jobs > 1 and len(maps) >= 2 * jobs:
         depth = int(math.floor(math.log2(len(maps) / jobs)))
@@ -542,22 +565,24 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
 
         with ProcessPoolExecutor(max_workers=min(jobs, os.cpu_count() or jobs)) as pool:
             results = list(pool.map(_subtree, [(b, labels, solver) for b in blocks]))
-        for _, block_records in results:
+        for _, block_records, block_record in results:
             records += block_records
+            record.extend(block_record)
         for row in records:
             _warn_if_unlinked(row[0], row[3])
-        pieces = _concatenate([(start // size, block) for start, (block, _) in
+        pieces = _concatenate([(start // size, block) for start, (block, *_) in
                                zip(range(0, len(maps), size), results)])
         if progress:
             progress(len(records) + 1)
     pieces, upper = _join_levels(pieces, labels, solver, depth,
-                                 (lambda done: progress(done + len(records))) if progress else None, associate)
+                                 (lambda done: progress(done + len(records))) if progress else None, associate, record)
     records += upper
     records.sort(key=lambda row: row[_LEVEL])  # by level, stable: chain order within a level
+    retest = record.retest(chain, solver)
     if associate is not None:  # the compact ids the associator handed out
         feature_ids = np.arange(associate.count)
     return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"),
-                      _report(records, gate=gate))
+                      _report(records, gate=gate, retest=retest))
 
 
 def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:

@@ -25,12 +25,14 @@ from typing import overload
 
 import numpy as np
 
-from .consistency import DEFAULT_GATE, Policy, degrees_of_freedom, enforce, flags, p_values
+from .consistency import DEFAULT_GATE, Policy, degrees_of_freedom, enforce, flags
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances
+from .drift import SequentialRecord
 from .errors import JoinError
 from .joining import JoinRecord, JoinResult, _join_segment, _Pieces, _Segment, check_chain, pose_twice
 from .maps import GlobalMap, LocalMap, Provenance
 from .onestep import Solver, as_complex
+from .stream_calibration import StreamCalibration
 
 __all__ = ["CHUNK", "CompactReport", "StreamedJoin", "join_stream"]
 
@@ -41,8 +43,8 @@ CHUNK = 4096
 #: a report row's numeric columns (JoinRecord's fields after ``map``, before the consistency check)
 _COLUMNS = ("start_id", "end_id", "common", "new", "a", "c_phi", "minima", "phi", "cost", "phi2", "cost2",
             "iterations", "level", "features_cost")
+_CHECKS = ("chi2", "variance_factor", "p")  # the consistency check's columns (:mod:`mapjoin.stream_calibration`)
 _BLOCK = 4096  # report rows made into records at a time
-_P_BLOCK = 1024  # joins whose p-values are computed together (a term per degree of freedom each)
 _INTEGER = frozenset({"start_id", "end_id", "common", "new", "minima", "iterations", "level"})
 
 
@@ -55,12 +57,9 @@ class CompactReport(Sequence[JoinRecord]):
 
     def __init__(self, names: Sequence[str], columns: dict[str, np.ndarray], gate: float):
         self._names = names
+        self._chi2, self._variance_factor, self._p = (columns.pop(name) for name in _CHECKS)
         self._columns = columns
-        self._chi2 = columns["cost"]
         self._dof = degrees_of_freedom(columns["common"])
-        # p_values works on one term per degree of freedom: a block of joins at a time bounds that (same values)
-        self._p = np.concatenate([np.zeros(0)] + [p_values(self._chi2[i:i + _P_BLOCK], self._dof[i:i + _P_BLOCK])
-                                                  for i in range(0, len(self._chi2), _P_BLOCK)])
         self._flag = flags(self._p, columns["minima"], gate)
 
     def __len__(self) -> int:
@@ -88,13 +87,14 @@ class CompactReport(Sequence[JoinRecord]):
         for first in range(0, len(numbers), _BLOCK):
             rows = np.asarray(numbers[first:first + _BLOCK], dtype=np.intp)
             values = [column[rows].tolist() for column in self._columns.values()]
-            checks = (self._chi2[rows].tolist(), self._dof[rows].tolist(), self._p[rows].tolist(),
-                      self._flag[rows].tolist())
-            for number, row, (chi2, dof, p, flag) in zip(rows.tolist(), zip(*values), zip(*checks)):
+            checks = (self._chi2[rows].tolist(), self._dof[rows].tolist(), self._variance_factor[rows].tolist(),
+                      self._p[rows].tolist(), self._flag[rows].tolist())
+            for number, row, (chi2, dof, factor, p, flag) in zip(rows.tolist(), zip(*values), zip(*checks)):
                 fields = dict(zip(_COLUMNS, row))
                 if fields["phi2"] != fields["phi2"]:  # NaN: one minimum
                     fields["phi2"] = fields["cost2"] = None
-                yield JoinRecord(number + 1, self._names[number + 1], **fields, chi2=chi2, dof=dof, p=p, flag=flag)
+                yield JoinRecord(number + 1, self._names[number + 1], **fields, chi2=chi2, dof=dof,
+                                 variance_factor=factor, p=p, flag=flag)
 
     @property
     def flagged(self) -> np.ndarray:
@@ -142,7 +142,8 @@ class _Chain:
         self.pose_ids = np.zeros(0, dtype=np.int64)     # every pose of the chain so far, sorted
         self.names: list[str] = []
         self.poses = _Columns(("id", "xy", "phi", "var_xy", "var_phi"))
-        self.rows = _Columns(_COLUMNS)
+        self.rows = _Columns(_COLUMNS + _CHECKS)
+        self.calibration = StreamCalibration()
         self.last: LocalMap | None = None               # the previous chunk's last map ...
         self.last_pose: tuple = ()                      # ... and its pose as the joins left it (not final yet)
 
@@ -181,8 +182,9 @@ class _Chain:
         self.pose_ids = np.insert(self.pose_ids, at, ends)
 
     def join(self, chunk: list[LocalMap], covariance: CovarianceMode, solver: Solver, number: int,
-             progress: Callable[[int], None] | None) -> None:
-        """Join the maps of ``chunk`` onto the chain; ``number`` is the join number of its first map."""
+             progress: Callable[[int], None] | None, gate: float = DEFAULT_GATE) -> None:
+        """Join the maps of ``chunk`` onto the chain; ``number`` is the join number of its first map; the joins
+        are tested at the chunk's end (:mod:`mapjoin.stream_calibration`)."""
         self.check(chunk)
         maps = chunk if self.last is None else [self.last, *chunk]
         first = len(maps) - len(chunk)  # the piece of chunk[0]: 1 after the first chunk
@@ -206,16 +208,22 @@ class _Chain:
         segment = _Segment.of(pieces, seen_before, len(maps))
         if first:  # the previous last map's pose as the joins left it (the very objects: bit for bit)
             segment.pose_xy[0], segment.pose_phi[0], segment.var_xy[0], segment.var_phi[0] = self.last_pose
-        rows = _join_segment(segment, maps, self.positions, self.position_variances, solver, number, progress)
+        record = SequentialRecord(pieces)
+        rows = _join_segment(segment, maps, self.positions, self.position_variances, solver, number, progress,
+                             record=record)
         done = slice(0, len(maps) - 1)  # every pose but the last is final
         self.poses.extend(id=np.fromiter((m.end_id for m in maps[done]), np.int64, len(maps) - 1),
                           xy=np.array(segment.pose_xy[done], dtype=complex), phi=np.array(segment.pose_phi[done]),
                           var_xy=np.array(segment.var_xy[done]), var_phi=np.array(segment.var_phi[done]))
+        columns = list(zip(*rows))[1:] or [()] * len(_COLUMNS)  # the map's name is names[join]
+        arrays = {name: np.array([np.nan if value is None else value for value in column],
+                                 dtype=np.int64 if name in _INTEGER else float)
+                  for name, column in zip(_COLUMNS, columns)}
+        checks = self.calibration.block(segment, pieces.feature_piece, (pieces.pose_xy, pieces.pose_phi), first,
+                                        number, record, arrays["cost"], arrays["features_cost"], gate, solver)
         if rows:
-            columns = list(zip(*rows))[1:]  # the map's name is names[join]
-            self.rows.extend(**{name: np.array([np.nan if value is None else value for value in column],
-                                               dtype=np.int64 if name in _INTEGER else float)
-                                for name, column in zip(_COLUMNS, columns)})
+            arrays["chi2"], arrays["features_cost"], arrays["variance_factor"], arrays["p"] = checks
+            self.rows.extend(**arrays)
         self.names.extend(m.name for m in chunk)
         self.last = maps[-1]
         self.last_pose = (segment.pose_xy[-1], segment.pose_phi[-1], segment.var_xy[-1], segment.var_phi[-1])
@@ -263,7 +271,7 @@ def join_stream(maps: Iterable[LocalMap], covariance: CovarianceMode = DEFAULT_C
             break
         if chain.last is None:
             origin = maps_chunk[0].start_id
-        chain.join(maps_chunk, covariance, solver, max(len(chain.names), 1), progress)  # join k: map k (from 0)
+        chain.join(maps_chunk, covariance, solver, max(len(chain.names), 1), progress, gate)  # join k: map k
     if chain.last is None:
         raise JoinError("no local maps to join")
     result = chain.result(covariance, solver, gate)

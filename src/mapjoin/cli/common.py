@@ -62,8 +62,9 @@ covariance_option = click.option(
     help="How each local map's covariance is made spherical (see docs/joining.md, 'Covariance modes').")
 gate_option = click.option(
     "--gate", type=FiniteFloat(Range("gate", 0.0, 1.0)), default=DEFAULT_GATE, show_default=True, metavar="LEVEL",
-    help="Flag a join whose chi-square p-value is below LEVEL (and every join with two minima); the default "
-         "comes from the clean real datasets (docs/joining.md, 'Consistency').")
+    help="Flag a join whose chi-square p-value is below LEVEL (and every join with two minima); the statistic "
+         "allows for the chain's drift and the run's variance factor, and the default comes from the clean real "
+         "datasets (docs/joining.md, 'Consistency').")
 on_inconsistent_option = click.option(
     "--on-inconsistent", type=click.Choice(POLICIES), default="warn", show_default=True,
     help="What a flagged join does: warn (one warning per map), stop (exit 1 naming the map, nothing written) "
@@ -176,7 +177,7 @@ jobs_option = click.option(
 report_option = click.option(
     "--report", "report_path", metavar="FILE",
     help=f"Per-join report of the fast join ({TABLE_EXTENSIONS}): common/new features, a, C_phi, minima, phi*, "
-         "the consistency check (chi2, dof, p, flag, action).")
+         "the consistency check (chi2, dof, variance_factor, p, flag, action).")
 
 
 def check_jobs(jobs: int, strategy: str) -> None:
