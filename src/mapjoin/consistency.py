@@ -261,7 +261,7 @@ def enforce(result: JoinResult, policy: Policy, gate: float,
     if not flagged:
         return result
     if policy == "stop":
-        raise JoinError(f"{flagged[0].map}: {describe(flagged[0], gate)}; stopped (--on-inconsistent stop), "
+        raise JoinError(f"{flagged[0].map}: {describe(flagged[0], gate)}; stopped (policy stop), "
                         f"{len(flagged)} inconsistent joins in all")
     if policy == "warn":
         _warn(flagged, gate)
