@@ -37,15 +37,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .onestep import Solver
-
 if TYPE_CHECKING:
     from .joining import _Pieces
 
-__all__ = ["ChainDrift", "Retest", "SequentialRecord", "TreeRecord", "drift_variance", "solve_widened"]
+__all__ = ["ChainDrift", "Retest", "SequentialRecord", "TreeRecord", "SolveWidened", "drift_variance"]
 
 #: ``retest(joins)``: for these report indices (ascending), the drift-aware minimum with and without the heading link
 Retest = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+#: ``solve(problems)``: the minima, with the heading link and without, of one-step problems
+#: ``(z0, var0, z1, var1, odometry_xy, odometry_phi, var_o, p_phi)`` whose variances carry the drift
+#: (:func:`mapjoin.joining.solve_widened`, passed in: the join strategies use this module)
+SolveWidened = Callable[[list[tuple]], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -137,11 +139,11 @@ def _end_poses(chain: _Pieces) -> np.ndarray:
 
 
 def _statistic(end_poses: np.ndarray, posteriors: tuple[np.ndarray, np.ndarray, np.ndarray],
-               problems: list[tuple], solver: Solver) -> tuple[np.ndarray, np.ndarray]:
+               problems: list[tuple], solve: SolveWidened) -> tuple[np.ndarray, np.ndarray]:
     """The drift-aware minima (with the heading link, and without: ``c0 - 2 a0``) of ``problems``, one per join:
     ``(sightings, ids, left_last, right_first, z0, var0, z1, var1, odometry_xy, odometry_phi, var_o, p_phi)``
     with the common features' ``ids`` (as ``sightings`` numbers them), the left piece's last map and the right
-    piece's first map. One batch of Algorithm 1 (:func:`mapjoin.joining._solve_joins`)."""
+    piece's first map; ``solve`` solves them with the drift in their variances (:data:`SolveWidened`)."""
     drift = ChainDrift.of(end_poses, *posteriors)
     widened = []
     for sightings, ids, m, first, z0, var0, z1, var1, *odometry in problems:
@@ -154,30 +156,7 @@ def _statistic(end_poses: np.ndarray, posteriors: tuple[np.ndarray, np.ndarray, 
         seen = sightings.maps[right]
         reckoned = drift.dead_reckoned(seen, sightings.points[right])
         widened.append((z0, var0, z1, var1 + drift.variance(junction + 1, seen + 1, reckoned), *odometry))
-    return solve_widened(widened, solver)
-
-
-def solve_widened(problems: list[tuple], solver: Solver) -> tuple[np.ndarray, np.ndarray]:
-    """The minima (with the heading link, and without: ``c0 - 2 a0``) of ``problems``, one per join:
-    ``(z0, var0, z1, var1, odometry_xy, odometry_phi, var_o, p_phi)`` with the drift already in the
-    variances. One batch of Algorithm 1 (:func:`mapjoin.joining._solve_joins`)."""
-    # joining imports this module: the one implementation is resolved when used
-    from .joining import _COST, _FEATURES, _solve_joins
-
-    pair = [np.full(len(problem[0]), number) for number, problem in enumerate(problems)]
-    z0, var0, z1, var1 = ([problem[i] for problem in problems] for i in range(4))
-    count = len(problems)
-    if count == 1:  # one problem on Python numbers (the same numbers as in a batch, at a fraction of its cost)
-        odometry = [complex(problems[0][4]), *(float(value) for value in problems[0][5:8])]
-        together = None
-    else:
-        odometry = [np.array([problem[4 + i] for problem in problems], dtype=complex if i == 0 else float)
-                    for i in range(4)]
-        together = np.concatenate(pair)
-    joins = _solve_joins(together, count, np.concatenate(z0), np.concatenate(var0), np.concatenate(z1),
-                         np.concatenate(var1), *odometry, solver, [("", 0, 0, 0)] * count, 0, warn=False)
-    return (np.array([row[_COST] for row in joins.rows], dtype=float),
-            np.array([row[_FEATURES] for row in joins.rows], dtype=float))
+    return solve(widened)
 
 
 @dataclass
@@ -196,7 +175,7 @@ class SequentialRecord:
         self.joins.append((z0, var0, odometry_xy, odometry_phi, var_o, p_phi, t_variance, phi_variance))
 
     def retest(self, ids: np.ndarray, z: np.ndarray, var: np.ndarray, piece: np.ndarray, starts: list[int],
-               ends_common: list[int], solver: Solver) -> Retest:
+               ends_common: list[int], solve: SolveWidened) -> Retest:
         """The drift-aware statistic of the joins asked for, once the chain is joined: ``ids``, ``z``, ``var``,
         ``piece`` the input rows in the order the joins read them (each map's common rows
         ``starts[k] .. ends_common[k]`` first), as numbered at the end."""
@@ -212,7 +191,7 @@ class SequentialRecord:
                 z0, var0, *odometry, _, _ = self.joins[number]
                 common = slice(starts[k], ends_common[k])
                 problems.append((sightings, ids[common], k - 1, k, z0, var0, z[common], var[common], *odometry))
-            return _statistic(end_poses, posteriors, problems, solver)
+            return _statistic(end_poses, posteriors, problems, solve)
 
         return retest
 
@@ -238,7 +217,7 @@ class TreeRecord:
         """Append the levels a worker process made (its block follows the blocks recorded so far)."""
         self.levels += other.levels
 
-    def retest(self, chain: _Pieces, solver: Solver) -> Retest:
+    def retest(self, chain: _Pieces, solve: SolveWidened) -> Retest:
         """The drift-aware statistic of the joins asked for (report indices); ``chain``: every map as a piece,
         as the join started (:func:`mapjoin.joining._prepare`)."""
         def retest(joins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -266,6 +245,6 @@ class TreeRecord:
                 m = int(left_last[i])
                 problems.append((tables[-1 if snapshot is None else level], ids[rows], m, m + 1, z0[rows],
                                  var0[rows], z1[rows], var1[rows], *(o[i] for o in odometry)))
-            return _statistic(end_poses, posteriors, problems, solver)
+            return _statistic(end_poses, posteriors, problems, solve)
 
         return retest

@@ -25,6 +25,7 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -237,6 +238,26 @@ def _warn_if_unlinked(name: str, common: int) -> None:
                     "start pose alone (no correction of the map so far)", name)
 
 
+def solve_widened(problems: list[tuple], solver: Solver) -> tuple[np.ndarray, np.ndarray]:
+    """The minima (with the heading link, and without: ``c0 - 2 a0``) of ``problems``, one per join:
+    ``(z0, var0, z1, var1, odometry_xy, odometry_phi, var_o, p_phi)`` with the drift already in the
+    variances. One batch of Algorithm 1 (:func:`_solve_joins`): :data:`mapjoin.drift.SolveWidened`."""
+    pair = [np.full(len(problem[0]), number) for number, problem in enumerate(problems)]
+    z0, var0, z1, var1 = ([problem[i] for problem in problems] for i in range(4))
+    count = len(problems)
+    if count == 1:  # one problem on Python numbers (the same numbers as in a batch, at a fraction of its cost)
+        odometry = [complex(problems[0][4]), *(float(value) for value in problems[0][5:8])]
+        together = None
+    else:
+        odometry = [np.array([problem[4 + i] for problem in problems], dtype=complex if i == 0 else float)
+                    for i in range(4)]
+        together = np.concatenate(pair)
+    joins = _solve_joins(together, count, np.concatenate(z0), np.concatenate(var0), np.concatenate(z1),
+                         np.concatenate(var1), *odometry, solver, [("", 0, 0, 0)] * count, 0, warn=False)
+    return (np.array([row[_COST] for row in joins.rows], dtype=float),
+            np.array([row[_FEATURES] for row in joins.rows], dtype=float))
+
+
 def _report(rows: Sequence[tuple], unlinked: frozenset[int] = frozenset(),
             gate: float = DEFAULT_GATE, retest: Retest | None = None) -> tuple[JoinRecord, ...]:
     """The report: the joins' rows numbered from 1, each with its consistency check
@@ -361,7 +382,7 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     report = _join_segment(segment, maps, positions, position_variances, solver, 1, progress, warn=warn,
                            unlinked=unlinked, associate=associate, record=record)
     retest = record.retest(segment.ids, segment.z, segment.var, pieces.feature_piece, segment.starts,
-                           segment.ends_common, solver)
+                           segment.ends_common, partial(solve_widened, solver=solver))
     if associate is not None:
         feature_ids = np.arange(associate.count)
         positions, position_variances = positions[:associate.count], position_variances[:associate.count]
@@ -578,7 +599,7 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
                                  (lambda done: progress(done + len(records))) if progress else None, associate, record)
     records += upper
     records.sort(key=lambda row: row[_LEVEL])  # by level, stable: chain order within a level
-    retest = record.retest(chain, solver)
+    retest = record.retest(chain, partial(solve_widened, solver=solver))
     if associate is not None:  # the compact ids the associator handed out
         feature_ids = np.arange(associate.count)
     return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"),

@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from .consistency import VarianceFactors, calibrated, degrees_of_freedom
-from .drift import SequentialRecord, _Sightings, drift_variance, solve_widened
-from .joining import _Segment
+from .drift import SequentialRecord, _Sightings, drift_variance
+from .joining import _Segment, solve_widened
 from .onestep import Solver
 
 __all__ = ["StreamCalibration"]
