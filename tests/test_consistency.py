@@ -261,11 +261,16 @@ def test_cli_report_columns_and_summary(data_dir, tmp_path):
     assert "0 inconsistent" in result.output
 
 
-def test_cli_stop_exits_1_naming_the_map_and_writes_nothing(data_dir, tmp_path):
-    maps = mapio.read_maps(str(data_dir / "535_data_5_local_maps"))
-    corrupted, _ = _corrupt(maps, 2, "swap")
+def _swapped_folder(data_dir, tmp_path):
+    """The 535-step maps as YAML files, map 3 with two feature ids swapped (an inconsistent map)."""
+    corrupted, _ = _corrupt(mapio.read_maps(str(data_dir / "535_data_5_local_maps")), 2, "swap")
     folder = tmp_path / "bad"
     mapio.write_maps(corrupted, f"{folder}/", format="yaml")
+    return folder
+
+
+def test_cli_stop_exits_1_naming_the_map_and_writes_nothing(data_dir, tmp_path):
+    folder = _swapped_folder(data_dir, tmp_path)
     out = tmp_path / "global.csv"
     result = run("join", str(folder), "-o", str(out), "--report", str(tmp_path / "r.csv"),
                  "--on-inconsistent", "stop")
@@ -285,10 +290,7 @@ def test_cli_bad_policy_options_are_usage_errors(data_dir, args):
 
 
 def test_refine_takes_the_same_flags(data_dir, tmp_path):
-    maps = mapio.read_maps(str(data_dir / "535_data_5_local_maps"))
-    corrupted, _ = _corrupt(maps, 2, "swap")
-    folder = tmp_path / "bad"
-    mapio.write_maps(corrupted, f"{folder}/", format="yaml")
+    folder = _swapped_folder(data_dir, tmp_path)
     out = tmp_path / "exact.csv"
     result = run("refine", str(folder), "-o", str(out), "--on-inconsistent", "stop")
     assert result.exit_code == 1 and "localmap_3" in result.output and not out.exists()
