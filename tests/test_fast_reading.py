@@ -9,14 +9,16 @@ import io
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_formats import assert_same, local_maps
+from test_formats import assert_same, local_maps, same_array
 
 from mapjoin import io as mapio
 from mapjoin.errors import InputError
-from mapjoin.io import linearslam, yaml_maps, yamldoc
+from mapjoin.io import linearslam, numbers, yaml_maps, yamldoc
+from mapjoin.maps import LocalMap
 
 DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps", "535_data_5_local_maps")
 
@@ -184,3 +186,168 @@ def test_any_written_name_is_read_fast_and_as_the_line_tracking_reader_reads_it(
     fast, tracked = both_ways(yaml_maps.read, text.getvalue(), "s.yaml")
     assert_same_maps(fast, tracked)
     assert yaml_maps._fast_document(text.getvalue())["name"] == name
+
+
+# ---------------------------------------------------------------------------------------
+# Matrices read by their lower triangle, and number spellings the fast paths may or may not take
+
+#: spellings of a number x, each a function of x (None: not for this x), and fixed texts, plain or not
+SPELLINGS = [
+    repr,
+    lambda x: f"{x:.17e}",                                      # 1.23e+00: an exponent with its sign
+    lambda x: f"{x:.17E}".replace("E+", "E"),                   # 1.23E00: without (YAML 1.1 wants one)
+    lambda x: f"+{x!r}" if x >= 0 else None,
+    lambda x: repr(x).replace("0.", ".", 1) if repr(x).lstrip("-").startswith("0.") else None,  # .5, -.5
+    lambda x: repr(x).replace(".", "", 1) if repr(x).endswith(".0") else None,  # 10 from 1.0 (an int to YAML)
+    lambda x: ("-0" if x < 0 else "0") + repr(abs(x)),          # leading zero: 01.5
+    lambda x: repr(x).replace("0", "_0", 1) if "0" in repr(x)[1:] else None,
+    *(lambda x, text=text: text for text in (
+        "1", "-0", "0", "08", "-.5", ".5", "5.", "1e5", "1.e5", ".5e-3", "-.5e3", "+.5", "1.5e+3", "1.0e999",
+        ".inf", "-.inf", ".nan", "inf", "nan", "1_0.0", "0x10", "\uff11.0", "1.5.5", "1e", ".", "-", "e5")),
+]
+
+
+_OF_VALUE = 8  # the first spellings depend on the value; the rest are fixed texts
+
+
+def spelled(x: float, spelling) -> str:
+    """x in ``spelling`` (one of :data:`SPELLINGS`), or as repr writes it when that one is not for x."""
+    text = spelling(x)
+    return repr(x) if text is None else text
+
+
+@st.composite
+def spelled_matrices(draw, values: np.ndarray) -> list[list[str]]:
+    """The symmetric matrix ``values`` as rows of number texts: as repr writes them, some otherwise spelled
+    (in some examples only by spellings of their own value); the text mirrors itself unless one entry is
+    spelled anew (often as the same number)."""
+    size = len(values)
+    spellings = st.sampled_from(SPELLINGS[:_OF_VALUE] if draw(st.booleans()) else SPELLINGS)
+    rows = [[""] * size for _ in range(size)]
+    for i in range(size):
+        for j in range(i + 1):
+            rows[i][j] = rows[j][i] = spelled(float(values[i, j]), draw(spellings) if draw(st.booleans()) else repr)
+    if draw(st.booleans()):
+        i, j = draw(st.integers(0, size - 1)), draw(st.integers(0, size - 1))
+        rows[i][j] = spelled(float(values[i, j]), draw(st.sampled_from(SPELLINGS)))
+    return rows
+
+
+def float_or_none(text: str) -> float | None:
+    try:
+        return float(text)
+    except ValueError:
+        return None
+
+
+@settings(deadline=None, max_examples=200)
+@given(st.data(), st.integers(2, 6))
+def test_a_matrix_is_read_as_every_token_read_by_float(data, size):
+    """:func:`numbers.symmetric_matrix` against reading each token with float (brute force); it checks and
+    reads the lower triangle alone exactly when the text mirrors itself."""
+    values = np.arange(size * size, dtype=float).reshape(size, size) / 7
+    rows = data.draw(spelled_matrices(values + values.T))
+    tokens = [token for row in rows for token in row]
+    checked = []
+    matrix = numbers.symmetric_matrix(tokens, size, lambda read: checked.append(list(read)) or True)
+    mirrored = all(rows[i][j] == rows[j][i] for i in range(size) for j in range(size))
+    [read] = checked
+    assert len(read) == (size * (size + 1) // 2 if mirrored else size * size)
+    expected = [float_or_none(token) for token in tokens]
+    if None in expected:
+        assert matrix is None
+    else:
+        assert np.array_equal(matrix, np.array(expected).reshape(size, size), equal_nan=True)
+        assert np.array_equal(np.signbit(matrix), np.signbit(np.array(expected).reshape(size, size)))
+    assert numbers.symmetric_matrix(tokens, size, lambda read: False) is None
+    assert numbers.symmetric_matrix(tokens[:-1], size, lambda read: True) is None
+
+
+def yaml_covariance(rows: list[list[str]], layout: str) -> str:
+    """Covariance rows as YAML: as mapjoin writes them, or with one change of ``layout``."""
+    separators = [", "] * len(rows)
+    if layout in ("comma", "spaces"):
+        separators[-1] = {"comma": ",", "spaces": ",  "}[layout]
+    lines = [f"- [{separator.join(row)}]\n" for separator, row in zip(separators, rows)]
+    if layout == "comment":
+        lines.insert(1, "# a comment\n")
+    elif layout == "trailing":
+        lines.append("# the end\n")
+    elif layout == "block":
+        lines[-1] = "- " + "  ".join(f"- {token}\n" for token in rows[-1])
+    elif layout == "crlf":
+        lines[0] = lines[0].replace("\n", "\r\n")
+    return "covariance:\n" + "".join(lines)
+
+
+def pyyaml_matrix(text: str) -> np.ndarray | None:
+    """The covariance PyYAML (mapjoin's loader) reads from a document, if all its entries are finite numbers."""
+    try:
+        [document] = yamldoc.documents(text, "s.yaml")
+    except InputError:
+        return None
+    rows = document.data["covariance"]
+    entries = [value for row in rows for value in row]
+    if any(type(value) not in (int, float) for value in entries) or not np.isfinite(entries).all():
+        return None
+    return np.array(rows, dtype=float)
+
+
+@settings(deadline=None, max_examples=150)
+@given(local_maps(covariance=st.just(True)), st.data(),
+       st.sampled_from(["flow"] * 4 + ["comma", "spaces", "comment", "trailing", "block", "crlf"]))
+def test_the_fast_yaml_covariance_is_what_pyyaml_reads(local_map, data, layout):
+    """Whatever the fast path reads is PyYAML's reading, bit for bit; whatever it leaves, the line-tracking
+    path reads: the same maps, or the same error, either way."""
+    head = yaml_maps.dump([local_map]).split("covariance:\n")[0]
+    text = head + yaml_covariance(data.draw(spelled_matrices(local_map.covariance)), layout)
+    fast = yaml_maps._fast_document(text)
+    expected = pyyaml_matrix(text)
+    if fast is not None and np.isfinite(fast["covariance"]).all():  # (not finite: the checks send it on)
+        assert expected is not None
+        assert same_array(fast["covariance"], expected)
+    fast_maps, tracked = both_ways(outcome, yaml_maps.read, text, "s.yaml")
+    if isinstance(fast_maps, str):
+        assert fast_maps == tracked
+    else:
+        assert_same_maps(fast_maps, tracked)
+
+
+@pytest.mark.parametrize(("spelling", "fast"), [
+    ("1.5", True), ("-1.5e-03", True), (".5", True), ("1.5e3", True), ("1.5E+3", True), ("+1.5", True),
+    ("01.5", True), ("5.", True), (".5e-3", True),
+    ("-.5", False), ("+.5", False), ("-.5e3", False), ("1", False), ("-0", False), ("08", False), ("1e5", False),
+    ("1_0.0", False), (".inf", False), ("inf", False), ("nan", False), ("\uff11.0", False), ("1.5.5", False)])
+def test_which_spellings_the_fast_yaml_path_reads(spelling, fast):
+    """Floats with a point go fast (when the text mirrors itself, through the lower triangle); integers,
+    ``-.5`` (text to YAML 1.1) and anything not a decimal go to PyYAML."""
+    local_map = LocalMap.from_covariance("m", 0, 1, [0.0, 0.0, 0.0], [], np.empty((0, 2)), np.eye(3))
+    head = yaml_maps.dump([local_map]).split("covariance:\n")[0]
+    rows = [[spelling if i == j == 0 else repr(float(i == j)) for j in range(3)] for i in range(3)]
+    parsed = yaml_maps._fast_document(head + yaml_covariance(rows, "flow"))
+    assert (parsed is not None) == fast
+    if fast:
+        assert parsed["covariance"][0, 0] == float(spelling)
+
+
+def linearslam_text(local_map: LocalMap, rows: list[list[str]], separator: str) -> str:
+    """A map as Linear SLAM text with the information matrix ``rows`` (texts) joined by ``separator``."""
+    lines = linearslam.dump([local_map]).splitlines()
+    size = int(lines[1])
+    return "\n".join([*lines[:2 + size], *(separator.join(row) for row in rows)]) + "\n"
+
+
+@settings(deadline=None, max_examples=100)
+@given(local_maps(covariance=st.just(True)), st.data(), st.sampled_from([" ", " ", "\t", "  ", " \u3000"]))
+def test_the_fast_linearslam_rows_are_what_line_tracking_reads(local_map, data, separator):
+    """Linear SLAM text spelled otherwise: the fast path's maps or errors are the line-tracking path's."""
+    with contextlib.suppress(InputError):  # a map Linear SLAM text cannot hold (end id 0, singular)
+        lines = linearslam.dump([local_map]).splitlines()
+        size = int(lines[1])
+        information = np.array([[float(token) for token in line.split()] for line in lines[2 + size:]])
+        text = linearslam_text(local_map, data.draw(spelled_matrices(information)), separator)
+        fast, tracked = both_ways(outcome, linearslam.read, text, "m.txt")
+        if isinstance(fast, str):
+            assert fast == tracked
+        else:
+            assert_same_maps(fast, tracked)

@@ -14,10 +14,8 @@ a warning on writing, as Linear SLAM's own code expects positive feature ids.
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
-import operator
 import re
 from collections.abc import Sequence
 from itertools import chain
@@ -27,7 +25,7 @@ import numpy as np
 from ..covariance import state_variances
 from ..errors import InputError, shown
 from ..maps import COVARIANCE_ENTRY, LocalMap, asymmetry, first_duplicate, outside
-from .numbers import first_unplain
+from .numbers import first_unplain, symmetric_matrix
 
 __all__ = ["dump", "looks_like_linearslam", "read"]
 
@@ -67,56 +65,36 @@ def read(text: str, source: str) -> list[LocalMap]:
                                      state[features].reshape(-1, 2), covariance)]
 
 
-_PLAIN_CHARACTERS = re.compile(r"[-+0-9.eE \t\n]*")
 _PLAIN_IDS = re.compile(r"-?[0-9]+(?: -?[0-9]+)*")
 
 
 def _plain_rows(lines: Sequence[str], size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The ids, state and information of a file whose rows are plain decimal numbers, as mapjoin and Linear
-    SLAM write them, read in bulk with ``float`` (the values the line-by-line path gives); None when any row is
-    otherwise (that path then reads them, naming the line of the error).
+    SLAM write them, read in bulk (the values the line-by-line path gives); None when any row is otherwise
+    (that path then reads them, naming the line of the error).
 
-    Plain means: only ASCII digits, signs, points, exponents and blanks; ``id value`` state rows
-    and ``size`` numbers per matrix row; every number one ``float`` reads to a finite value (of
-    these characters, ``float`` reads exactly the plain decimals: ``1``, ``-1.5``, ``.5``, ``2e-3``)."""
-    rows = lines[2:2 + 2 * size]
-    block = "\n".join(rows)
-    if len(rows) < 2 * size or not _PLAIN_CHARACTERS.fullmatch(block):
+    Plain means: ``id value`` state rows with ids ``-?[0-9]+`` and ``size`` numbers per matrix
+    row (split at blanks, as that path splits them); every number ASCII without ``_``
+    (:func:`.numbers.first_unplain`) and one that ``float`` reads to a finite value, as that path
+    requires. Each row is split once; a matrix whose text mirrors itself is checked and read by
+    its lower triangle (:func:`.numbers.symmetric_matrix`)."""
+    cells = list(map(str.split, lines[2:2 + 2 * size]))
+    if list(map(len, cells)) != [2] * size + [size] * size:
         return None
-    if list(map(len, map(str.split, rows))) != [2] * size + [size] * size:
+    state_tokens = list(chain.from_iterable(cells[:size]))
+    id_tokens, value_tokens = state_tokens[0::2], state_tokens[1::2]
+    if not _PLAIN_IDS.fullmatch(" ".join(id_tokens)) or first_unplain(value_tokens) is not None:
         return None
-    tokens = block.split()
-    id_tokens = tokens[0:2 * size:2]
-    if not _PLAIN_IDS.fullmatch(" ".join(id_tokens)):
-        return None
-    matrix = tokens[2 * size:]
-    lower, mirror, triangle = _triangle(size)
-    lower_tokens = lower(matrix)
-    symmetric_text = lower_tokens == mirror(matrix)  # then parse half the matrix: float is the cost here
     try:
         ids = np.array(id_tokens, dtype=np.int64)
-        values = np.fromiter(map(float, tokens[1:2 * size:2] + (list(lower_tokens) if symmetric_text else matrix)),
-                             dtype=float)
+        state = np.fromiter(map(float, value_tokens), dtype=float, count=size)
     except (OverflowError, ValueError):
         return None
-    if not np.isfinite(values).all():
+    information = symmetric_matrix(list(chain.from_iterable(cells[size:])), size,
+                                   lambda tokens: first_unplain(tokens) is None)
+    if information is None or not (np.isfinite(state).all() and np.isfinite(information).all()):
         return None
-    if not symmetric_text:
-        return ids, values[:size], values[size:].reshape(size, size)
-    information = np.empty((size, size))
-    information[triangle] = values[size:]
-    information.T[triangle] = values[size:]
-    return ids, values[:size], information
-
-
-@functools.lru_cache(maxsize=64)
-def _triangle(size: int) -> tuple[operator.itemgetter, operator.itemgetter, tuple[np.ndarray, np.ndarray]]:
-    """Getters of a row-major ``size`` x ``size`` matrix's lower triangle (row by row) and of the
-    entries mirroring it across the diagonal (their tuples are equal when the text is symmetric;
-    ``size`` >= 3, so each returns a tuple), and the triangle's indices."""
-    rows, columns = np.tril_indices(size)
-    return (operator.itemgetter(*(rows * size + columns).tolist()),
-            operator.itemgetter(*(columns * size + rows).tolist()), (rows, columns))
+    return ids, state, information
 
 
 def _text_integer(lines: Sequence[str], index: int, expected: str, source: str) -> int:

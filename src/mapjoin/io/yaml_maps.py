@@ -40,6 +40,7 @@ from ..errors import InputError
 from ..maps import LocalMap
 from . import yamldoc
 from .fields import filled_variances, warn_ignored
+from .numbers import symmetric_matrix
 from .paths import map_name
 
 __all__ = ["dump", "read", "read_lines"]
@@ -61,7 +62,7 @@ _FAST_HEAD = re.compile(
     r"features:(?: (\[\])\n|\n)")
 _FAST_FEATURES = re.compile(rf"(?:- \{{id: {_ID}, x: {_FLOAT}, y: {_FLOAT}, var: {_FLOAT}\}}\n)+")
 _FEATURE_SEPARATORS = re.compile(r"\}\n- \{id: |, x: |, y: |, var: ")
-_FAST_COVARIANCE = re.compile(rf"covariance:\n- \[((?:{_FLOAT}(?:, {_FLOAT})*\]\n- \[)*{_FLOAT}(?:, {_FLOAT})*)\]\n")
+_COVARIANCE_HEAD, _ROW_BREAK, _COVARIANCE_END = "covariance:\n- [", "]\n- [", "]\n"
 
 
 def read(text: str, source: str) -> list[LocalMap]:
@@ -138,15 +139,43 @@ def _fast_document(text: str) -> dict[str, Any] | None:
         "start_id": int(start_id), "end_id": int(end_id), "end_pose": dict(zip(_END_POSE_FIELDS, map(float, pose))),
         "features": yamldoc.Columns(id=ids, x=_floats(tokens[1::4]), y=_floats(tokens[2::4]),
                                     var=_floats(tokens[3::4]))}
-    covariance = _FAST_COVARIANCE.match(text, end)
-    if covariance is not None:
-        end = covariance.end()
-        size = 3 + 2 * len(ids)
-        rows = covariance[1].split("]\n- [")
-        if len(rows) != size or any(row.count(",") != size - 1 for row in rows):
+    if end < len(text):
+        covariance = _fast_covariance(text[end:], 3 + 2 * len(ids))
+        if covariance is None:
             return None
-        data["covariance"] = _floats(covariance[1].replace("]\n- [", ", ").split(", ")).reshape(size, size)
-    return data if end == len(text) else None
+        data["covariance"] = covariance
+    return data
+
+
+def _fast_covariance(text: str, size: int) -> np.ndarray | None:
+    """The covariance of a document's last lines ``text`` laid out as :func:`dump` writes it
+    (``covariance:``, then ``size`` rows ``- [a, b, ...]`` of ``size`` numbers), or None.
+
+    Rows are split at ``]\\n- [`` and numbers at ``, ``; the numbers read (the lower triangle when
+    the text mirrors itself: :func:`.numbers.symmetric_matrix`) are checked by
+    :func:`_yaml_floats` together, in C.
+    """
+    if not (text.startswith(_COVARIANCE_HEAD) and text.endswith(_COVARIANCE_END)):
+        return None
+    rows = text[len(_COVARIANCE_HEAD):-len(_COVARIANCE_END)].split(_ROW_BREAK)
+    if len(rows) != size or any(row.count(",") != size - 1 for row in rows):
+        return None
+    return symmetric_matrix(", ".join(rows).split(", "), size, _yaml_floats)
+
+
+def _yaml_floats(tokens: Sequence[str]) -> bool:
+    """Whether number tokens are floats that mapjoin's YAML loader reads as ``float`` does, if ``float`` reads
+    them (the caller's try): checked on their concatenation, by characters and counts, not token by token.
+
+    Only ``[-+0-9.eE]`` (so no separator, blank or bracket hides in a token), one point per token
+    (``float`` reads none with two) and none right after a sign. What ``float`` reads of these is
+    ``[-+]?[0-9]+\\.[0-9]*`` or ``\\.[0-9]+``, then an optional exponent ``[eE][-+]?[0-9]+``: YAML
+    floats, also to PyYAML's resolver with mapjoin's for exponents (:mod:`.yamldoc`). Left to PyYAML:
+    integers (ints to it, ``08`` a string), ``-.5`` (a string), ``.inf``.
+    """
+    joined = "".join(tokens)
+    return (joined.isascii() and not joined.encode().translate(None, b"0123456789.eE+-")
+            and joined.count(".") == len(tokens) and "-." not in joined and "+." not in joined)
 
 
 def _floats(tokens: Sequence[str]) -> np.ndarray:
