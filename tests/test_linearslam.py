@@ -16,9 +16,11 @@ from cli_runner import run
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from test_formats import assert_same
 
 from mapjoin import io as mapio
 from mapjoin.errors import InputError
+from mapjoin.io import linearslam
 from mapjoin.maps import GlobalMap, LocalMap
 
 EPS = np.finfo(float).eps
@@ -457,3 +459,57 @@ def test_g2o_ids_beyond_32_bits_are_refused():
 def test_g2o_is_write_only():
     with pytest.raises(InputError, match="cannot read a global map as g2o; expected one of csv, yaml"):
         mapio.read_global_map(io.StringIO("VERTEX_SE2 1 0 0 0\n"), "g2o")
+
+
+# ---------------------------------------------------------------------------------------
+# A folder read at once (inverted and checked a stack per size) against its files read one by one
+
+FAR_POSE = example_text().replace("-3 1.0\n", "-3 1e10\n")  # parses; the map's check refuses x = 1e10 m
+FOLDER_FILES = [example_text(), "2\n7\n-3 1\n-3 2\n-3 0.5\n7 4\n7 5\n8 6\n8 7\n" + matrix_text(TWO_FEATURES),
+                example_text(information=EXAMPLE_INFORMATION * 3.5), FAR_POSE,
+                example_text(information=NOT_POSITIVE), FAR_POSE.replace(matrix_text(EXAMPLE_INFORMATION),
+                                                                         matrix_text(NOT_POSITIVE)),
+                *(text for text, _ in BAD_LINEARSLAM[::3])]
+
+
+def test_a_map_failing_inversion_and_its_checks_reports_the_inversion(tmp_path):
+    """In a file's order: its information is inverted, then the map checked (a far pose)."""
+    path = tmp_path / "localmap_3.txt"
+    path.write_text(FOLDER_FILES[5])
+    with pytest.raises(InputError, match="line 11: expected a positive definite information matrix"):
+        mapio.read_maps([str(tmp_path)])
+    path.write_text(FAR_POSE)
+    with pytest.raises(InputError, match="end_pose: expected finite coordinates"):
+        mapio.read_maps([str(tmp_path)])
+
+
+def one_by_one(paths: list[Path]) -> list[LocalMap] | str:
+    """The files read in turn with ``linearslam.read``: their maps, or the first error's message."""
+    maps = []
+    try:
+        for path in paths:
+            maps += linearslam.read(path.read_text(), str(path))
+    except InputError as error:
+        return str(error)
+    return maps
+
+
+@settings(deadline=None, max_examples=60)
+@given(st.lists(st.integers(0, len(FOLDER_FILES) - 1), min_size=1, max_size=7))
+def test_a_folder_read_at_once_is_its_files_read_one_by_one(choices):
+    with tempfile.TemporaryDirectory() as folder:
+        paths = []
+        for k, choice in enumerate(choices, 1):
+            text = FOLDER_FILES[choice].replace("2\n", f"{2 * k}\n", 1).replace("-3 ", f"-{2 * k + 1} ")
+            paths.append(Path(folder) / f"localmap_{k}.txt")
+            paths[-1].write_text(text)
+        expected = one_by_one(paths)
+        try:
+            maps = mapio.read_maps([folder])
+        except InputError as error:
+            assert str(error) == expected
+            return
+        assert not isinstance(expected, str), expected
+        assert len(maps) == len(expected)
+        for a, b in zip(maps, expected):
+            assert_same(a, b)

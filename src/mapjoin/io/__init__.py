@@ -148,8 +148,9 @@ def iter_map_paths(paths: Sequence[str], *, stdin: TextIO | None = None, format:
 
 
 def _batch_codec(path: str, format: str | None) -> Codec | None:
-    """The local-map codec of ``path``'s format (its extension's, else ``format``) if it reads many files at once."""
-    fmt = registry.extension_format(path) or format
+    """The local-map codec of ``path``'s format (its extension's, else ``format``, else its name's:
+    ``localmap_<k>.txt``) if it reads many files at once."""
+    fmt = registry.extension_format(path) or format or registry.named_format(path)
     if path == STDIN or fmt not in registry.by_name:
         return None
     codec = registry.by_name[fmt].local_maps

@@ -19,15 +19,18 @@ import math
 import re
 from collections.abc import Sequence
 from itertools import chain
+from typing import NamedTuple
 
 import numpy as np
 
-from ..covariance import state_variances
+from ..covariance import marginal_variances, state_variances
 from ..errors import InputError, shown
-from ..maps import COVARIANCE_ENTRY, LocalMap, asymmetry, first_duplicate, outside
+from ..maps import (COVARIANCE_ENTRY, LocalMap, StackedMaps, asymmetry, first_duplicate, first_invalid_map, outside,
+                    size_groups, unstack)
 from .numbers import first_unplain, symmetric_matrix
+from .paths import read_file
 
-__all__ = ["dump", "looks_like_linearslam", "read"]
+__all__ = ["dump", "looks_like_linearslam", "read", "read_files"]
 
 log = logging.getLogger("mapjoin")
 
@@ -39,6 +42,38 @@ def looks_like_linearslam(text: str) -> bool:
 
 def read(text: str, source: str) -> list[LocalMap]:
     """One Linear SLAM local map (see the module docstring); its covariance is the inverse of the stored information."""
+    return _local_maps([_parsed(text, source)])
+
+
+def read_files(paths: Sequence[str]) -> list[LocalMap]:
+    """The Linear SLAM local maps of many files, each parsed and checked on its own, then inverted and checked
+    as maps all at once (the maps of one size together): a bad file raises the error that reading the
+    files one by one with :func:`read` gives."""
+    parsed: list[_Parsed] = []
+    for path in paths:
+        try:
+            parsed.append(_parsed(read_file(path, path, False), path))
+        except InputError:
+            _local_maps(parsed)  # an error in an earlier file comes first
+            raise
+    return _local_maps(parsed)
+
+
+class _Parsed(NamedTuple):
+    """One file's map before its information matrix is inverted (the state in the file's row ``order``)."""
+
+    source: str
+    start_id: int
+    end_id: int
+    end_pose: np.ndarray
+    feature_ids: np.ndarray
+    features: np.ndarray
+    order: np.ndarray  # the state's rows: the end pose's three, then x and y of each feature
+    information: np.ndarray  # symmetric (symmetrised when it was so up to rounding)
+
+
+def _parsed(text: str, source: str) -> _Parsed:
+    """A file's map, checked up to the inversion of its information matrix (in range and symmetric)."""
     lines = text.splitlines()
     start_id = _text_integer(lines, 0, "the reference pose index (a non-negative integer)", source)
     size = _text_integer(lines, 1, "the state dimension d = 3 + 2m (m features)", source)
@@ -59,10 +94,39 @@ def read(text: str, source: str) -> list[LocalMap]:
         raise InputError(f"expected nothing after the {size} rows of the information matrix, got "
                          f"{shown(lines[trailing].strip())}", source, f"line {trailing + 1}")
     pose, features, end_id = _linearslam_layout(ids, start_id, source)
-    order = np.concatenate([pose, features])
-    covariance = _covariance_of_information(information, 2 + size, source)[np.ix_(order, order)]
-    return [LocalMap.from_covariance(source, start_id, end_id, state[pose], ids[features[0::2]],
-                                     state[features].reshape(-1, 2), covariance)]
+    return _Parsed(source, start_id, end_id, state[pose], ids[features[0::2]], state[features].reshape(-1, 2),
+                   np.concatenate([pose, features]), _checked_information(information, 2 + size, source))
+
+
+def _local_maps(parsed: Sequence[_Parsed]) -> list[LocalMap]:
+    """The maps of parsed files, as ``LocalMap.from_covariance`` makes them from the inverses of their
+    information matrices: inverted and checked a stack of one size at a time; the first map that fails
+    raises the error reading the files one by one gives (a matrix that is not positive definite before
+    the checks of the map)."""
+    stacks = []  # (places, StackedMaps) of each size
+    failures: list[tuple[int, InputError]] = []  # the first map of each size whose information is not definite
+    for group in size_groups(np.array([len(item.information) for item in parsed], dtype=np.int64)):
+        items = [parsed[i] for i in group.tolist()]
+        inverses, failed = _spd_inverse(np.stack([item.information for item in items]))
+        if failed.any():
+            first = int(np.flatnonzero(failed)[0])
+            failures.append((int(group[first]), InputError(
+                f"expected a positive definite information matrix; its leading {failed[first]}x{failed[first]} "
+                "block is not", items[first].source, f"line {2 + len(inverses[first]) + failed[first]}")))
+        orders = np.stack([item.order for item in items])
+        covariances = inverses[np.arange(len(items))[:, np.newaxis, np.newaxis], orders[:, :, np.newaxis],
+                               orders[:, np.newaxis, :]]
+        stacks.append((group, StackedMaps(
+            [item.source for item in items], np.stack([item.end_pose for item in items]),
+            np.stack([item.feature_ids for item in items]), np.stack([item.features for item in items]),
+            *marginal_variances(covariances), covariances)))
+    invalid = min(failures, key=lambda failure: failure[0], default=None)
+    later = first_invalid_map(stacks)
+    if later is not None and (invalid is None or later[0] < invalid[0]):  # ties: the inversion fails first
+        invalid = later
+    if invalid is not None:
+        raise invalid[1]
+    return unstack(stacks, [item.start_id for item in parsed], [item.end_id for item in parsed])
 
 
 _PLAIN_IDS = re.compile(r"-?[0-9]+(?: -?[0-9]+)*")
@@ -185,45 +249,53 @@ def _linearslam_layout(ids: np.ndarray, start_id: int, source: str) -> tuple[np.
     return pose, features, end_id
 
 
-def _covariance_of_information(information: np.ndarray, first: int, source: str) -> np.ndarray:
-    """The inverse of an information matrix stored from line ``first`` + 1, checked within the accepted range
-    (its sums would overflow beyond), symmetric and positive definite."""
+def _checked_information(information: np.ndarray, first: int, source: str) -> np.ndarray:
+    """An information matrix stored from line ``first`` + 1, checked within the accepted range (its sums would
+    overflow beyond) and symmetric; symmetrised when it is so up to rounding only."""
     bad = outside(information, COVARIANCE_ENTRY)
     if bad.any():
         i, j = (int(index) for index in np.argwhere(bad)[0])
         raise InputError(f"expected {COVARIANCE_ENTRY.expected()} in the information matrix (field {j + 1}), got "
                          f"{shown(information[i, j])}", source, f"line {first + i + 1}")
+    if (information == information.T).all():  # then (I + I^T) / 2 = I, exactly
+        return information
     excess = asymmetry(information)
     if (excess > 0).any():
         i, j = (int(index) for index in np.unravel_index(np.argmax(excess), excess.shape))
         raise InputError(f"expected a symmetric information matrix, but entries ({i + 1}, {j + 1}) and "
                          f"({j + 1}, {i + 1}) differ: {float(information[i, j])!r} vs "
                          f"{float(information[j, i])!r}", source, f"line {first + i + 1}")
-    covariance, failed = _spd_inverse((information + information.T) / 2)
-    if covariance is None:
-        raise InputError(f"expected a positive definite information matrix; its leading {failed}x{failed} block "
-                         "is not", source, f"line {first + failed}")
-    return covariance
+    return (information + information.T) / 2
 
 
-def _spd_inverse(matrix: np.ndarray) -> tuple[np.ndarray | None, int]:
-    """The inverse of a symmetric positive definite matrix by Cholesky (exactly symmetric), or None and the
-    order of the first leading block that is not positive definite.
+def _spd_inverse(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The inverses of a stack of symmetric positive definite matrices by Cholesky (exactly symmetric), and
+    for each matrix 0, or the order of its first leading block that is not positive definite (its inverse
+    is then not computed: the identity's stands in).
 
-    numpy's LAPACK does the work: importing scipy.linalg for it would cost more than reading a
-    few hundred maps (benchmarks/reading.py)."""
+    numpy's LAPACK does the work, a stack at a time (each matrix's result as alone): importing
+    scipy.linalg for it would cost more than reading a few hundred maps (benchmarks/reading.py)."""
+    failed = np.zeros(len(matrices), dtype=np.int64)
     try:
-        factor_inverse = np.linalg.inv(np.linalg.cholesky(matrix))
+        factors = np.linalg.cholesky(matrices)
     except np.linalg.LinAlgError:
-        return None, _first_indefinite_block(matrix)
-    inverse = factor_inverse.T @ factor_inverse
-    lower = np.tril(inverse)
-    return lower + np.tril(lower, -1).T, 0
+        failed = np.array([_first_indefinite_block(matrix) for matrix in matrices], dtype=np.int64)
+        factors = np.linalg.cholesky(np.where(failed[:, np.newaxis, np.newaxis] > 0, np.eye(matrices.shape[-1]),
+                                              matrices))
+    factor_inverses = np.linalg.inv(factors)
+    inverses = np.swapaxes(factor_inverses, -1, -2) @ factor_inverses
+    lower = np.tril(inverses)
+    return lower + np.swapaxes(np.tril(lower, -1), -1, -2), failed
 
 
 def _first_indefinite_block(matrix: np.ndarray) -> int:
-    """The order of the smallest leading block of a matrix that is not positive definite (bisection: a
-    leading block of a positive definite block is positive definite)."""
+    """The order of the smallest leading block of a matrix that is not positive definite, 0 if it is
+    (bisection: a leading block of a positive definite block is positive definite)."""
+    try:
+        np.linalg.cholesky(matrix)
+        return 0
+    except np.linalg.LinAlgError:
+        pass
     definite, indefinite = 0, len(matrix)
     while indefinite - definite > 1:
         middle = (definite + indefinite) // 2
@@ -247,7 +319,8 @@ def dump(maps: Sequence[LocalMap]) -> str:
     if local_map.covariance is None:
         information = np.diag(1.0 / state_variances(local_map))
     else:
-        information, _ = _spd_inverse(local_map.covariance)
+        inverses, failed = _spd_inverse(local_map.covariance[np.newaxis])
+        information = None if failed[0] else inverses[0]
     if information is None or not np.isfinite(information).all():
         raise InputError("the covariance is numerically singular, so it has no finite information matrix",
                          local_map.name, "covariance")

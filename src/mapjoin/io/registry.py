@@ -24,7 +24,7 @@ __all__ = ["FORMATS", "GLOBAL_MAP", "LOCAL_MAPS", "LOCAL_MAP_FILE", "MAP_FORMATS
            "TRUTH",
            "Codec", "Format", "Kind", "by_name", "codec", "detect_format", "extension_format", "extensions_text",
            "local_map_files_text",
-           "map_file_name", "names", "sniff"]
+           "map_file_name", "named_format", "names", "sniff"]
 
 
 class Codec(NamedTuple):
@@ -92,7 +92,7 @@ FORMATS: tuple[Format, ...] = (
            local_maps=Codec(mat_maps.read, mat_maps.dump, mat_maps.read_files), one_map_per_file=True, covariance_only=True,
            map_number=mat_maps.map_number),
     Format("linearslam", "Linear SLAM", (".txt",), named_only=True, sniff=linearslam.looks_like_linearslam,
-           sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump), one_map_per_file=True,
+           sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump, linearslam.read_files), one_map_per_file=True,
            covariance_only=True),
     Format("json", "JSON", (".json",), sniff=global_maps.looks_like_json, sniff_text="JSON starting with {",
            table=Codec(None, tables.dump_json),
@@ -157,7 +157,7 @@ def detect_format(path_or_name: str, explicit: str | None = None) -> str:
         if explicit not in by_name:
             raise InputError(f"unknown format {explicit!r}; expected one of {', '.join(by_name)}", name)
         return explicit
-    named = next((fmt.name for pattern, fmt in _NAMED_FILES if pattern.fullmatch(os.path.basename(name))), None)
+    named = named_format(name)
     if named is not None:
         return named
     suffix = os.path.splitext(name)[1].lower()
@@ -173,6 +173,12 @@ def detect_format(path_or_name: str, explicit: str | None = None) -> str:
 def extension_format(name: str) -> str | None:
     """The format the extension of ``name`` alone names, if any."""
     return _EXTENSIONS.get(os.path.splitext(name)[1].lower())
+
+
+def named_format(name: str) -> str | None:
+    """The format a file named ``localmap_<k><extension>`` is in when its extension alone does not tell it
+    (``.txt``: Linear SLAM), if any."""
+    return next((fmt.name for pattern, fmt in _NAMED_FILES if pattern.fullmatch(os.path.basename(name))), None)
 
 
 def sniff(text: str, name: str) -> str:
