@@ -25,8 +25,17 @@ import numpy as np
 
 from ..covariance import marginal_variances, state_variances
 from ..errors import InputError, shown
-from ..maps import (COVARIANCE_ENTRY, LocalMap, StackedMaps, asymmetry, first_duplicate, first_invalid_map, outside,
-                    size_groups, unstack)
+from ..maps import (
+    COVARIANCE_ENTRY,
+    LocalMap,
+    StackedMaps,
+    asymmetry,
+    first_duplicate,
+    first_invalid_map,
+    outside,
+    size_groups,
+    unstack,
+)
 from .numbers import first_unplain, symmetric_matrix
 from .paths import read_file
 
