@@ -263,6 +263,34 @@ def test_a_matrix_is_read_as_every_token_read_by_float(data, size):
     assert numbers.symmetric_matrix(tokens[:-1], size, lambda read: True) is None
 
 
+@settings(deadline=None, max_examples=200)
+@given(st.data(), st.integers(2, 6), st.sampled_from([", ", " "]))
+def test_the_lower_triangle_of_mirrored_rows_is_found_as_splitting_every_row_finds_it(data, size, separator):
+    """:func:`numbers.mirrored_lower` against splitting each row whole and comparing the tokens (brute force),
+    on rows that mirror themselves or not, with a token too many or too few, or another separator."""
+    values = np.arange(size * size, dtype=float).reshape(size, size) / 7
+    matrix = data.draw(spelled_matrices(values + values.T))
+    rows = [separator.join(row) for row in matrix]
+    change = data.draw(st.sampled_from(["none", "none", "extra", "missing", "separator", "swap"]))
+    i = data.draw(st.integers(0, size - 1))
+    if change == "extra":
+        rows[i] += separator + "1.0"
+    elif change == "missing":
+        rows[i] = rows[i].rpartition(separator)[0]
+    elif change == "separator":
+        rows[i] = rows[i].replace(separator, separator + " ", 1)
+    elif change == "swap" and i < size - 1:
+        rows[i], rows[i + 1] = rows[i + 1], rows[i]
+    cells = [row.split(separator) for row in rows]
+    mirrored = (all(len(row) == size for row in cells)
+                and all(cells[i][j] == cells[j][i] for i in range(size) for j in range(size)))
+    expected = [cells[i][j] for i in range(size) for j in range(i + 1)] if mirrored else None
+    assert numbers.mirrored_lower(rows, separator, size) == expected
+    if mirrored and None not in map(float_or_none, expected):
+        assert same_array(numbers.lower_matrix(expected, size),
+                          np.array([[float(token) for token in row] for row in cells]))
+
+
 def yaml_covariance(rows: list[list[str]], layout: str) -> str:
     """Covariance rows as YAML: as mapjoin writes them, or with one change of ``layout``."""
     separators = [", "] * len(rows)

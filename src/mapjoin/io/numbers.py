@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["first_unplain", "symmetric_matrix"]
+__all__ = ["first_unplain", "lower_matrix", "mirrored_lower", "symmetric_matrix"]
 
 
 def first_unplain(tokens: Sequence[str]) -> int | None:
@@ -43,17 +43,45 @@ def symmetric_matrix(tokens: Sequence[str], size: int, plain: Callable[[Sequence
     """
     if len(tokens) != size * size:
         return None
-    lower, mirror, triangle = _triangle(size)
+    lower, mirror, _, _ = _triangle(size)
     lower_tokens = lower(tokens)
-    read = lower_tokens if lower_tokens == mirror(tokens) else tokens
-    if not plain(read):
+    if lower_tokens == mirror(tokens):
+        return lower_matrix(lower_tokens, size) if plain(lower_tokens) else None
+    if not plain(tokens):
         return None
     try:
-        values = np.fromiter(map(float, read), dtype=float, count=len(read))
+        return np.fromiter(map(float, tokens), dtype=float, count=size * size).reshape(size, size)
     except ValueError:
         return None
-    if read is tokens:
-        return values.reshape(size, size)
+
+
+def mirrored_lower(rows: Sequence[str], separator: str, size: int) -> list[str] | None:
+    """The lower triangle's tokens, row by row, of a ``size`` x ``size`` matrix whose rows are texts of tokens
+    joined by ``separator``, when each row is exactly that: the lower triangle's tokens of its row, then
+    those of its column below the diagonal (the text mirrors itself); else None.
+
+    Only the lower triangle is split into tokens (the rest of each row is compared as text, in
+    C): for text a writer laid out so, as :func:`symmetric_matrix` without splitting it all.
+    """
+    lower: list[str] = []
+    for i, row in enumerate(rows):
+        lower += row.split(separator, i + 1)[:i + 1]
+    if len(rows) != size or len(lower) != size * (size + 1) // 2:
+        return None
+    full = _triangle(size)[3](lower)
+    if any(separator.join(full[i * size:(i + 1) * size]) != row for i, row in enumerate(rows)):
+        return None
+    return lower
+
+
+def lower_matrix(lower: Sequence[str], size: int) -> np.ndarray | None:
+    """The symmetric ``size`` x ``size`` matrix of its lower triangle's number tokens, row by row, each read
+    with ``float`` (checked beforehand to be numbers in the format's grammar); None if ``float`` raises."""
+    try:
+        values = np.fromiter(map(float, lower), dtype=float, count=len(lower))
+    except ValueError:
+        return None
+    triangle = _triangle(size)[2]
     matrix = np.empty((size, size))
     matrix[triangle] = values
     matrix.T[triangle] = values
@@ -61,10 +89,15 @@ def symmetric_matrix(tokens: Sequence[str], size: int, plain: Callable[[Sequence
 
 
 @functools.lru_cache(maxsize=64)
-def _triangle(size: int) -> tuple[operator.itemgetter, operator.itemgetter, tuple[np.ndarray, np.ndarray]]:
-    """Getters of a row-major ``size`` x ``size`` matrix's lower triangle (row by row) and of the
-    entries mirroring it across the diagonal, and the triangle's indices (``size`` >= 2, so that each getter
-    returns a tuple: local maps have 3 + 2m rows)."""
+def _triangle(size: int) -> tuple[operator.itemgetter, operator.itemgetter, tuple[np.ndarray, np.ndarray],
+                                  operator.itemgetter]:
+    """For a row-major ``size`` x ``size`` matrix (``size`` >= 2, so that each getter returns a tuple: local
+    maps have 3 + 2m rows): getters of its lower triangle (row by row) and of the entries mirroring it
+    across the diagonal, the triangle's indices, and a getter of the whole matrix, row-major, from the
+    lower triangle's entries."""
     rows, columns = np.tril_indices(size)
+    row, column = np.divmod(np.arange(size * size), size)
+    high, low = np.maximum(row, column), np.minimum(row, column)
     return (operator.itemgetter(*(rows * size + columns).tolist()),
-            operator.itemgetter(*(columns * size + rows).tolist()), (rows, columns))
+            operator.itemgetter(*(columns * size + rows).tolist()), (rows, columns),
+            operator.itemgetter(*(high * (high + 1) // 2 + low).tolist()))

@@ -40,7 +40,7 @@ from ..errors import InputError
 from ..maps import LocalMap
 from . import yamldoc
 from .fields import filled_variances, warn_ignored
-from .numbers import symmetric_matrix
+from .numbers import lower_matrix, mirrored_lower
 from .paths import map_name
 
 __all__ = ["dump", "read", "read_lines"]
@@ -149,18 +149,17 @@ def _fast_document(text: str) -> dict[str, Any] | None:
 
 def _fast_covariance(text: str, size: int) -> np.ndarray | None:
     """The covariance of a document's last lines ``text`` laid out as :func:`dump` writes it
-    (``covariance:``, then ``size`` rows ``- [a, b, ...]`` of ``size`` numbers), or None.
+    (``covariance:``, then ``size`` rows ``- [a, b, ...]`` of ``size`` numbers, mirroring themselves across
+    the diagonal as a symmetric matrix's do), or None.
 
-    Rows are split at ``]\\n- [`` and numbers at ``, ``; the numbers read (the lower triangle when
-    the text mirrors itself: :func:`.numbers.symmetric_matrix`) are checked by
-    :func:`_yaml_floats` together, in C.
+    Rows are split at ``]\\n- [``; only the lower triangle is split at ``, ``, the rest compared as
+    text (:func:`.numbers.mirrored_lower`); its numbers are checked by :func:`_yaml_floats`, together,
+    in C, and read.
     """
     if not (text.startswith(_COVARIANCE_HEAD) and text.endswith(_COVARIANCE_END)):
         return None
-    rows = text[len(_COVARIANCE_HEAD):-len(_COVARIANCE_END)].split(_ROW_BREAK)
-    if len(rows) != size or any(row.count(",") != size - 1 for row in rows):
-        return None
-    return symmetric_matrix(", ".join(rows).split(", "), size, _yaml_floats)
+    lower = mirrored_lower(text[len(_COVARIANCE_HEAD):-len(_COVARIANCE_END)].split(_ROW_BREAK), ", ", size)
+    return None if lower is None or not _yaml_floats(lower) else lower_matrix(lower, size)
 
 
 def _yaml_floats(tokens: Sequence[str]) -> bool:
