@@ -5,8 +5,9 @@
 VicPark 200 (converted in a scratch folder with ``mapio.write_maps``) is joined from its
 I-SLSJF .mat folder, a folder of YAML files, one YAML stream on stdin, one CSV stream on
 stdin and a folder of Linear SLAM text files; each whole command (a fresh interpreter, as
-typed) is timed (median of ``--repeat``) with its peak resident memory (VmHWM), and its
-ratio to the .mat run is printed: the same maps, so the ratio is per map. Then ``--maps``
+typed) is timed, the inputs in turn for ``--repeat`` rounds (so that a shared machine's load
+falls on each alike), with its CPU time and peak resident memory (VmHWM); the medians' ratios
+to the .mat run are printed: the same maps, so the ratio is per map. Then ``--maps``
 simulated maps (10^4 by default, ``mapjoin simulate``) go as one YAML stream through a
 pipe (``cat FILE | mapjoin join -``, timed once). Results are printed and written between
 the ``reading`` markers of benchmarks/README.md, with the machine's load (``uptime``).
@@ -17,6 +18,8 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -38,7 +41,7 @@ def main() -> None:
     logging.getLogger("mapjoin").setLevel(logging.ERROR)
     compiled = compile_mapjoin()
     folder = args.data / DATASET
-    rows = ["| input | time (s) | vs .mat | peak RSS (MB) |", "|---|---:|---:|---:|"]
+    rows = ["| input | time (s) | vs .mat | CPU (s) | vs .mat | peak RSS (MB) |", "|---|---:|---:|---:|---:|---:|"]
     with tempfile.TemporaryDirectory() as scratch_name:
         scratch = Path(scratch_name)
         maps = mapio.read_maps([str(folder)])
@@ -51,11 +54,20 @@ def main() -> None:
                  ("YAML stream on stdin", ["-"], scratch / "maps.yaml"),
                  ("CSV stream on stdin", ["-"], scratch / "maps.csv"),
                  ("Linear SLAM text folder", [str(scratch / "txt")], None)]
-        reference = None
-        for label, inputs, stdin in cases:
-            seconds, peak = whole_command(["join", *inputs, *output], args.repeat, stdin)
-            reference = reference or seconds
-            rows.append(f"| {label} | {seconds:.2f} | {seconds / reference:.2f} | {peak:.0f} |")
+        runs: dict[str, list[tuple[float, float, float]]] = {label: [] for label, _, _ in cases}
+        for _ in range(args.repeat):  # round by round, so that the machine's load falls on every input alike
+            for label, inputs, stdin in cases:
+                before = resource.getrusage(resource.RUSAGE_CHILDREN)
+                seconds, peak = whole_command(["join", *inputs, *output], 1, stdin)
+                after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                runs[label].append((seconds, after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime, peak))
+        seconds, cpu = ({label: statistics.median(run[k] for run in times) for label, times in runs.items()}
+                        for k in (0, 1))
+        reference = cases[0][0]
+        for label, _, _ in cases:
+            rows.append(f"| {label} | {seconds[label]:.2f} | {seconds[label] / seconds[reference]:.2f} | "
+                        f"{cpu[label]:.2f} | {cpu[label] / cpu[reference]:.2f} | "
+                        f"{max(run[2] for run in runs[label]):.0f} |")
             print(rows[-1], file=sys.stderr)
         stream = scratch / "simulated.yaml"
         subprocess.run([sys.executable, "-m", "mapjoin", "-q", "simulate", "-o", str(stream), "--maps",
@@ -67,9 +79,10 @@ def main() -> None:
                        f"a map), peak RSS {peak:.0f} MB.")
     load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     text = "\n".join([f"VicPark 200 (200 maps) joined by whole commands as typed (`python -m mapjoin join INPUT -o "
-                      f"out.csv`), a fresh `{sys.executable}` per run, {compiled}; median wall time of {args.repeat} "
-                      f"and the largest peak RSS; ratio to the .mat folder's time. {os.cpu_count()} CPUs visible; "
-                      f"`uptime` after the run: {load}.", "", *rows, "", long_stream])
+                      f"out.csv`), a fresh `{sys.executable}` per run, {compiled}; the inputs in turn, {args.repeat} "
+                      f"rounds: median wall time, median CPU time (user + system, of the command and what it "
+                      f"started), each with its ratio to the .mat folder's, and the largest peak RSS. "
+                      f"{os.cpu_count()} CPUs visible; `uptime` after the run: {load}.", "", *rows, "", long_stream])
     print(text)
     write_section("reading", text)
 
