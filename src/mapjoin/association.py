@@ -62,9 +62,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .association_drift import SightingDrift
+from .association_loops import rigid_votes
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
 from .joining import JoinRecord, Strategy, join
 from .maps import GlobalMap, LocalMap, locate
+from .onestep import as_complex
 
 if TYPE_CHECKING:
     from .joining import _Pieces
@@ -106,6 +109,11 @@ MIN_DOF = 4
 DEFAULT_MARGIN = 9.2
 #: at most this many rounds of associate, correct the link, re-predict (they stop when the pairs repeat)
 ROUNDS = 4
+#: a loop closure needs at least this many right features voting for its offset (and twice the runner-up's), and
+#: this many pairs once associated around it
+LOOP_SUPPORT = 3
+#: ... and its pairs of right features agreeing on the correction at least this many times the runner-up's
+LOOP_CLEAR = 3
 #: the median of a chi-square with 2 degrees of freedom, 2 ln 2: the robust variance factor's reference
 CHI2_2_MEDIAN = 2 * math.log(2)
 
@@ -120,6 +128,10 @@ class Matches:
     right: np.ndarray
     ambiguous: np.ndarray
     rejected: np.ndarray
+    #: the right rows that had candidates but no pair (the ambiguous ones, as rows), and each join's link correction
+    #: ``(dx, dy, dphi)`` in the round that gave the pairs (made by the rounds before it; zeros in the first)
+    undecided: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
+    correction: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -400,8 +412,8 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
           lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray, link: np.ndarray, g2: float,
           margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
           right_sightings: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The unambiguous candidate pairs (left rows, right rows) of every join, and each join's number of
-    ambiguous right features.
+    """The unambiguous candidate pairs (left rows, right rows) of every join, and the ambiguous right rows
+    (sorted).
 
     A pair's innovation ``r = f - x`` has covariance ``S = C0 + C1 + H link H^T`` with ``H = [I, u]`` (``C0``,
     ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``; ``link[join]``: the 3 x 3 covariance of the
@@ -430,9 +442,8 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     right_best, right_second = _best(j, i, d2, left_sightings)
     left_best, left_second = _best(i, j, d2, right_sightings)
     taken = right_best & left_best & (right_second - d2 >= margin) & (left_second - d2 >= margin)
-    ambiguous = (np.bincount(right_join[np.unique(j)], minlength=joins)
-                 - np.bincount(right_join[j[taken]], minlength=joins))
-    return i[taken], j[taken], ambiguous
+    undecided = np.setdiff1d(j, j[taken])
+    return i[taken], j[taken], undecided
 
 
 def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
@@ -465,13 +476,15 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     link[:, 0, 0] = link[:, 1, 1] = var_t
     link[:, 2, 2] = p_phi
     predicted = prior_prediction
+    correction = np.zeros((joins, 3))
     g2 = float(_threshold(gate, 1))
     scale = np.ones(joins)
     previous = None
     for _ in range(ROUNDS):
-        i, j, ambiguous = _gate(left, scale[left_join, None] * left_covariances, left_join, predicted, lever,
+        i, j, undecided = _gate(left, scale[left_join, None] * left_covariances, left_join, predicted, lever,
                                 scale[right_join, None] * right_covariances, right_join, link, g2, margin,
                                 left_sightings, right_sightings)
+        ambiguous = np.bincount(right_join[undecided], minlength=joins)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
         unscaled = inverted(left_covariances[i] + right_covariances[j])
@@ -480,7 +493,7 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         information = prior_information / scale[:, None, None]
         keep = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
-        outcome = (i[keep], j[keep], ambiguous, rejected)
+        outcome = (i[keep], j[keep], ambiguous, rejected, undecided, correction)
         if previous is not None and np.array_equal(previous[0], i[keep]) and np.array_equal(previous[1], j[keep]):
             break
         previous = outcome
@@ -497,7 +510,99 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         link = posterior * (scale / old)[:, None, None]  # the posterior in the new scale's units
         predicted = prior_prediction + shift[right_join] + lever * correction[right_join, 2]
     order = np.argsort(outcome[1], kind="stable")
-    return Matches(outcome[0][order], outcome[1][order], outcome[2], outcome[3])
+    return Matches(outcome[0][order], outcome[1][order], *outcome[2:])
+
+
+def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
+                     link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
+                     right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...] | None,
+                     gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
+                     left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None) -> Matches:
+    """:func:`match_features`, then the loop closures (module docstring, step 6): ``drift`` = (left ``D``, left
+    heading variance, right ``D``, right heading variance), one per feature (:mod:`mapjoin.association_drift`), or
+    None for none. The features left unpaired whose drift is at least their noise vote for the offset of their
+    pairs within the drift's gate (:func:`mapjoin.association_loops.offset_votes`); a join whose best offset has at
+    least :data:`LOOP_SUPPORT` votes and twice the runner-up's is associated again, its unpaired features only,
+    around its link moved by that offset (the gate, the clear nearest neighbour, the joint test and the rounds of
+    :func:`match_features`); a loop closure of fewer than :data:`LOOP_SUPPORT` pairs is dropped."""
+    left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
+    if drift is None:
+        return match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
+                              right_covariances, right_join, gate, margin, left_sightings, right_sightings)
+    left_drift, left_heading, right_drift, right_heading = drift
+    # the first association among the features whose drift is below their noise: a drifted feature's place
+    # relative to the link is known only up to the drift, too loosely to tell it from its neighbours
+    recent = np.arange(len(left))
+    first = match_features(left[recent], left_covariances[recent], left_join[recent], link_xy, link_phi,
+                           link_variances, right, right_covariances, right_join, gate, margin,
+                           None if left_sightings is None else left_sightings[recent], right_sightings)
+    first = dataclasses.replace(first, left=recent[first.left])
+    joins = len(link_xy)
+    free = np.ones(len(left), dtype=bool)
+    free[first.left] = False
+    lefts = np.flatnonzero(free)
+    free = np.ones(len(right), dtype=bool)
+    free[first.right] = False
+    rights = np.flatnonzero(free)
+    if not len(lefts) or not len(rights):
+        return first
+    g2 = float(_threshold(gate, 1))
+    correction = first.correction
+    turn = np.exp(1j * (link_phi + correction[:, 2]))
+    corrected_xy = link_xy + correction[:, 0] + 1j * correction[:, 1]
+    r_join = right_join[rights]
+    predicted = corrected_xy[r_join] + turn[r_join] * right[rights]
+    left_noise = (left_covariances[lefts, 0] + left_covariances[lefts, 2]) / 2
+    right_noise = (right_covariances[rights, 0] + right_covariances[rights, 2]) / 2
+    # the link's own spread, isotropic: var_t + p_phi |z|^2
+    link_spread = link_variances[r_join, 0] + link_variances[r_join, 1] * np.abs(right[rights]) ** 2
+    widest = np.zeros(joins)
+    np.maximum.at(widest, left_join[lefts], left_noise + left_drift[lefts])
+    radius = np.sqrt(g2 * (widest[r_join] + right_noise + right_drift[rights] + link_spread))
+    a, b = _candidates(left[lefts], left_join[lefts], predicted, r_join, radius, joins)
+    offsets = left[lefts[a]] - predicted[b]
+    noise = left_noise[a] + right_noise[b]
+    spread = left_drift[lefts[a]] + right_drift[rights[b]]
+    voting = (np.abs(offsets) ** 2 <= g2 * (noise + spread + link_spread[b])) & (spread >= noise)
+    a, b, noise = a[voting], b[voting], noise[voting]
+    order = np.argsort(r_join[b], kind="stable")
+    a, b, noise = a[order], b[order], noise[order]
+    turning = np.sqrt(g2 * (left_heading[lefts[a]] + right_heading[rights[b]] + link_variances[r_join[b], 1]))
+    pair_join = r_join[b]
+    # the free right features' centroid and extent (root mean square radius) per join
+    sizes = np.bincount(r_join, minlength=joins)
+    centre = (np.bincount(r_join, predicted.real, joins) + 1j * np.bincount(r_join, predicted.imag, joins)
+              ) / np.maximum(sizes, 1)
+    extent = np.sqrt(np.bincount(r_join, np.abs(predicted - centre[r_join]) ** 2, joins) / np.maximum(sizes, 1))
+    typical = np.sqrt(np.nan_to_num(_segment_medians(noise, pair_join, joins)))
+    turn_cell = 2 * np.sqrt(2) * typical / np.maximum(extent, 1e-9) + 1e-12
+    offset_cell = 2 * typical + turn_cell * extent / 2 + 1e-12
+    votes = rigid_votes(left[lefts], predicted, a, b, pair_join, centre, noise, turning, turn_cell, offset_cell,
+                        joins)
+    closing = np.flatnonzero((votes.support >= LOOP_SUPPORT) & (votes.agreement >= LOOP_CLEAR * votes.runner_up))
+    if not len(closing):
+        return first
+    number = np.full(joins, -1)
+    number[closing] = np.arange(len(closing))
+    lefts, rights = lefts[number[left_join[lefts]] >= 0], rights[number[right_join[rights]] >= 0]
+    # the corrected link: the right features turned by dphi about their centroid and moved by o
+    loop_turn = np.exp(1j * votes.turn[closing])
+    loop_xy = centre[closing] + votes.offset[closing] + loop_turn * (corrected_xy[closing] - centre[closing])
+    loop_variances = np.column_stack([offset_cell[closing] ** 2, turn_cell[closing] ** 2])
+    again = match_features(left[lefts], left_covariances[lefts], number[left_join[lefts]], loop_xy,
+                           link_phi[closing] + correction[closing, 2] + votes.turn[closing], loop_variances, right[rights], right_covariances[rights], number[right_join[rights]],
+                           gate, margin, None if left_sightings is None else left_sightings[lefts],
+                           None if right_sightings is None else right_sightings[rights])
+    enough = np.bincount(number[right_join[rights[again.right]]], minlength=len(closing)) >= LOOP_SUPPORT
+    taken = enough[number[right_join[rights[again.right]]]]
+    pairs_left = np.concatenate([first.left, lefts[again.left[taken]]])
+    pairs_right = np.concatenate([first.right, rights[again.right[taken]]])
+    order = np.argsort(pairs_right, kind="stable")
+    undecided = np.setdiff1d(np.union1d(first.undecided, rights[again.undecided]), pairs_right)
+    rejected = first.rejected.copy()
+    rejected[closing] += again.rejected
+    return Matches(pairs_left[order], pairs_right[order], np.bincount(right_join[undecided], minlength=joins),
+                   rejected, undecided, correction)
 
 
 def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
@@ -524,11 +629,17 @@ class _Associator:
     matched. Compact ids (indices of the joins' arrays) are handed out in order of first sighting; the
     tree renames a right piece's features to the left piece's ids, so each input row's current id is kept."""
 
-    def __init__(self, covariances: Sequence[np.ndarray], gate: float, margin: float = DEFAULT_MARGIN):
+    def __init__(self, covariances: Sequence[np.ndarray], gate: float, margin: float = DEFAULT_MARGIN,
+                 points: Sequence[np.ndarray] | None = None, end_poses: np.ndarray | None = None):
         self.gate, self.margin = gate, margin
         self.offsets = np.concatenate([[0], np.cumsum([len(c) for c in covariances])]).astype(np.intp)
         self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
         self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
+        self.row_maps = np.repeat(np.arange(len(covariances)), np.diff(self.offsets))
+        # the chain's drift between sightings and links (None: the gate knows only the features' own covariances)
+        self.drift = None if end_poses is None else SightingDrift.of(end_poses, len(self.row_ids))
+        self.row_points = np.concatenate([np.zeros(0, complex), *points]) if points is not None else None
+        self.links = np.zeros(0, np.intp)  # the tree's last level's junctions (left pieces' end pose rows)
         self.count = 0
         # each compact id's 2 x 2 covariance relative to the maps that saw it (rows [xx, xy, yy]), in its piece's
         # frame: the sightings' marginal covariances fused as independent (their common drift is the link's error)
@@ -544,7 +655,15 @@ class _Associator:
             more = max(self.count, len(self.covariances))
             self.covariances = np.concatenate([self.covariances, np.zeros((more, 3))])
             self.sightings = np.concatenate([self.sightings, np.zeros((more, 2), dtype=np.uint64)])
+        if self.drift is not None:
+            self.drift = self.drift.grown(self.count)
         return ids
+
+    def _widened(self, covariances: np.ndarray, drift: np.ndarray | None) -> np.ndarray:
+        """2 x 2 covariances (rows ``[xx, xy, yy]``) with the chain's drift variance ``D`` added (isotropic)."""
+        if drift is None:
+            return covariances
+        return covariances + drift[:, None] * np.array([1.0, 0.0, 1.0])
 
     def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray) -> None:
         """Features ``ids`` seen with ``covariances`` (in their frame) by maps ``sightings``: fused into the
@@ -561,7 +680,14 @@ class _Associator:
         self.row_ids[:size] = ids
         self.covariances[ids] = self.row_covariances[:size]
         self.sightings[ids] = self.row_sightings[:size]
+        if self.drift is not None:
+            self.drift.seen(ids, self.row_maps[:size], self.row_points[:size])
         return ids
+
+    def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
+        """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums)."""
+        if self.drift is not None:
+            self.drift.placed(np.array([k]), np.array([t_variance]), np.array([phi_variance]))
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
@@ -572,10 +698,14 @@ class _Associator:
         used = self.count
         rows = slice(self.offsets[k], self.offsets[k + 1])
         right_covariances = rotated(self.row_covariances[rows], link_phi)
-        found = match_features(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
-                               np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
-                               right_covariances, np.zeros(len(z), np.intp), self.gate, self.margin,
-                               self.sightings[:used], self.row_sightings[rows])
+        drift = None
+        if self.drift is not None:
+            nothing = np.zeros(len(z))
+            drift = (*self.drift.before(np.arange(used), np.full(used, k - 1)), nothing, nothing)
+        found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
+                                 np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
+                                 right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
+                                 self.sightings[:used], self.row_sightings[rows])
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
@@ -585,6 +715,11 @@ class _Associator:
         ids[len(found.right):] = self._fresh(len(z) - len(found.right))
         self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], np.arange(len(z)) < len(found.right))
         self.row_ids[self.offsets[k] + order] = ids
+        if self.drift is not None:
+            points, maps = self.row_points[rows][order], np.full(len(z), k)
+            matched_count = len(found.right)
+            self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count])
+            self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
         return order, ids, len(found.right)
 
     # tree strategy -----------------------------------------------------------------------
@@ -646,7 +781,9 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     _check_gate(gate)
     if not margin >= 0.0:
         raise ValueError(f"margin must be a squared distance >= 0, got {margin!r}")
-    associator = _Associator([feature_covariances(m) for m in maps], gate, margin)
+    points = [as_complex(m.features[np.argsort(m.feature_ids, kind="stable")]) for m in maps]
+    associator = _Associator([feature_covariances(m) for m in maps], gate, margin, points,
+                             np.array([m.end_pose for m in maps]).reshape(-1, 3))
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
                   associate=associator)
