@@ -564,9 +564,10 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     noise = left_noise[a] + right_noise[b]
     spread = left_drift[lefts[a]] + right_drift[rights[b]]
     voting = (np.abs(offsets) ** 2 <= g2 * (noise + spread + link_spread[b])) & (spread >= noise)
-    a, b, noise = a[voting], b[voting], noise[voting]
+    closeness = np.abs(offsets) ** 2 / (noise + spread + link_spread[b])  # the drift's gate's distance
+    a, b, noise, closeness = a[voting], b[voting], noise[voting], closeness[voting]
     order = np.argsort(r_join[b], kind="stable")
-    a, b, noise = a[order], b[order], noise[order]
+    a, b, noise, closeness = a[order], b[order], noise[order], closeness[order]
     turning = np.sqrt(g2 * (left_heading[lefts[a]] + right_heading[rights[b]] + link_variances[r_join[b], 1]))
     pair_join = r_join[b]
     # the free right features' centroid and extent (root mean square radius) per join
@@ -578,7 +579,7 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     turn_cell = 2 * np.sqrt(2) * typical / np.maximum(extent, 1e-9) + 1e-12
     offset_cell = 2 * typical + turn_cell * extent / 2 + 1e-12
     votes = rigid_votes(left[lefts], predicted, a, b, pair_join, centre, noise, turning, turn_cell, offset_cell,
-                        joins)
+                        joins, closeness)
     closing = np.flatnonzero((votes.support >= LOOP_SUPPORT) & (votes.agreement >= LOOP_CLEAR * votes.runner_up))
     if not len(closing):
         return first
@@ -733,16 +734,24 @@ class _Associator:
         count = pieces.count // 2
         ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1
         link = ends[0:2 * count:2]  # each left piece's end pose
+        if self.drift is not None:  # the last level's junctions (pose row m: map m's end) hold their posteriors
+            self.drift.placed(self.links + 1, pieces.pose_variances[self.links, 0], pieces.pose_variances[self.links, 1])
+            self.links = link
         joined = pieces.feature_piece < 2 * count
         left = np.flatnonzero(joined & (pieces.feature_piece % 2 == 0))
         right = np.flatnonzero(joined & (pieces.feature_piece % 2 == 1))
         right_join = pieces.feature_piece[right] // 2
         right_covariances = rotated(self.covariances[pieces.feature_ids[right]], pieces.pose_phi[link][right_join])
-        found = match_features(pieces.features[left], self.covariances[pieces.feature_ids[left]],
-                               pieces.feature_piece[left] // 2, pieces.pose_xy[link], pieces.pose_phi[link],
-                               pieces.pose_variances[link], pieces.features[right], right_covariances, right_join,
-                               self.gate, self.margin, self.sightings[pieces.feature_ids[left]],
-                               self.sightings[pieces.feature_ids[right]])
+        left_join = pieces.feature_piece[left] // 2
+        drift = None
+        if self.drift is not None:
+            link_map = pieces.last[0:2 * count:2]  # each join's left piece's last map
+            drift = (*self.drift.before(pieces.feature_ids[left], link_map[left_join]),
+                     *self.drift.after(pieces.feature_ids[right], link_map[right_join]))
+        found = match_with_drift(pieces.features[left], self.covariances[pieces.feature_ids[left]], left_join,
+                                 pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
+                                 pieces.features[right], right_covariances, right_join, drift, self.gate, self.margin,
+                                 self.sightings[pieces.feature_ids[left]], self.sightings[pieces.feature_ids[right]])
         self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
         ids = pieces.feature_ids.copy()
         renamed = self._fresh(len(right))
@@ -751,6 +760,9 @@ class _Associator:
         matched = np.zeros(len(right), dtype=bool)
         matched[found.right] = True
         self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched)
+        if self.drift is not None:  # a match's last sighting is its right feature's; a new id has its old one's
+            self.drift.merged(renamed[matched], pieces.feature_ids[right][matched])
+            self.drift.copied(renamed[~matched], pieces.feature_ids[right][~matched])
         # every input row of a right piece follows its feature's new id
         shift = level - 1
         piece_of_row = np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets)) >> shift

@@ -18,12 +18,18 @@ when it is clearly the best, and then chooses and tests its pairs with the ordin
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 __all__ = ["DIFFERENT_CELLS", "RigidVotes", "rigid_votes"]
 
+#: every pair of right features votes up to this many features; above, each feature with its nearest ones
+ALL_PAIRS = 32
+NEIGHBOURS = 8
+#: a join's votes are at most about this many (two candidate pairs each)
+VOTES = 1 << 20
 #: cells whose centres are farther apart than this many cells (in dphi or in o) stand for different corrections
 DIFFERENT_CELLS = 2.0
 
@@ -53,22 +59,54 @@ def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.
     return occupied[:, 0], occupied[:, 1:], support, agreement
 
 
+def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs ``u < v`` of right features that vote: all of them for up to :data:`ALL_PAIRS` features, else each
+    feature with its :data:`NEIGHBOURS` nearest (the votes then grow with the features, not with their square)."""
+    n = len(points)
+    if n <= ALL_PAIRS:
+        return np.triu_indices(n, 1)
+    from scipy.spatial import cKDTree
+
+    _, near = cKDTree(np.column_stack([points.real, points.imag])).query(
+        np.column_stack([points.real, points.imag]), NEIGHBOURS + 1)
+    u, v = np.repeat(np.arange(n), NEIGHBOURS), near[:, 1:].ravel()
+    pairs = np.unique(np.column_stack([np.minimum(u, v), np.maximum(u, v)]), axis=0)
+    return pairs[:, 0], pairs[:, 1]
+
+
 def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np.ndarray, pair_join: np.ndarray,
                 centre: np.ndarray, noise: np.ndarray, turning: np.ndarray, turn_cell: np.ndarray,
-                offset_cell: np.ndarray, joins: int) -> RigidVotes:
+                offset_cell: np.ndarray, joins: int, closeness: np.ndarray | None = None) -> RigidVotes:
     """Votes of the candidate pairs ``(a[p], b[p])`` (rows of ``left`` and of ``right_points``, complex, both in
     left's frame; ``pair_join`` sorted; ``noise``: each pair's isotropic variance, the sum of its two features';
     ``turning``: the largest turn the drift allows each pair) for rigid corrections about each join's ``centre``,
-    in cells of ``turn_cell`` and ``offset_cell`` (one each per join)."""
+    in cells of ``turn_cell`` and ``offset_cell`` (one each per join). A join's votes are at most about
+    :data:`VOTES` (memory): where its pairs of right features times their candidates would be more, each right
+    feature keeps its candidates of least ``closeness`` (by default all are alike)."""
     turn, offset = np.zeros(joins), np.zeros(joins, complex)
     support, agreement, runner_up = (np.zeros(joins, np.int64) for _ in range(3))
     g2 = 9.0  # distances agree within 3 sigma of their difference
     starts = np.searchsorted(pair_join, np.arange(joins + 1))
     parts = []
     for join in np.flatnonzero(np.diff(starts) >= 2).tolist():
-        p, q = np.triu_indices(starts[join + 1] - starts[join], 1)
-        p, q = p + starts[join], q + starts[join]
-        distinct = (b[p] != b[q]) & (a[p] != a[q])
+        rows = np.arange(starts[join], starts[join + 1])
+        rows = rows[np.lexsort((np.zeros(len(rows)) if closeness is None else closeness[rows], b[rows]))]
+        features, first, size = np.unique(b[rows], return_index=True, return_counts=True)
+        u, v = _right_pairs(right_points[features])
+        if int((size[u] * size[v]).sum()) > VOTES:  # each feature's least close candidates go
+            most = max(int(math.sqrt(VOTES / max(len(u), 1))), 2)
+            rank = np.arange(len(rows)) - np.repeat(first, size)
+            rows = rows[rank < most]
+            features, first, size = np.unique(b[rows], return_index=True, return_counts=True)
+        per = size[u] * size[v]
+        total = int(per.sum())
+        if not total:
+            continue
+        which = np.repeat(np.arange(len(u)), per)
+        k = np.arange(total) - np.repeat(np.cumsum(per) - per, per)
+        p = rows[first[u[which]] + k // size[v[which]]]
+        q = rows[first[v[which]] + k % size[v[which]]]
+        distinct = a[p] != a[q]
         p, q = p[distinct], q[distinct]
         span_left, span_right = left[a[p]] - left[a[q]], right_points[b[p]] - right_points[b[q]]
         agree = (np.abs(span_left) - np.abs(span_right)) ** 2 <= g2 * (noise[p] + noise[q])
