@@ -518,44 +518,51 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...] | None,
                      gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
                      left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None) -> Matches:
-    """:func:`match_features`, then the loop closures (module docstring, step 6): ``drift`` = (left ``D``, left
-    heading variance, right ``D``, right heading variance), one per feature (:mod:`mapjoin.association_drift`), or
-    None for none. The features left unpaired whose drift is at least their noise vote for the offset of their
-    pairs within the drift's gate (:func:`mapjoin.association_loops.offset_votes`); a join whose best offset has at
-    least :data:`LOOP_SUPPORT` votes and twice the runner-up's is associated again, its unpaired features only,
-    around its link moved by that offset (the gate, the clear nearest neighbour, the joint test and the rounds of
-    :func:`match_features`); a loop closure of fewer than :data:`LOOP_SUPPORT` pairs is dropped."""
+    """:func:`match_features`, then the loop closures among the features it left unpaired (:func:`_closed_loops`,
+    module docstring, step 6): ``drift`` = (left ``D``, left heading variance, right ``D``, right heading
+    variance), one per feature (:mod:`mapjoin.association_drift`), or None for none."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
+    found = match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
+                           right_covariances, right_join, gate, margin, left_sightings, right_sightings)
     if drift is None:
-        return match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
-                              right_covariances, right_join, gate, margin, left_sightings, right_sightings)
+        return found
+    closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
+                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
+    return found if closed is None else closed
+
+
+def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
+                  link_xy: np.ndarray, link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
+                  right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...], gate: float,
+                  margin: float, left_sightings: np.ndarray | None, right_sightings: np.ndarray | None
+                  ) -> Matches | None:
+    """``found`` with the pairs of the loop closures among the features it left unpaired, or None when there are
+    none. Candidate pairs within the drift's gate (the noise, ``D`` of both features and the link's spread)
+    whose drift is at least their noise vote for rigid corrections of the link as ``found`` corrected it
+    (:func:`mapjoin.association_loops.rigid_votes`; cells: twice the typical noise, and the turn it makes over
+    the free right features' extent); a join whose best correction has :data:`LOOP_SUPPORT` right features and
+    :data:`LOOP_CLEAR` times the runner-up's agreement is associated again, its unpaired features only, around
+    its link so corrected (:func:`match_features`: the gate, the clear nearest neighbour, the joint test, the
+    rounds); a loop closure of fewer than :data:`LOOP_SUPPORT` pairs is dropped."""
     left_drift, left_heading, right_drift, right_heading = drift
-    # the first association among the features whose drift is below their noise: a drifted feature's place
-    # relative to the link is known only up to the drift, too loosely to tell it from its neighbours
-    recent = np.arange(len(left))
-    first = match_features(left[recent], left_covariances[recent], left_join[recent], link_xy, link_phi,
-                           link_variances, right, right_covariances, right_join, gate, margin,
-                           None if left_sightings is None else left_sightings[recent], right_sightings)
-    first = dataclasses.replace(first, left=recent[first.left])
     joins = len(link_xy)
     free = np.ones(len(left), dtype=bool)
-    free[first.left] = False
+    free[found.left] = False
     lefts = np.flatnonzero(free)
     free = np.ones(len(right), dtype=bool)
-    free[first.right] = False
+    free[found.right] = False
     rights = np.flatnonzero(free)
-    if not len(lefts) or not len(rights):
-        return first
+    if len(lefts) < LOOP_SUPPORT or len(rights) < LOOP_SUPPORT:
+        return None
     g2 = float(_threshold(gate, 1))
-    correction = first.correction
+    correction = found.correction
     turn = np.exp(1j * (link_phi + correction[:, 2]))
     corrected_xy = link_xy + correction[:, 0] + 1j * correction[:, 1]
     r_join = right_join[rights]
     predicted = corrected_xy[r_join] + turn[r_join] * right[rights]
     left_noise = (left_covariances[lefts, 0] + left_covariances[lefts, 2]) / 2
     right_noise = (right_covariances[rights, 0] + right_covariances[rights, 2]) / 2
-    # the link's own spread, isotropic: var_t + p_phi |z|^2
-    link_spread = link_variances[r_join, 0] + link_variances[r_join, 1] * np.abs(right[rights]) ** 2
+    link_spread = link_variances[r_join, 0] + link_variances[r_join, 1] * np.abs(right[rights]) ** 2  # isotropic
     widest = np.zeros(joins)
     np.maximum.at(widest, left_join[lefts], left_noise + left_drift[lefts])
     radius = np.sqrt(g2 * (widest[r_join] + right_noise + right_drift[rights] + link_spread))
@@ -563,18 +570,15 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     offsets = left[lefts[a]] - predicted[b]
     noise = left_noise[a] + right_noise[b]
     spread = left_drift[lefts[a]] + right_drift[rights[b]]
-    voting = (np.abs(offsets) ** 2 <= g2 * (noise + spread + link_spread[b])) & (spread >= noise)
-    closeness = np.abs(offsets) ** 2 / (noise + spread + link_spread[b])  # the drift's gate's distance
-    a, b, noise, closeness = a[voting], b[voting], noise[voting], closeness[voting]
-    order = np.argsort(r_join[b], kind="stable")
+    closeness = np.abs(offsets) ** 2 / (noise + spread + link_spread[b])  # in the drift's gate's units
+    voting = (closeness <= g2) & (spread >= noise)
+    order = np.flatnonzero(voting)[np.argsort(r_join[b[voting]], kind="stable")]
     a, b, noise, closeness = a[order], b[order], noise[order], closeness[order]
     turning = np.sqrt(g2 * (left_heading[lefts[a]] + right_heading[rights[b]] + link_variances[r_join[b], 1]))
     pair_join = r_join[b]
-    # the free right features' centroid and extent (root mean square radius) per join
-    sizes = np.bincount(r_join, minlength=joins)
-    centre = (np.bincount(r_join, predicted.real, joins) + 1j * np.bincount(r_join, predicted.imag, joins)
-              ) / np.maximum(sizes, 1)
-    extent = np.sqrt(np.bincount(r_join, np.abs(predicted - centre[r_join]) ** 2, joins) / np.maximum(sizes, 1))
+    sizes = np.maximum(np.bincount(r_join, minlength=joins), 1)  # the free right features' centroid and extent
+    centre = (np.bincount(r_join, predicted.real, joins) + 1j * np.bincount(r_join, predicted.imag, joins)) / sizes
+    extent = np.sqrt(np.bincount(r_join, np.abs(predicted - centre[r_join]) ** 2, joins) / sizes)
     typical = np.sqrt(np.nan_to_num(_segment_medians(noise, pair_join, joins)))
     turn_cell = 2 * np.sqrt(2) * typical / np.maximum(extent, 1e-9) + 1e-12
     offset_cell = 2 * typical + turn_cell * extent / 2 + 1e-12
@@ -582,25 +586,28 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                         joins, closeness)
     closing = np.flatnonzero((votes.support >= LOOP_SUPPORT) & (votes.agreement >= LOOP_CLEAR * votes.runner_up))
     if not len(closing):
-        return first
+        return None
     number = np.full(joins, -1)
     number[closing] = np.arange(len(closing))
     lefts, rights = lefts[number[left_join[lefts]] >= 0], rights[number[right_join[rights]] >= 0]
-    # the corrected link: the right features turned by dphi about their centroid and moved by o
+    # the link corrected: the right features turned by dphi about their centroid and moved by o
     loop_turn = np.exp(1j * votes.turn[closing])
     loop_xy = centre[closing] + votes.offset[closing] + loop_turn * (corrected_xy[closing] - centre[closing])
+    loop_phi = link_phi[closing] + correction[closing, 2] + votes.turn[closing]
     loop_variances = np.column_stack([offset_cell[closing] ** 2, turn_cell[closing] ** 2])
-    again = match_features(left[lefts], left_covariances[lefts], number[left_join[lefts]], loop_xy,
-                           link_phi[closing] + correction[closing, 2] + votes.turn[closing], loop_variances, right[rights], right_covariances[rights], number[right_join[rights]],
+    again = match_features(left[lefts], left_covariances[lefts], number[left_join[lefts]], loop_xy, loop_phi,
+                           loop_variances, right[rights], right_covariances[rights], number[right_join[rights]],
                            gate, margin, None if left_sightings is None else left_sightings[lefts],
                            None if right_sightings is None else right_sightings[rights])
-    enough = np.bincount(number[right_join[rights[again.right]]], minlength=len(closing)) >= LOOP_SUPPORT
-    taken = enough[number[right_join[rights[again.right]]]]
-    pairs_left = np.concatenate([first.left, lefts[again.left[taken]]])
-    pairs_right = np.concatenate([first.right, rights[again.right[taken]]])
+    closed = number[right_join[rights[again.right]]]
+    taken = (np.bincount(closed, minlength=len(closing)) >= LOOP_SUPPORT)[closed]
+    if not taken.any():
+        return None
+    pairs_left = np.concatenate([found.left, lefts[again.left[taken]]])
+    pairs_right = np.concatenate([found.right, rights[again.right[taken]]])
     order = np.argsort(pairs_right, kind="stable")
-    undecided = np.setdiff1d(np.union1d(first.undecided, rights[again.undecided]), pairs_right)
-    rejected = first.rejected.copy()
+    undecided = np.setdiff1d(np.union1d(found.undecided, rights[again.undecided]), pairs_right)
+    rejected = found.rejected.copy()
     rejected[closing] += again.rejected
     return Matches(pairs_left[order], pairs_right[order], np.bincount(right_join[undecided], minlength=joins),
                    rejected, undecided, correction)
