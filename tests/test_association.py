@@ -296,13 +296,13 @@ def unmet(name, strategy, measured):
 
 @pytest.mark.parametrize("name, strategy", [
     ("VicPark_200_local_maps", "sequential"),
-    unmet("VicPark_200_local_maps", "tree", "recall 97.2 %, 1 false link"),
-    unmet("DLR_200_local_maps", "sequential", "recall 87.2 %, 8 false links"),
-    unmet("DLR_200_local_maps", "tree", "recall 75.9 %, 2 false links"),
+    unmet("VicPark_200_local_maps", "tree", "recall 99.0 % (36 missed, 35 allowed), 1 false link"),
+    unmet("DLR_200_local_maps", "sequential", "recall 90.6 %, 3 false links"),
+    unmet("DLR_200_local_maps", "tree", "recall 76.2 %, 2 false links"),
     unmet("8240_data_50_local_maps", "sequential", "recall 97.4 % (one drifted loop closure), no false link"),
     unmet("8240_data_50_local_maps", "tree", "recall 90.8 %, no false link"),
     unmet("simulation", "sequential", "recall 48 %, 29 false links (features closer than the noise)"),
-    unmet("simulation", "tree", "recall 56 %, 11 false links")])
+    unmet("simulation", "tree", "recall 60 %, 6 false links")])
 def test_target_recall_99_percent_without_false_links(data_dir, name, strategy, caplog):
     """Issue 13's target: at least 99 % of the true links recovered, no false one; then the global map equals
     the known-id join (compared numerically)."""
