@@ -111,9 +111,9 @@ DEFAULT_MARGIN = 9.2
 ROUNDS = 4
 #: a loop closure needs at least this many right features voting for its offset (and twice the runner-up's), and
 #: this many pairs once associated around it
-LOOP_SUPPORT = 3
+LOOP_SUPPORT = 4
 #: ... and its pairs of right features agreeing on the correction at least this many times the runner-up's
-LOOP_CLEAR = 3
+LOOP_CLEAR = 2
 #: the median of a chi-square with 2 degrees of freedom, 2 ln 2: the robust variance factor's reference
 CHI2_2_MEDIAN = 2 * math.log(2)
 
