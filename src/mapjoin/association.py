@@ -576,6 +576,9 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     a, b, noise, closeness = a[order], b[order], noise[order], closeness[order]
     turning = np.sqrt(g2 * (left_heading[lefts[a]] + right_heading[rights[b]] + link_variances[r_join[b], 1]))
     pair_join = r_join[b]
+    voters = np.bincount(r_join[np.unique(b)], minlength=joins)  # right features with a candidate in the drift's gate
+    if not (voters >= LOOP_SUPPORT).any():
+        return None
     sizes = np.maximum(np.bincount(r_join, minlength=joins), 1)  # the free right features' centroid and extent
     centre = (np.bincount(r_join, predicted.real, joins) + 1j * np.bincount(r_join, predicted.imag, joins)) / sizes
     extent = np.sqrt(np.bincount(r_join, np.abs(predicted - centre[r_join]) ** 2, joins) / sizes)

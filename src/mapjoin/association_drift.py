@@ -69,9 +69,13 @@ class SightingDrift:
             return
         x = self.chain.poses[junctions]
         p = np.atleast_1d(phi_variance)
+        rows = np.column_stack([np.atleast_1d(t_variance) * np.ones(len(x)), p, p * x.real, p * x.imag,
+                                p * (x.real**2 + x.imag**2)])
+        if len(junctions) == 1:  # the sequential join: one junction at a time
+            self.sums[junctions[0] + 1:] += rows[0]
+            return
         terms = np.zeros((len(self.sums), 5))
-        np.add.at(terms, junctions + 1, np.column_stack([np.atleast_1d(t_variance) * np.ones(len(x)), p,
-                                                          p * x.real, p * x.imag, p * (x.real**2 + x.imag**2)]))
+        np.add.at(terms, junctions + 1, rows)
         self.sums[:] += np.cumsum(terms, axis=0)
 
     def seen(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray) -> None:

@@ -29,7 +29,7 @@ __all__ = ["DIFFERENT_CELLS", "RigidVotes", "rigid_votes"]
 ALL_PAIRS = 32
 NEIGHBOURS = 8
 #: a join's votes are at most about this many (two candidate pairs each)
-VOTES = 1 << 20
+VOTES = 1 << 16
 #: cells whose centres are farther apart than this many cells (in dphi or in o) stand for different corrections
 DIFFERENT_CELLS = 2.0
 
@@ -50,13 +50,23 @@ class RigidVotes:
 def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The occupied cells (``cells``: integer coordinates per vote, a vote being two pairs of right features
-    ``first`` < ``second``) with their join, their distinct right features and their distinct right pairs."""
-    key = np.column_stack([join, cells])
-    pairs = np.unique(np.column_stack([key, first, second]), axis=0)  # one vote per right pair and cell
-    occupied, agreement = np.unique(pairs[:, :-2], axis=0, return_counts=True)
-    ends = np.unique(np.concatenate([pairs[:, :-1], pairs[:, np.r_[0:pairs.shape[1] - 2, -1]]]), axis=0)
-    _, support = np.unique(ends[:, :-1], axis=0, return_counts=True)  # same cells, same (sorted) order
-    return occupied[:, 0], occupied[:, 1:], support, agreement
+    ``first`` < ``second``) with their join, their distinct right features and their distinct right pairs.
+    Cells are numbered by one integer key (each column's values made compact), so that every count is a sort of
+    integers."""
+    key = np.zeros(len(join), np.int64)
+    for column in (join, *cells.T):
+        values, compact = np.unique(column, return_inverse=True)
+        key = key * len(values) + compact
+    cell, number = np.unique(key, return_inverse=True)
+    size = np.int64(max(int(first.max(initial=0)), int(second.max(initial=0))) + 1)
+    pairs = np.unique((number * size + first) * size + second)  # one vote per right pair and cell
+    agreement = np.bincount(pairs // (size * size), minlength=len(cell))
+    ends = np.unique(np.concatenate([pairs // (size * size) * size + pairs % (size * size) // size,
+                                     pairs // (size * size) * size + pairs % size]))
+    support = np.bincount(ends // size, minlength=len(cell))
+    where = np.searchsorted(key, cell, sorter=np.argsort(key, kind="stable"))
+    row = np.argsort(key, kind="stable")[where]  # a vote of each cell: its join and coordinates
+    return join[row], cells[row], support, agreement
 
 
 def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
