@@ -38,6 +38,15 @@ join (sequential and tree) which features of the right piece are features of the
    corrected prediction until the pairs repeat (at most :data:`ROUNDS` rounds), which removes the link's
    error and finds the pairs it had hidden (as ICP does).
 
+6. **Loop closures** (:func:`match_with_drift`). Where a map meets features last seen many maps before, the
+   chain's drift since then has moved them, relative to the link, by more than the gate and the features'
+   spacing. Each feature's drift variance ``D`` since its last sighting (a right piece's feature: up to its
+   first) comes from :mod:`mapjoin.association_drift`, which the hooks fill as the joins are made; among the
+   features steps 2 to 5 left unpaired, the candidates within the drift's gate vote, two pairs at a time, for
+   the one rigid correction of the link that the drift made (:mod:`mapjoin.association_loops`); a join whose
+   best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other
+   correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link.
+
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
 by map, then by local id.
