@@ -646,19 +646,22 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
 
 class _Associator:
     """The hooks :mod:`mapjoin.joining` calls before each join (``associate=``), numbering features as they are
-    matched. Compact ids (indices of the joins' arrays) are handed out in order of first sighting; the
-    tree renames a right piece's features to the left piece's ids, so each input row's current id is kept."""
+    matched, and after each sequential join (:meth:`placed`: its posterior, for the drift; the tree's are read
+    from the pieces at the next level). Compact ids (indices of the joins' arrays) are handed out in order of
+    first sighting; the tree renames a right piece's features to the left piece's ids, so each input row's
+    current id is kept. ``points``: each map's feature positions (sorted by id, complex), ``end_poses`` the
+    maps' end poses, for :class:`mapjoin.association_drift.SightingDrift`."""
 
-    def __init__(self, covariances: Sequence[np.ndarray], gate: float, margin: float = DEFAULT_MARGIN,
-                 points: Sequence[np.ndarray] | None = None, end_poses: np.ndarray | None = None):
+    def __init__(self, covariances: Sequence[np.ndarray], points: Sequence[np.ndarray], end_poses: np.ndarray,
+                 gate: float, margin: float = DEFAULT_MARGIN):
         self.gate, self.margin = gate, margin
         self.offsets = np.concatenate([[0], np.cumsum([len(c) for c in covariances])]).astype(np.intp)
         self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
         self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
         self.row_maps = np.repeat(np.arange(len(covariances)), np.diff(self.offsets))
-        # the chain's drift between sightings and links (None: the gate knows only the features' own covariances)
-        self.drift = None if end_poses is None else SightingDrift.of(end_poses, len(self.row_ids))
-        self.row_points = np.concatenate([np.zeros(0, complex), *points]) if points is not None else None
+        # the chain's drift between sightings and links (each map's rows' positions in its frame: their sightings)
+        self.drift = SightingDrift.of(end_poses, len(self.row_ids))
+        self.row_points = np.concatenate([np.zeros(0, complex), *points])
         self.links = np.zeros(0, np.intp)  # the tree's last level's junctions (left pieces' end pose rows)
         self.count = 0
         # each compact id's 2 x 2 covariance relative to the maps that saw it (rows [xx, xy, yy]), in its piece's
@@ -675,15 +678,8 @@ class _Associator:
             more = max(self.count, len(self.covariances))
             self.covariances = np.concatenate([self.covariances, np.zeros((more, 3))])
             self.sightings = np.concatenate([self.sightings, np.zeros((more, 2), dtype=np.uint64)])
-        if self.drift is not None:
-            self.drift = self.drift.grown(self.count)
+        self.drift = self.drift.grown(self.count)
         return ids
-
-    def _widened(self, covariances: np.ndarray, drift: np.ndarray | None) -> np.ndarray:
-        """2 x 2 covariances (rows ``[xx, xy, yy]``) with the chain's drift variance ``D`` added (isotropic)."""
-        if drift is None:
-            return covariances
-        return covariances + drift[:, None] * np.array([1.0, 0.0, 1.0])
 
     def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray) -> None:
         """Features ``ids`` seen with ``covariances`` (in their frame) by maps ``sightings``: fused into the
@@ -700,14 +696,12 @@ class _Associator:
         self.row_ids[:size] = ids
         self.covariances[ids] = self.row_covariances[:size]
         self.sightings[ids] = self.row_sightings[:size]
-        if self.drift is not None:
-            self.drift.seen(ids, self.row_maps[:size], self.row_points[:size])
+        self.drift.seen(ids, self.row_maps[:size], self.row_points[:size])
         return ids
 
     def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
         """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums)."""
-        if self.drift is not None:
-            self.drift.placed(np.array([k]), np.array([t_variance]), np.array([phi_variance]))
+        self.drift.placed(np.array([k]), np.array([t_variance]), np.array([phi_variance]))
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
@@ -718,10 +712,8 @@ class _Associator:
         used = self.count
         rows = slice(self.offsets[k], self.offsets[k + 1])
         right_covariances = rotated(self.row_covariances[rows], link_phi)
-        drift = None
-        if self.drift is not None:
-            nothing = np.zeros(len(z))
-            drift = (*self.drift.before(np.arange(used), np.full(used, k - 1)), nothing, nothing)
+        nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
+        drift = (*self.drift.before(np.arange(used), np.full(used, k - 1)), nothing, nothing)
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
                                  right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
@@ -735,11 +727,9 @@ class _Associator:
         ids[len(found.right):] = self._fresh(len(z) - len(found.right))
         self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], np.arange(len(z)) < len(found.right))
         self.row_ids[self.offsets[k] + order] = ids
-        if self.drift is not None:
-            points, maps = self.row_points[rows][order], np.full(len(z), k)
-            matched_count = len(found.right)
-            self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count])
-            self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
+        points, maps, matched_count = self.row_points[rows][order], np.full(len(z), k), len(found.right)
+        self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count])
+        self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
         return order, ids, len(found.right)
 
     # tree strategy -----------------------------------------------------------------------
@@ -753,20 +743,18 @@ class _Associator:
         count = pieces.count // 2
         ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1
         link = ends[0:2 * count:2]  # each left piece's end pose
-        if self.drift is not None:  # the last level's junctions (pose row m: map m's end) hold their posteriors
-            self.drift.placed(self.links + 1, pieces.pose_variances[self.links, 0], pieces.pose_variances[self.links, 1])
-            self.links = link
+        # the last level's junctions (pose row m: map m's end, pose m + 1) hold their joins' posteriors until moved
+        self.drift.placed(self.links + 1, pieces.pose_variances[self.links, 0], pieces.pose_variances[self.links, 1])
+        self.links = link
         joined = pieces.feature_piece < 2 * count
         left = np.flatnonzero(joined & (pieces.feature_piece % 2 == 0))
         right = np.flatnonzero(joined & (pieces.feature_piece % 2 == 1))
         right_join = pieces.feature_piece[right] // 2
         right_covariances = rotated(self.covariances[pieces.feature_ids[right]], pieces.pose_phi[link][right_join])
         left_join = pieces.feature_piece[left] // 2
-        drift = None
-        if self.drift is not None:
-            link_map = pieces.last[0:2 * count:2]  # each join's left piece's last map
-            drift = (*self.drift.before(pieces.feature_ids[left], link_map[left_join]),
-                     *self.drift.after(pieces.feature_ids[right], link_map[right_join]))
+        link_map = pieces.last[0:2 * count:2]  # each join's left piece's last map
+        drift = (*self.drift.before(pieces.feature_ids[left], link_map[left_join]),
+                 *self.drift.after(pieces.feature_ids[right], link_map[right_join]))
         found = match_with_drift(pieces.features[left], self.covariances[pieces.feature_ids[left]], left_join,
                                  pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
                                  pieces.features[right], right_covariances, right_join, drift, self.gate, self.margin,
@@ -779,9 +767,9 @@ class _Associator:
         matched = np.zeros(len(right), dtype=bool)
         matched[found.right] = True
         self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched)
-        if self.drift is not None:  # a match's last sighting is its right feature's; a new id has its old one's
-            self.drift.merged(renamed[matched], pieces.feature_ids[right][matched])
-            self.drift.copied(renamed[~matched], pieces.feature_ids[right][~matched])
+        # a match's last sighting is its right feature's; a new id has its old one's sightings
+        self.drift.merged(renamed[matched], pieces.feature_ids[right][matched])
+        self.drift.copied(renamed[~matched], pieces.feature_ids[right][~matched])
         # every input row of a right piece follows its feature's new id
         shift = level - 1
         piece_of_row = np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets)) >> shift
@@ -813,8 +801,8 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     if not margin >= 0.0:
         raise ValueError(f"margin must be a squared distance >= 0, got {margin!r}")
     points = [as_complex(m.features[np.argsort(m.feature_ids, kind="stable")]) for m in maps]
-    associator = _Associator([feature_covariances(m) for m in maps], gate, margin, points,
-                             np.array([m.end_pose for m in maps]).reshape(-1, 3))
+    associator = _Associator([feature_covariances(m) for m in maps], points,
+                             np.array([m.end_pose for m in maps]).reshape(-1, 3), gate, margin)
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
                   associate=associator)
