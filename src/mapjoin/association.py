@@ -602,13 +602,18 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     number = np.full(joins, -1)
     number[closing] = np.arange(len(closing))
     lefts, rights = lefts[number[left_join[lefts]] >= 0], rights[number[right_join[rights]] >= 0]
-    # the link corrected: the right features turned by dphi about their centroid and moved by o
-    loop_turn = np.exp(1j * votes.turn[closing])
-    loop_xy = centre[closing] + votes.offset[closing] + loop_turn * (corrected_xy[closing] - centre[closing])
+    # the link corrected, moved to the free right features' centroid (their mean z_c in right's frame, at c in
+    # left's): there the correction's turn moves them least. Right's features, relative to it, are predicted at
+    # c + o + R(phi + dphi) (z - z_c), the votes' correction of the prediction.
+    r_join_kept = number[right_join[rights]]
+    local_centre = (np.bincount(r_join_kept, right[rights].real, len(closing))
+                    + 1j * np.bincount(r_join_kept, right[rights].imag, len(closing))) / np.maximum(
+                        np.bincount(r_join_kept, minlength=len(closing)), 1)
     loop_phi = link_phi[closing] + correction[closing, 2] + votes.turn[closing]
     loop_variances = np.column_stack([offset_cell[closing] ** 2, turn_cell[closing] ** 2])
-    again = match_features(left[lefts], left_covariances[lefts], number[left_join[lefts]], loop_xy, loop_phi,
-                           loop_variances, right[rights], right_covariances[rights], number[right_join[rights]],
+    again = match_features(left[lefts], left_covariances[lefts], number[left_join[lefts]],
+                           centre[closing] + votes.offset[closing], loop_phi, loop_variances,
+                           right[rights] - local_centre[r_join_kept], right_covariances[rights], r_join_kept,
                            gate, margin, None if left_sightings is None else left_sightings[lefts],
                            None if right_sightings is None else right_sightings[rights])
     closed = number[right_join[rights[again.right]]]
