@@ -86,6 +86,8 @@ __all__ = [
     "DEFAULT_GATE",
     "DEFAULT_MARGIN",
     "EXHAUSTIVE_PAIRS",
+    "LOOP_CLEAR",
+    "LOOP_SUPPORT",
     "ROUNDS",
     "AssociatedJoin",
     "AssociatedJoinRecord",
@@ -101,6 +103,7 @@ __all__ = [
     "link_errors",
     "local_ids",
     "match_features",
+    "match_with_drift",
     "rotated",
     "sighting_bits",
 ]
