@@ -38,6 +38,15 @@ join (sequential and tree) which features of the right piece are features of the
    corrected prediction until the pairs repeat (at most :data:`ROUNDS` rounds), which removes the link's
    error and finds the pairs it had hidden (as ICP does).
 
+6. **Loop closures** (:func:`match_with_drift`). Where a map meets features last seen many maps before, the
+   chain's drift since then has moved them, relative to the link, by more than the gate and the features'
+   spacing. Each feature's drift variance ``D`` since its last sighting (a right piece's feature: up to its
+   first) comes from :mod:`mapjoin.association_drift`, which the hooks fill as the joins are made; among the
+   features steps 2 to 5 left unpaired, the candidates within the drift's gate vote, two pairs at a time, for
+   the one rigid correction of the link that the drift made (:mod:`mapjoin.association_loops`); a join whose
+   best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other
+   correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link.
+
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
 by map, then by local id.
@@ -62,9 +71,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .association_drift import SightingDrift
+from .association_loops import rigid_votes
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
 from .joining import JoinRecord, Strategy, join
 from .maps import GlobalMap, LocalMap, locate
+from .onestep import as_complex
 
 if TYPE_CHECKING:
     from .joining import _Pieces
@@ -74,6 +86,8 @@ __all__ = [
     "DEFAULT_GATE",
     "DEFAULT_MARGIN",
     "EXHAUSTIVE_PAIRS",
+    "LOOP_CLEAR",
+    "LOOP_SUPPORT",
     "ROUNDS",
     "AssociatedJoin",
     "AssociatedJoinRecord",
@@ -89,6 +103,7 @@ __all__ = [
     "link_errors",
     "local_ids",
     "match_features",
+    "match_with_drift",
     "rotated",
     "sighting_bits",
 ]
@@ -106,6 +121,11 @@ MIN_DOF = 4
 DEFAULT_MARGIN = 9.2
 #: at most this many rounds of associate, correct the link, re-predict (they stop when the pairs repeat)
 ROUNDS = 4
+#: a loop closure needs at least this many right features voting for its offset (and twice the runner-up's), and
+#: this many pairs once associated around it
+LOOP_SUPPORT = 4
+#: ... and its pairs of right features agreeing on the correction at least this many times the runner-up's
+LOOP_CLEAR = 2
 #: the median of a chi-square with 2 degrees of freedom, 2 ln 2: the robust variance factor's reference
 CHI2_2_MEDIAN = 2 * math.log(2)
 
@@ -120,6 +140,10 @@ class Matches:
     right: np.ndarray
     ambiguous: np.ndarray
     rejected: np.ndarray
+    #: the right rows that had candidates but no pair (the ambiguous ones, as rows), and each join's link correction
+    #: ``(dx, dy, dphi)`` in the round that gave the pairs (made by the rounds before it; zeros in the first)
+    undecided: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
+    correction: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -400,8 +424,8 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
           lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray, link: np.ndarray, g2: float,
           margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
           right_sightings: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The unambiguous candidate pairs (left rows, right rows) of every join, and each join's number of
-    ambiguous right features.
+    """The unambiguous candidate pairs (left rows, right rows) of every join, and the ambiguous right rows
+    (sorted).
 
     A pair's innovation ``r = f - x`` has covariance ``S = C0 + C1 + H link H^T`` with ``H = [I, u]`` (``C0``,
     ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``; ``link[join]``: the 3 x 3 covariance of the
@@ -430,9 +454,8 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     right_best, right_second = _best(j, i, d2, left_sightings)
     left_best, left_second = _best(i, j, d2, right_sightings)
     taken = right_best & left_best & (right_second - d2 >= margin) & (left_second - d2 >= margin)
-    ambiguous = (np.bincount(right_join[np.unique(j)], minlength=joins)
-                 - np.bincount(right_join[j[taken]], minlength=joins))
-    return i[taken], j[taken], ambiguous
+    undecided = np.setdiff1d(j, j[taken])
+    return i[taken], j[taken], undecided
 
 
 def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
@@ -465,13 +488,15 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     link[:, 0, 0] = link[:, 1, 1] = var_t
     link[:, 2, 2] = p_phi
     predicted = prior_prediction
+    correction = np.zeros((joins, 3))
     g2 = float(_threshold(gate, 1))
     scale = np.ones(joins)
     previous = None
     for _ in range(ROUNDS):
-        i, j, ambiguous = _gate(left, scale[left_join, None] * left_covariances, left_join, predicted, lever,
+        i, j, undecided = _gate(left, scale[left_join, None] * left_covariances, left_join, predicted, lever,
                                 scale[right_join, None] * right_covariances, right_join, link, g2, margin,
                                 left_sightings, right_sightings)
+        ambiguous = np.bincount(right_join[undecided], minlength=joins)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
         unscaled = inverted(left_covariances[i] + right_covariances[j])
@@ -480,7 +505,7 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         information = prior_information / scale[:, None, None]
         keep = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
-        outcome = (i[keep], j[keep], ambiguous, rejected)
+        outcome = (i[keep], j[keep], ambiguous, rejected, undecided, correction)
         if previous is not None and np.array_equal(previous[0], i[keep]) and np.array_equal(previous[1], j[keep]):
             break
         previous = outcome
@@ -497,7 +522,115 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         link = posterior * (scale / old)[:, None, None]  # the posterior in the new scale's units
         predicted = prior_prediction + shift[right_join] + lever * correction[right_join, 2]
     order = np.argsort(outcome[1], kind="stable")
-    return Matches(outcome[0][order], outcome[1][order], outcome[2], outcome[3])
+    return Matches(outcome[0][order], outcome[1][order], *outcome[2:])
+
+
+def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
+                     link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
+                     right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...] | None,
+                     gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
+                     left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None) -> Matches:
+    """:func:`match_features`, then the loop closures among the features it left unpaired (:func:`_closed_loops`,
+    module docstring, step 6): ``drift`` = (left ``D``, left heading variance, right ``D``, right heading
+    variance), one per feature (:mod:`mapjoin.association_drift`), or None for none."""
+    left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
+    found = match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
+                           right_covariances, right_join, gate, margin, left_sightings, right_sightings)
+    if drift is None:
+        return found
+    closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
+                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
+    return found if closed is None else closed
+
+
+def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
+                  link_xy: np.ndarray, link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
+                  right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...], gate: float,
+                  margin: float, left_sightings: np.ndarray | None, right_sightings: np.ndarray | None
+                  ) -> Matches | None:
+    """``found`` with the pairs of the loop closures among the features it left unpaired, or None when there are
+    none. Candidate pairs within the drift's gate (the noise, ``D`` of both features and the link's spread)
+    whose drift is at least their noise vote for rigid corrections of the link as ``found`` corrected it
+    (:func:`mapjoin.association_loops.rigid_votes`; cells: twice the typical noise, and the turn it makes over
+    the free right features' extent); a join whose best correction has :data:`LOOP_SUPPORT` right features and
+    :data:`LOOP_CLEAR` times the runner-up's agreement is associated again, its unpaired features only, around
+    its link so corrected (:func:`match_features`: the gate, the clear nearest neighbour, the joint test, the
+    rounds); a loop closure of fewer than :data:`LOOP_SUPPORT` pairs is dropped."""
+    left_drift, left_heading, right_drift, right_heading = drift
+    joins = len(link_xy)
+    free = np.ones(len(left), dtype=bool)
+    free[found.left] = False
+    lefts = np.flatnonzero(free)
+    free = np.ones(len(right), dtype=bool)
+    free[found.right] = False
+    rights = np.flatnonzero(free)
+    if len(lefts) < LOOP_SUPPORT or len(rights) < LOOP_SUPPORT:
+        return None
+    g2 = float(_threshold(gate, 1))
+    correction = found.correction
+    turn = np.exp(1j * (link_phi + correction[:, 2]))
+    corrected_xy = link_xy + correction[:, 0] + 1j * correction[:, 1]
+    r_join = right_join[rights]
+    predicted = corrected_xy[r_join] + turn[r_join] * right[rights]
+    left_noise = (left_covariances[lefts, 0] + left_covariances[lefts, 2]) / 2
+    right_noise = (right_covariances[rights, 0] + right_covariances[rights, 2]) / 2
+    link_spread = link_variances[r_join, 0] + link_variances[r_join, 1] * np.abs(right[rights]) ** 2  # isotropic
+    widest = np.zeros(joins)
+    np.maximum.at(widest, left_join[lefts], left_noise + left_drift[lefts])
+    radius = np.sqrt(g2 * (widest[r_join] + right_noise + right_drift[rights] + link_spread))
+    a, b = _candidates(left[lefts], left_join[lefts], predicted, r_join, radius, joins)
+    offsets = left[lefts[a]] - predicted[b]
+    noise = left_noise[a] + right_noise[b]
+    spread = left_drift[lefts[a]] + right_drift[rights[b]]
+    closeness = np.abs(offsets) ** 2 / (noise + spread + link_spread[b])  # in the drift's gate's units
+    voting = (closeness <= g2) & (spread >= noise)
+    order = np.flatnonzero(voting)[np.argsort(r_join[b[voting]], kind="stable")]
+    a, b, noise, closeness = a[order], b[order], noise[order], closeness[order]
+    turning = np.sqrt(g2 * (left_heading[lefts[a]] + right_heading[rights[b]] + link_variances[r_join[b], 1]))
+    pair_join = r_join[b]
+    voters = np.bincount(r_join[np.unique(b)], minlength=joins)  # right features with a candidate in the drift's gate
+    if not (voters >= LOOP_SUPPORT).any():
+        return None
+    sizes = np.maximum(np.bincount(r_join, minlength=joins), 1)  # the free right features' centroid and extent
+    centre = (np.bincount(r_join, predicted.real, joins) + 1j * np.bincount(r_join, predicted.imag, joins)) / sizes
+    extent = np.sqrt(np.bincount(r_join, np.abs(predicted - centre[r_join]) ** 2, joins) / sizes)
+    typical = np.sqrt(np.nan_to_num(_segment_medians(noise, pair_join, joins)))
+    turn_cell = 2 * np.sqrt(2) * typical / np.maximum(extent, 1e-9) + 1e-12
+    offset_cell = 2 * typical + turn_cell * extent / 2 + 1e-12
+    votes = rigid_votes(left[lefts], predicted, a, b, pair_join, centre, noise, turning, turn_cell, offset_cell,
+                        joins, closeness)
+    closing = np.flatnonzero((votes.support >= LOOP_SUPPORT) & (votes.agreement >= LOOP_CLEAR * votes.runner_up))
+    if not len(closing):
+        return None
+    number = np.full(joins, -1)
+    number[closing] = np.arange(len(closing))
+    lefts, rights = lefts[number[left_join[lefts]] >= 0], rights[number[right_join[rights]] >= 0]
+    # the link corrected, moved to the free right features' centroid (their mean z_c in right's frame, at c in
+    # left's): there the correction's turn moves them least. Right's features, relative to it, are predicted at
+    # c + o + R(phi + dphi) (z - z_c), the votes' correction of the prediction.
+    r_join_kept = number[right_join[rights]]
+    local_centre = (np.bincount(r_join_kept, right[rights].real, len(closing))
+                    + 1j * np.bincount(r_join_kept, right[rights].imag, len(closing))) / np.maximum(
+                        np.bincount(r_join_kept, minlength=len(closing)), 1)
+    loop_phi = link_phi[closing] + correction[closing, 2] + votes.turn[closing]
+    loop_variances = np.column_stack([offset_cell[closing] ** 2, turn_cell[closing] ** 2])
+    again = match_features(left[lefts], left_covariances[lefts], number[left_join[lefts]],
+                           centre[closing] + votes.offset[closing], loop_phi, loop_variances,
+                           right[rights] - local_centre[r_join_kept], right_covariances[rights], r_join_kept,
+                           gate, margin, None if left_sightings is None else left_sightings[lefts],
+                           None if right_sightings is None else right_sightings[rights])
+    closed = number[right_join[rights[again.right]]]
+    taken = (np.bincount(closed, minlength=len(closing)) >= LOOP_SUPPORT)[closed]
+    if not taken.any():
+        return None
+    pairs_left = np.concatenate([found.left, lefts[again.left[taken]]])
+    pairs_right = np.concatenate([found.right, rights[again.right[taken]]])
+    order = np.argsort(pairs_right, kind="stable")
+    undecided = np.setdiff1d(np.union1d(found.undecided, rights[again.undecided]), pairs_right)
+    rejected = found.rejected.copy()
+    rejected[closing] += again.rejected
+    return Matches(pairs_left[order], pairs_right[order], np.bincount(right_join[undecided], minlength=joins),
+                   rejected, undecided, correction)
 
 
 def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
@@ -521,14 +654,23 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
 
 class _Associator:
     """The hooks :mod:`mapjoin.joining` calls before each join (``associate=``), numbering features as they are
-    matched. Compact ids (indices of the joins' arrays) are handed out in order of first sighting; the
-    tree renames a right piece's features to the left piece's ids, so each input row's current id is kept."""
+    matched, and after each sequential join (:meth:`placed`: its posterior, for the drift; the tree's are read
+    from the pieces at the next level). Compact ids (indices of the joins' arrays) are handed out in order of
+    first sighting; the tree renames a right piece's features to the left piece's ids, so each input row's
+    current id is kept. ``points``: each map's feature positions (sorted by id, complex), ``end_poses`` the
+    maps' end poses, for :class:`mapjoin.association_drift.SightingDrift`."""
 
-    def __init__(self, covariances: Sequence[np.ndarray], gate: float, margin: float = DEFAULT_MARGIN):
+    def __init__(self, covariances: Sequence[np.ndarray], points: Sequence[np.ndarray], end_poses: np.ndarray,
+                 gate: float, margin: float = DEFAULT_MARGIN):
         self.gate, self.margin = gate, margin
         self.offsets = np.concatenate([[0], np.cumsum([len(c) for c in covariances])]).astype(np.intp)
         self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
         self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
+        self.row_maps = np.repeat(np.arange(len(covariances)), np.diff(self.offsets))
+        # the chain's drift between sightings and links (each map's rows' positions in its frame: their sightings)
+        self.drift = SightingDrift.of(end_poses, len(self.row_ids))
+        self.row_points = np.concatenate([np.zeros(0, complex), *points])
+        self.links = np.zeros(0, np.intp)  # the tree's last level's junctions (left pieces' end pose rows)
         self.count = 0
         # each compact id's 2 x 2 covariance relative to the maps that saw it (rows [xx, xy, yy]), in its piece's
         # frame: the sightings' marginal covariances fused as independent (their common drift is the link's error)
@@ -544,6 +686,7 @@ class _Associator:
             more = max(self.count, len(self.covariances))
             self.covariances = np.concatenate([self.covariances, np.zeros((more, 3))])
             self.sightings = np.concatenate([self.sightings, np.zeros((more, 2), dtype=np.uint64)])
+        self.drift = self.drift.grown(self.count)
         return ids
 
     def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray) -> None:
@@ -561,7 +704,12 @@ class _Associator:
         self.row_ids[:size] = ids
         self.covariances[ids] = self.row_covariances[:size]
         self.sightings[ids] = self.row_sightings[:size]
+        self.drift.seen(ids, self.row_maps[:size], self.row_points[:size])
         return ids
+
+    def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
+        """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums)."""
+        self.drift.placed(np.array([k]), np.array([t_variance]), np.array([phi_variance]))
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
@@ -572,10 +720,12 @@ class _Associator:
         used = self.count
         rows = slice(self.offsets[k], self.offsets[k + 1])
         right_covariances = rotated(self.row_covariances[rows], link_phi)
-        found = match_features(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
-                               np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
-                               right_covariances, np.zeros(len(z), np.intp), self.gate, self.margin,
-                               self.sightings[:used], self.row_sightings[rows])
+        nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
+        drift = (*self.drift.before(np.arange(used), np.full(used, k - 1)), nothing, nothing)
+        found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
+                                 np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
+                                 right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
+                                 self.sightings[:used], self.row_sightings[rows])
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
@@ -585,6 +735,9 @@ class _Associator:
         ids[len(found.right):] = self._fresh(len(z) - len(found.right))
         self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], np.arange(len(z)) < len(found.right))
         self.row_ids[self.offsets[k] + order] = ids
+        points, maps, matched_count = self.row_points[rows][order], np.full(len(z), k), len(found.right)
+        self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count])
+        self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
         return order, ids, len(found.right)
 
     # tree strategy -----------------------------------------------------------------------
@@ -598,16 +751,22 @@ class _Associator:
         count = pieces.count // 2
         ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1
         link = ends[0:2 * count:2]  # each left piece's end pose
+        # the last level's junctions (pose row m: map m's end, pose m + 1) hold their joins' posteriors until moved
+        self.drift.placed(self.links + 1, pieces.pose_variances[self.links, 0], pieces.pose_variances[self.links, 1])
+        self.links = link
         joined = pieces.feature_piece < 2 * count
         left = np.flatnonzero(joined & (pieces.feature_piece % 2 == 0))
         right = np.flatnonzero(joined & (pieces.feature_piece % 2 == 1))
         right_join = pieces.feature_piece[right] // 2
         right_covariances = rotated(self.covariances[pieces.feature_ids[right]], pieces.pose_phi[link][right_join])
-        found = match_features(pieces.features[left], self.covariances[pieces.feature_ids[left]],
-                               pieces.feature_piece[left] // 2, pieces.pose_xy[link], pieces.pose_phi[link],
-                               pieces.pose_variances[link], pieces.features[right], right_covariances, right_join,
-                               self.gate, self.margin, self.sightings[pieces.feature_ids[left]],
-                               self.sightings[pieces.feature_ids[right]])
+        left_join = pieces.feature_piece[left] // 2
+        link_map = pieces.last[0:2 * count:2]  # each join's left piece's last map
+        drift = (*self.drift.before(pieces.feature_ids[left], link_map[left_join]),
+                 *self.drift.after(pieces.feature_ids[right], link_map[right_join]))
+        found = match_with_drift(pieces.features[left], self.covariances[pieces.feature_ids[left]], left_join,
+                                 pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
+                                 pieces.features[right], right_covariances, right_join, drift, self.gate, self.margin,
+                                 self.sightings[pieces.feature_ids[left]], self.sightings[pieces.feature_ids[right]])
         self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
         ids = pieces.feature_ids.copy()
         renamed = self._fresh(len(right))
@@ -616,6 +775,9 @@ class _Associator:
         matched = np.zeros(len(right), dtype=bool)
         matched[found.right] = True
         self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched)
+        # a match's last sighting is its right feature's; a new id has its old one's sightings
+        self.drift.merged(renamed[matched], pieces.feature_ids[right][matched])
+        self.drift.copied(renamed[~matched], pieces.feature_ids[right][~matched])
         # every input row of a right piece follows its feature's new id
         shift = level - 1
         piece_of_row = np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets)) >> shift
@@ -646,7 +808,9 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     _check_gate(gate)
     if not margin >= 0.0:
         raise ValueError(f"margin must be a squared distance >= 0, got {margin!r}")
-    associator = _Associator([feature_covariances(m) for m in maps], gate, margin)
+    points = [as_complex(m.features[np.argsort(m.feature_ids, kind="stable")]) for m in maps]
+    associator = _Associator([feature_covariances(m) for m in maps], points,
+                             np.array([m.end_pose for m in maps]).reshape(-1, 3), gate, margin)
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
                   associate=associator)

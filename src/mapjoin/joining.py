@@ -475,6 +475,8 @@ def _join_segment(segment: _Segment, maps: Sequence[LocalMap], positions: np.nda
         pose_xy[k], var_xy[k] = _place(*move, pose_xy[k], var_xy[k], squared_norm(pose_xy[k]))
         pose_phi[k], var_phi[k] = wrap(joins.phi + pose_phi[k]), var_phi[k] + joins.phi_variance
         pose_xy[k - 1], pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1] = move[1], joins.phi, move[2], move[3]
+        if associate is not None:  # the junction's posterior: the chain's drift the next associations allow for
+            associate.placed(k, move[2], move[3])
         report += joins.rows
         if progress:
             progress(join_number + 1)

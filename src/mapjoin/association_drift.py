@@ -1,0 +1,113 @@
+"""The chain's drift between a feature's sightings and a join's link, as the association's joins are made.
+
+The gate of :mod:`mapjoin.association` compares a right feature with a left one through the join's link (left's
+end pose). A left feature last seen many maps before the link is known relative to *that* map, not to the link:
+the joins in between placed the maps with errors that add up (docs/method.md#drift). Where a map closes a loop,
+the true pairs' residuals carry this drift and fall out of a gate that only knows the features' own covariances
+(docs/method.md#data-association, step 1). :class:`SightingDrift` gives each feature the drift variance ``D`` of
+:func:`mapjoin.drift.drift_variance` over the junctions between its last sighting and the link (a left feature)
+or between the link and its first sighting (a right feature of a tree join): ``D`` is added to the feature's
+2 x 2 covariance in the gate and in the joint test.
+
+It is filled as the joins are made, O(1) per feature and per junction: the chain dead-reckoned once
+(:class:`mapjoin.drift.ChainDrift`: only its local shape matters, for lever arms), the prefix sums of the
+junctions' posteriors ``v, p, p Re x, p Im x, p |x|^2`` as each join is made, and per feature (by the
+associator's compact id) the map and dead-reckoned position of its first and last sighting.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .drift import ChainDrift, drift_variance
+
+__all__ = ["SightingDrift"]
+
+
+@dataclass(frozen=True)
+class SightingDrift:
+    """The drift sums of a chain of ``N`` maps and its features' first and last sightings (arrays filled in place).
+
+    ``chain``: the maps dead-reckoned (pose ``m`` is map ``m``'s start, ``m + 1`` its end); ``sums`` (N + 2 x 5):
+    row ``i`` the sums over the junctions ``< i`` whose posterior is known (:meth:`placed`; junction ``i`` is pose
+    ``i``, where map ``i`` starts); per compact feature id: ``first_map``/``last_map`` and their dead-reckoned
+    positions ``first_point``/``last_point``."""
+
+    chain: ChainDrift
+    sums: np.ndarray
+    first_map: np.ndarray
+    first_point: np.ndarray
+    last_map: np.ndarray
+    last_point: np.ndarray
+
+    @classmethod
+    def of(cls, end_poses: np.ndarray, capacity: int) -> SightingDrift:
+        """A chain of maps with these end poses (N x 3, each in its map's start frame), no junction placed yet,
+        room for ``capacity`` feature ids (:meth:`grown` makes more)."""
+        chain = ChainDrift.of(end_poses, np.zeros(0, np.intp), np.zeros(0), np.zeros(0))
+        size = max(capacity, 1)
+        return cls(chain, np.zeros((len(chain.poses) + 1, 5)), np.zeros(size, np.intp), np.zeros(size, complex),
+                   np.zeros(size, np.intp), np.zeros(size, complex))
+
+    def grown(self, capacity: int) -> SightingDrift:
+        """The same with room for at least ``capacity`` feature ids (the tree hands out new ids at every level)."""
+        extra = max(capacity - len(self.first_map), 0)
+        if not extra:
+            return self
+        extra = max(extra, len(self.first_map))
+        return SightingDrift(self.chain, self.sums, *(np.concatenate([a, np.zeros(extra, a.dtype)]) for a in
+                                                       (self.first_map, self.first_point, self.last_map,
+                                                        self.last_point)))
+
+    def placed(self, junctions: np.ndarray, t_variance: np.ndarray, phi_variance: np.ndarray) -> None:
+        """Joins placed these ``junctions`` (pose indices, each once) with these posterior variances: the prefix
+        sums from the lowest of them on gain their terms (in place)."""
+        junctions = np.atleast_1d(np.asarray(junctions, dtype=np.intp))
+        if not len(junctions):
+            return
+        x = self.chain.poses[junctions]
+        p = np.atleast_1d(phi_variance)
+        rows = np.column_stack([np.atleast_1d(t_variance) * np.ones(len(x)), p, p * x.real, p * x.imag,
+                                p * (x.real**2 + x.imag**2)])
+        if len(junctions) == 1:  # the sequential join: one junction at a time
+            self.sums[junctions[0] + 1:] += rows[0]
+            return
+        terms = np.zeros((len(self.sums), 5))
+        np.add.at(terms, junctions + 1, rows)
+        self.sums[:] += np.cumsum(terms, axis=0)
+
+    def seen(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray) -> None:
+        """New features ``ids`` seen by ``maps`` at ``points`` (each in its map's frame): first and last sighting."""
+        reckoned = self.chain.dead_reckoned(maps, points)
+        self.first_map[ids], self.first_point[ids] = maps, reckoned
+        self.last_map[ids], self.last_point[ids] = maps, reckoned
+
+    def seen_again(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray) -> None:
+        """Features ``ids`` seen again by later ``maps`` at ``points``: their last sighting."""
+        self.last_map[ids], self.last_point[ids] = maps, self.chain.dead_reckoned(maps, points)
+
+    def merged(self, ids: np.ndarray, others: np.ndarray) -> None:
+        """Features ``ids`` found to be features ``others`` seen by later maps (a tree's right piece): the
+        later ones' last sightings become theirs."""
+        self.last_map[ids], self.last_point[ids] = self.last_map[others], self.last_point[others]
+
+    def copied(self, ids: np.ndarray, others: np.ndarray) -> None:
+        """Features ``ids`` are features ``others`` renamed: their sightings."""
+        for array in (self.first_map, self.first_point, self.last_map, self.last_point):
+            array[ids] = array[others]
+
+    def before(self, ids: np.ndarray, link_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``D`` of left features ``ids`` relative to the end of map ``link_map`` (their piece's last map, one per
+        feature), over the junctions after their last sighting up to that map's start, and the heading variance
+        those junctions add (the sum of their ``p``)."""
+        sums = self.sums[link_map + 1] - self.sums[self.last_map[ids] + 1]
+        return drift_variance(sums, self.last_point[ids]), sums[:, 1]
+
+    def after(self, ids: np.ndarray, link_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``D`` of right features ``ids`` relative to the end of map ``link_map`` (the left piece's last map),
+        over the junctions from the right piece's second map up to their first sighting, and their heading
+        variance."""
+        sums = self.sums[self.first_map[ids] + 1] - self.sums[link_map + 2]
+        return drift_variance(sums, self.first_point[ids]), sums[:, 1]

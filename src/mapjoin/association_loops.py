@@ -1,0 +1,161 @@
+"""Loop closures in data association: the rigid correction a drifted part of the map so far needs, by votes.
+
+Where a map closes a loop, the features it meets again were last seen many maps before, and the chain's drift
+since then (:mod:`mapjoin.association_drift`) moves all of them, relative to the join's link, by nearly one rigid
+correction: metres on DLR and 8240, far outside the gate and more than the features' spacing, so that no gate
+wide enough to hold the drift can choose partners feature by feature (docs/method.md#data-association, step 6).
+Two candidate pairs ``(i1, j1)``, ``(i2, j2)`` of one join (each within the drift's gate) whose distances agree,
+``| |f_i1 - f_i2| - |x_j1 - x_j2| |`` within the noise's gate, fix a rigid correction: a turn
+``dphi = arg((f_i1 - f_i2) / (x_j1 - x_j2))`` and the offset it gives the right features' centroid ``c``,
+``o = f_i1 + e^{i dphi} (c - x_j1) - c`` (a small error of ``dphi`` moves ``o`` by at most it times the map's
+extent). :func:`rigid_votes` counts, in a grid over ``(dphi, o)`` (two grids shifted by half a cell, so that no
+cluster is cut in two), the distinct right features whose pairs vote in each cell, and gives each join's fullest
+cell, the median correction of its votes and the support of the fullest cell that stands for another correction
+(farther than :data:`DIFFERENT_CELLS` cells in ``dphi`` or in ``o``). Distances do not change under the correction,
+so chance votes are rare even where the drift's gate holds dozens of features; the caller takes a loop closure only
+when it is clearly the best, and then chooses and tests its pairs with the ordinary gate around the corrected link.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["DIFFERENT_CELLS", "RigidVotes", "rigid_votes"]
+
+#: every pair of right features votes up to this many features; above, each feature with its nearest ones
+ALL_PAIRS = 32
+NEIGHBOURS = 8
+#: a join's votes are at most about this many (two candidate pairs each)
+VOTES = 1 << 16
+#: cells whose centres are farther apart than this many cells (in dphi or in o) stand for different corrections
+DIFFERENT_CELLS = 2.0
+
+
+@dataclass(frozen=True)
+class RigidVotes:
+    """Per join: the best correction (``turn`` dphi, ``offset`` of the centroid, complex; 0 without votes), its
+    ``support`` (distinct right features voting for it), its ``agreement`` (distinct pairs of right features voting
+    for it: a true correction of n features has n (n - 1) / 2, chance few) and the ``runner_up``'s agreement."""
+
+    turn: np.ndarray
+    offset: np.ndarray
+    support: np.ndarray
+    agreement: np.ndarray
+    runner_up: np.ndarray
+
+
+def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The occupied cells (``cells``: integer coordinates per vote, a vote being two pairs of right features
+    ``first`` < ``second``) with their join, their distinct right features and their distinct right pairs.
+    Cells are numbered by one integer key (each column's values made compact), so that every count is a sort of
+    integers."""
+    key = np.zeros(len(join), np.int64)
+    for column in (join, *cells.T):
+        values, compact = np.unique(column, return_inverse=True)
+        key = key * len(values) + compact
+    cell, number = np.unique(key, return_inverse=True)
+    size = np.int64(max(int(first.max(initial=0)), int(second.max(initial=0))) + 1)
+    pairs = np.unique((number * size + first) * size + second)  # one vote per right pair and cell
+    agreement = np.bincount(pairs // (size * size), minlength=len(cell))
+    ends = np.unique(np.concatenate([pairs // (size * size) * size + pairs % (size * size) // size,
+                                     pairs // (size * size) * size + pairs % size]))
+    support = np.bincount(ends // size, minlength=len(cell))
+    where = np.searchsorted(key, cell, sorter=np.argsort(key, kind="stable"))
+    row = np.argsort(key, kind="stable")[where]  # a vote of each cell: its join and coordinates
+    return join[row], cells[row], support, agreement
+
+
+def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs ``u < v`` of right features that vote: all of them for up to :data:`ALL_PAIRS` features, else each
+    feature with its :data:`NEIGHBOURS` nearest (the votes then grow with the features, not with their square)."""
+    n = len(points)
+    if n <= ALL_PAIRS:
+        return np.triu_indices(n, 1)
+    from scipy.spatial import cKDTree
+
+    _, near = cKDTree(np.column_stack([points.real, points.imag])).query(
+        np.column_stack([points.real, points.imag]), NEIGHBOURS + 1)
+    u, v = np.repeat(np.arange(n), NEIGHBOURS), near[:, 1:].ravel()
+    pairs = np.unique(np.column_stack([np.minimum(u, v), np.maximum(u, v)]), axis=0)
+    return pairs[:, 0], pairs[:, 1]
+
+
+def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np.ndarray, pair_join: np.ndarray,
+                centre: np.ndarray, noise: np.ndarray, turning: np.ndarray, turn_cell: np.ndarray,
+                offset_cell: np.ndarray, joins: int, closeness: np.ndarray | None = None) -> RigidVotes:
+    """Votes of the candidate pairs ``(a[p], b[p])`` (rows of ``left`` and of ``right_points``, complex, both in
+    left's frame; ``pair_join`` sorted; ``noise``: each pair's isotropic variance, the sum of its two features';
+    ``turning``: the largest turn the drift allows each pair) for rigid corrections about each join's ``centre``,
+    in cells of ``turn_cell`` and ``offset_cell`` (one each per join). A join's votes are at most about
+    :data:`VOTES` (memory): where its pairs of right features times their candidates would be more, each right
+    feature keeps its candidates of least ``closeness`` (by default all are alike)."""
+    turn, offset = np.zeros(joins), np.zeros(joins, complex)
+    support, agreement, runner_up = (np.zeros(joins, np.int64) for _ in range(3))
+    g2 = 9.0  # distances agree within 3 sigma of their difference
+    starts = np.searchsorted(pair_join, np.arange(joins + 1))
+    parts = []
+    for join in np.flatnonzero(np.diff(starts) >= 2).tolist():
+        rows = np.arange(starts[join], starts[join + 1])
+        rows = rows[np.lexsort((np.zeros(len(rows)) if closeness is None else closeness[rows], b[rows]))]
+        features, first, size = np.unique(b[rows], return_index=True, return_counts=True)
+        u, v = _right_pairs(right_points[features])
+        if int((size[u] * size[v]).sum()) > VOTES:  # each feature's least close candidates go
+            most = max(int(math.sqrt(VOTES / max(len(u), 1))), 2)
+            rank = np.arange(len(rows)) - np.repeat(first, size)
+            rows = rows[rank < most]
+            features, first, size = np.unique(b[rows], return_index=True, return_counts=True)
+        per = size[u] * size[v]
+        total = int(per.sum())
+        if not total:
+            continue
+        which = np.repeat(np.arange(len(u)), per)
+        k = np.arange(total) - np.repeat(np.cumsum(per) - per, per)
+        p = rows[first[u[which]] + k // size[v[which]]]
+        q = rows[first[v[which]] + k % size[v[which]]]
+        distinct = a[p] != a[q]
+        p, q = p[distinct], q[distinct]
+        span_left, span_right = left[a[p]] - left[a[q]], right_points[b[p]] - right_points[b[q]]
+        agree = (np.abs(span_left) - np.abs(span_right)) ** 2 <= g2 * (noise[p] + noise[q])
+        p, q, span_left, span_right = p[agree], q[agree], span_left[agree], span_right[agree]
+        dphi = np.angle(span_left / span_right)
+        allowed = np.abs(dphi) <= np.minimum(turning[p], turning[q])
+        p, q, dphi = p[allowed], q[allowed], dphi[allowed]
+        o = left[a[p]] + np.exp(1j * dphi) * (centre[join] - right_points[b[p]]) - centre[join]
+        parts.append((np.full(len(p), join), p, q, dphi, o))
+    if not parts:
+        return RigidVotes(turn, offset, support, agreement, runner_up)
+    join, p, q, dphi, o = (np.concatenate(column) for column in zip(*parts))
+    found = []
+    for shift in (0.0, 0.5):
+        cells = np.column_stack([np.floor(dphi / turn_cell[join] + shift), np.floor(o.real / offset_cell[join] + shift),
+                                 np.floor(o.imag / offset_cell[join] + shift)]).astype(np.int64)
+        owner, coordinates, features, count = _fullest(join, cells, np.minimum(b[p], b[q]), np.maximum(b[p], b[q]))
+        centres = (coordinates + 0.5 - shift) * np.column_stack([turn_cell[owner], offset_cell[owner],
+                                                                   offset_cell[owner]])
+        found.append((owner, centres, count, features))
+    owner = np.concatenate([f[0] for f in found])
+    centres = np.concatenate([f[1] for f in found])
+    count = np.concatenate([f[2] for f in found])
+    features = np.concatenate([f[3] for f in found])
+    order = np.lexsort((-features, -count, owner))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = owner[order][1:] != owner[order][:-1]
+    best = order[first]
+    support[owner[best]] = features[best]
+    agreement[owner[best]] = count[best]
+    best_centre = np.zeros((joins, 3))
+    best_centre[owner[best]] = centres[best]
+    scale = np.column_stack([turn_cell, offset_cell, offset_cell])
+    apart = (np.abs(centres - best_centre[owner]) > DIFFERENT_CELLS * scale[owner]).any(axis=1)
+    np.maximum.at(runner_up, owner[apart], count[apart])
+    # the correction: the median of the votes within a cell of the best cell's centre
+    near = (np.abs(np.column_stack([dphi, o.real, o.imag]) - best_centre[join]) <= scale[join]).all(axis=1)
+    for j in np.unique(join[near]).tolist():
+        chosen = near & (join == j)
+        turn[j] = np.median(dphi[chosen])
+        offset[j] = np.median(o[chosen].real) + 1j * np.median(o[chosen].imag)
+    return RigidVotes(turn, offset, support, agreement, runner_up)

@@ -1,0 +1,184 @@
+"""Loop closures in data association: the drift since each feature's sighting (mapjoin.association_drift) against
+the dense sum over the junctions, the two-pair rigid votes (mapjoin.association_loops) against a planted correction,
+and the association of a drifted loop closure (association.match_with_drift) against the truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapjoin.association import LOOP_SUPPORT, match_features, match_with_drift
+from mapjoin.association_drift import SightingDrift
+from mapjoin.association_loops import rigid_votes
+from mapjoin.se2 import compose
+
+
+def dead_reckoned(end_poses):
+    """Pose m (map m's start) of the chain, by composing the end poses one at a time (se2.compose, not
+    ChainDrift's cumulative sums)."""
+    poses = [np.zeros(3)]
+    for pose in end_poses:
+        poses.append(compose(poses[-1], pose))
+    return np.array(poses)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(3, 12))
+def test_sighting_drift_is_the_dense_sum_over_the_junctions(seed, n):
+    """D = sum over the junctions between a sighting and the link of v_i + p_i |f - x_i|^2 / 2, with f and x_i
+    dead-reckoned, the junctions' posteriors given in any order and in several batches (as the tree places them),
+    and the heading variance the sum of their p_i."""
+    rng = np.random.default_rng(seed)
+    end_poses = np.column_stack([rng.uniform(1, 5, n), rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n)])
+    v, p = rng.uniform(0.001, 0.1, n + 1), rng.uniform(1e-5, 1e-3, n + 1)
+    drift = SightingDrift.of(end_poses, 4)
+    junctions = rng.permutation(np.arange(1, n))
+    for batch in np.array_split(junctions, 3):
+        drift.placed(batch, v[batch], p[batch])
+    poses = dead_reckoned(end_poses)
+    seen_map, first_map = int(rng.integers(0, n)), int(rng.integers(0, n))
+    point = complex(rng.normal(), rng.normal())
+    drift.seen(np.array([0, 1]), np.array([seen_map, first_map]), np.array([point, point]))
+    f_seen = complex(*(compose(poses[seen_map], np.array([point.real, point.imag, 0.0]))[:2]))
+    f_first = complex(*(compose(poses[first_map], np.array([point.real, point.imag, 0.0]))[:2]))
+
+    def dense(junction_range, f):
+        return sum(v[i] + p[i] * abs(f - complex(*poses[i, :2])) ** 2 / 2 for i in junction_range)
+
+    link_map = int(rng.integers(seen_map, n))  # the left piece ends with this map
+    value, heading = drift.before(np.array([0]), np.array([link_map]))
+    assert math.isclose(value[0], dense(range(seen_map + 1, link_map + 1), f_seen), rel_tol=1e-9, abs_tol=1e-12)
+    assert math.isclose(heading[0], sum(p[seen_map + 1:link_map + 1]), rel_tol=1e-9, abs_tol=1e-15)
+    left_end = int(rng.integers(-1, first_map)) if first_map > 0 else -1  # the right piece starts at left_end + 1
+    value, heading = drift.after(np.array([1]), np.array([left_end]))
+    assert math.isclose(value[0], dense(range(left_end + 2, first_map + 1), f_first), rel_tol=1e-9, abs_tol=1e-12)
+
+
+def test_sighting_drift_follows_sightings_through_renaming():
+    """seen_again moves the last sighting; merged takes another feature's last sighting; copied takes all; grown
+    keeps what was there."""
+    drift = SightingDrift.of(np.tile([2.0, 0.0, 0.0], (6, 1)), 2)
+    drift.seen(np.array([0, 1]), np.array([0, 1]), np.array([0j, 1j]))
+    drift.seen_again(np.array([0]), np.array([3]), np.array([1 + 0j]))
+    drift = drift.grown(5)
+    drift.copied(np.array([4]), np.array([0]))
+    drift.merged(np.array([1]), np.array([0]))
+    assert drift.first_map.tolist()[:5] == [0, 1, 0, 0, 0] and drift.last_map.tolist()[:5] == [3, 3, 0, 0, 3]
+    assert drift.last_point[4] == 7 + 0j and drift.first_point[4] == 0j  # map 3 starts at x = 6
+
+
+def planted(rng, turn=0.12, offset=3.0 - 2.0j, count=14, clutter=120, noise=0.03):
+    """A map so far (``clutter`` random features in a 40 m square) containing ``count`` of a right map's features
+    moved by a rigid correction (``turn`` about the right features' centroid, then ``offset``) and noise."""
+    right = rng.uniform(-8, 8, count) + 1j * rng.uniform(-8, 8, count)
+    centre = right.mean()
+    moved = centre + offset + np.exp(1j * turn) * (right - centre)
+    left = np.concatenate([moved + rng.normal(scale=noise, size=count) + 1j * rng.normal(scale=noise, size=count),
+                           rng.uniform(-20, 20, clutter) + 1j * rng.uniform(-20, 20, clutter)])
+    return left, right, centre
+
+
+def test_rigid_votes_find_the_planted_correction_among_clutter():
+    """Every (left, right) pair within 10 m votes; the best cell is the planted correction, supported by every
+    planted feature, and the runner-up agrees far less (chance pairs rarely keep their distances)."""
+    rng = np.random.default_rng(3)
+    left, right, centre = planted(rng)
+    a, b = np.nonzero(np.abs(left[:, None] - right[None, :]) <= 10)
+    order = np.argsort(b, kind="stable")
+    a, b = a[order], b[order]
+    noise = np.full(len(a), 2 * 0.03**2)
+    votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise,
+                        np.full(len(a), 0.5), np.array([0.02]), np.array([0.2]), 1)
+    assert abs(votes.turn[0] - 0.12) < 0.02 and abs(votes.offset[0] - (3 - 2j)) < 0.2
+    assert votes.support[0] == 14 and votes.agreement[0] >= 60
+    assert votes.agreement[0] >= 5 * votes.runner_up[0]
+    # a bound on the turn below the planted one: the planted correction cannot win
+    bounded = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise,
+                          np.full(len(a), 0.05), np.array([0.02]), np.array([0.2]), 1)
+    assert bounded.agreement[0] < 10
+
+
+def test_rigid_votes_of_several_joins_are_those_of_each_alone():
+    rng = np.random.default_rng(8)
+    cases = [planted(rng, turn=t, offset=o) for t, o in ((0.1, 2 + 1j), (-0.05, -4 + 0j))]
+    lefts, rights, joins, a_all, b_all, centres = [], [], [], [], [], []
+    singles = []
+    for k, (left, right, centre) in enumerate(cases):
+        a, b = np.nonzero(np.abs(left[:, None] - right[None, :]) <= 10)
+        order = np.argsort(b, kind="stable")
+        a, b = a[order], b[order]
+        noise = np.full(len(a), 2 * 0.03**2)
+        singles.append(rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise,
+                                   np.full(len(a), 0.5), np.array([0.02]), np.array([0.2]), 1))
+        a_all.append(a + sum(len(x) for x in lefts))
+        b_all.append(b + sum(len(x) for x in rights))
+        lefts.append(left)
+        rights.append(right)
+        joins.append(np.full(len(a), k))
+        centres.append(centre)
+    a, b = np.concatenate(a_all), np.concatenate(b_all)
+    both = rigid_votes(np.concatenate(lefts), np.concatenate(rights), a, b, np.concatenate(joins), np.array(centres),
+                       np.full(len(a), 2 * 0.03**2), np.full(len(a), 0.5), np.full(2, 0.02), np.full(2, 0.2), 2)
+    for k, single in enumerate(singles):
+        assert both.support[k] == single.support[0] and both.agreement[k] == single.agreement[0]
+        assert both.runner_up[k] == single.runner_up[0]
+        assert math.isclose(both.turn[k], single.turn[0]) and both.offset[k] == single.offset[0]
+
+
+def loop_closure(rng, drift_offset=4.0 + 3.0j, drift_turn=0.08):
+    """A join whose right map (20 features, in its own frame, link at the origin) sees 6 features of the map just
+    before (no drift) and 10 last seen long ago, moved by the chain's drift (a rigid correction metres away),
+    among 150 other old features: the true pairs, and the drift each left feature is given."""
+    right = rng.uniform(-10, 10, 20) + 1j * rng.uniform(-10, 10, 20)
+    noise = 0.02
+    recent = right[:6] + rng.normal(scale=noise, size=6) + 1j * rng.normal(scale=noise, size=6)
+    centre = right[6:16].mean()
+    old = centre + drift_offset + np.exp(1j * drift_turn) * (right[6:16] - centre)
+    old = old + rng.normal(scale=noise, size=10) + 1j * rng.normal(scale=noise, size=10)
+    clutter = rng.uniform(-25, 25, 150) + 1j * rng.uniform(-25, 25, 150)
+    left = np.concatenate([recent, old, clutter])
+    left_drift = np.concatenate([np.zeros(6), np.full(160, 16.0)])  # sqrt(D) = 4 m: the drift's size
+    left_heading = np.concatenate([np.zeros(6), np.full(160, 0.003)])
+    truth = set(zip(range(16), range(16)))
+    covariance = np.tile([noise**2, 0.0, noise**2], (len(left), 1))
+    return left, covariance, right, np.tile([noise**2, 0.0, noise**2], (20, 1)), left_drift, left_heading, truth
+
+
+def test_a_drifted_loop_closure_is_found_without_false_pairs():
+    """The ordinary association pairs the recent features only (the drifted ones are metres outside its gate);
+    with the drift, the loop closure's ten pairs are found too, and no pair is false; without drift it is
+    match_features."""
+    rng = np.random.default_rng(21)
+    left, left_cov, right, right_cov, left_drift, left_heading, truth = loop_closure(rng)
+    link = (np.zeros(1, complex), np.zeros(1), np.array([[1e-4, 1e-6]]))
+    joins_left, joins_right = np.zeros(len(left), np.intp), np.zeros(len(right), np.intp)
+    plain = match_features(left, left_cov, joins_left, *link, right, right_cov, joins_right)
+    assert set(zip(plain.left.tolist(), plain.right.tolist())) == set(zip(range(6), range(6)))
+    no_drift = match_with_drift(left, left_cov, joins_left, *link, right, right_cov, joins_right, None)
+    assert np.array_equal(no_drift.left, plain.left) and np.array_equal(no_drift.right, plain.right)
+    zeros = np.zeros(len(right))
+    found = match_with_drift(left, left_cov, joins_left, *link, right, right_cov, joins_right,
+                             (left_drift, left_heading, zeros, zeros))
+    assert set(zip(found.left.tolist(), found.right.tolist())) == truth
+    assert np.all(np.diff(found.right) > 0)
+
+
+def test_clutter_alone_makes_no_loop_closure():
+    """The same join with the drifted features removed from the map so far: the votes find no clear correction
+    (chance pairs do not keep their distances), so the pairs are the ordinary association's, all true."""
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        left, left_cov, right, right_cov, left_drift, left_heading, _ = loop_closure(rng)
+        keep = np.r_[0:6, 16:len(left)]
+        link = (np.zeros(1, complex), np.zeros(1), np.array([[1e-4, 1e-6]]))
+        zeros = np.zeros(len(right))
+        arguments = (left[keep], left_cov[keep], np.zeros(len(keep), np.intp), *link, right, right_cov,
+                     np.zeros(len(right), np.intp))
+        plain = match_features(*arguments)
+        found = match_with_drift(*arguments, (left_drift[keep], left_heading[keep], zeros, zeros))
+        pairs = set(zip(found.left.tolist(), found.right.tolist()))
+        assert pairs == set(zip(plain.left.tolist(), plain.right.tolist())) and pairs <= set(zip(range(6), range(6)))
+    assert LOOP_SUPPORT >= 4
