@@ -9,6 +9,7 @@ import click
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
 from ..association import DEFAULT_GATE as DEFAULT_ASSOCIATION_GATE
+from ..confirmation import confirm
 from ..joining import join as join_maps
 from ..streaming import join_stream
 from ..maps import Range
@@ -100,7 +101,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
 
                 refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
                                           join_progress=progress, progress=common.iteration_printer(ctx),
-                                          gate=gate, on_inconsistent=on_inconsistent,
+                                          gate=gate, on_inconsistent=on_inconsistent, confirm=confirm,
                                           **common.solve_arguments(max_iterations, tolerance, no_covariances))
                 result, global_map = refined.fast_join, refined.global_map
             elif associate:
@@ -110,7 +111,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                 global_map = result.global_map
             else:
                 result = join_maps(maps, covariance, solver, strategy, jobs, progress, gate=gate,
-                                   on_inconsistent=on_inconsistent)
+                                   on_inconsistent=on_inconsistent, confirm=confirm)
                 global_map = result.global_map
     if exact:
         common.warn_if_doubtful(refined)

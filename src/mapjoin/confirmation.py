@@ -1,0 +1,175 @@
+"""Stage 2 of the consistency test: a join that fails the fast statistic, confirmed on the exact problem.
+
+The fast statistic of a join (:mod:`mapjoin.consistency`, docs/method.md#calibration) treats the
+map so far as known up to its spherical summary and the chain's drift; after loop closures that
+summary understates its uncertainty, and consistent joins fail. The exact statistic has no such
+summary: joining piece B onto piece A (each a run of consecutive local maps) raises the optimum
+of the exact least-squares problem (docs/method.md#exact-joining) by
+
+    chi2 = chi2*(A u B) - chi2*(A) - chi2*(B),
+    dof  = (residuals(A u B) - unknowns(A u B)) - (residuals(A) - unknowns(A)) - (residuals(B) - unknowns(B)),
+
+which for a correct model is chi-square distributed with ``dof`` degrees of freedom (the
+increment of a linear least-squares problem by a block of measurements: Cochran). The residuals
+add up, the unknowns of A u B are A's and B's less the features they share (B's start pose is A's
+end pose, fixed at B's own origin), so ``dof = 2n`` for ``n`` shared features: the one-step join's
+dof (docs/method.md#each-join). A sequential join is B = one map, whose own optimum is 0.
+
+Each piece is solved by :func:`mapjoin.refine.solver.minimise` from the fast join's global map,
+expressed in the frame of the piece's first start pose. Cost: two exact solves of at most the
+whole chain per confirmed join; only joins failing stage 1 are confirmed, and a piece's optimum
+is computed once however many joins read it (docs/method.md#confirmation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from .consistency import p_values
+from .joining import JoinRecord, JoinResult, Strategy
+from .maps import GlobalMap, LocalMap, locate
+from .se2 import relative, to_frame
+
+__all__ = ["BUDGET", "Increment", "Optimum", "Pieces", "confirm", "increment", "piece_bounds", "variance_factor"]
+
+#: the exact solves of a run's confirmations stop once they have solved this many times the chain's maps
+BUDGET = 20.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Optimum:
+    """The exact optimum of a run of maps: ``cost`` chi^2, ``dof`` residuals minus unknowns."""
+
+    cost: float
+    dof: int
+    converged: bool
+    iterations: int
+    seconds: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Increment:
+    """The exact statistic of one join: ``chi2`` the optimum's increase, ``dof`` its degrees of freedom;
+    ``union``, ``left``, ``right`` the three optima it is made of."""
+
+    chi2: float
+    dof: int
+    union: Optimum
+    left: Optimum
+    right: Optimum
+
+    @property
+    def converged(self) -> bool:
+        return self.union.converged and self.left.converged and self.right.converged
+
+
+def start_values(problem, maps: Sequence[LocalMap], global_map: GlobalMap) -> np.ndarray:
+    """The unknowns of ``problem`` (the exact problem of the run ``maps``) from ``global_map``,
+    moved into the frame of the run's first start pose (the problem's fixed origin)."""
+    origin = _origin(maps[0].start_id, global_map)
+    index, _ = locate(global_map.pose_ids, problem.pose_ids, np.argsort(global_map.pose_ids, kind="stable"))
+    poses = relative(origin, global_map.poses[index])
+    index, _ = locate(global_map.feature_ids, problem.feature_ids,
+                          np.argsort(global_map.feature_ids, kind="stable"))
+    features = to_frame(origin, global_map.features[index])
+    return np.concatenate([poses.ravel(), features.ravel()])
+
+
+def _origin(pose_id: int, global_map: GlobalMap) -> np.ndarray:
+    """The global pose ``pose_id`` (the global origin when the map does not hold it: the chain's start)."""
+    at = np.flatnonzero(global_map.pose_ids == pose_id)
+    return global_map.poses[at[0]] if at.size else np.zeros(3)
+
+
+class Pieces:
+    """Exact optima of runs ``maps[first:stop]`` of one chain, each solved once (a join's pieces are
+    shared: sequential join k's union is join k+1's left piece)."""
+
+    def __init__(self, maps: Sequence[LocalMap], global_map: GlobalMap, max_iterations: int = 100) -> None:
+        self._maps, self._global_map, self._max_iterations = list(maps), global_map, max_iterations
+        self._optima: dict[tuple[int, int], Optimum] = {}
+        self.solved = 0  # maps in the exact problems solved so far
+
+
+    def optimum(self, first: int, stop: int) -> Optimum:
+        """The exact optimum of maps ``first .. stop - 1``."""
+        key = (first, stop)
+        if key not in self._optima:
+            self._optima[key] = self._solve(first, stop)
+        return self._optima[key]
+
+    def _solve(self, first: int, stop: int) -> Optimum:
+        if stop - first == 1:  # one map fits its own measurements exactly
+            return Optimum(0.0, 0, True, 0, 0.0)
+        from .refine.problem import ExactProblem  # scipy.sparse: only when a join is confirmed
+        from .refine.solver import minimise
+
+        self.solved += stop - first
+        began = time.perf_counter()
+        run = self._maps[first:stop]
+        problem = ExactProblem(run)
+        found = minimise(problem, start_values(problem, run, self._global_map), max_iterations=self._max_iterations)
+        return Optimum(found.cost, problem.n_residuals - problem.n_unknowns, found.converged, found.iterations,
+                       time.perf_counter() - began)
+
+
+def increment(pieces: Pieces, first: int, middle: int, stop: int) -> Increment:
+    """The exact statistic of joining maps ``middle .. stop - 1`` onto maps ``first .. middle - 1``."""
+    union, left, right = pieces.optimum(first, stop), pieces.optimum(first, middle), pieces.optimum(middle, stop)
+    return Increment(union.cost - left.cost - right.cost, union.dof - left.dof - right.dof, union, left, right)
+
+
+def variance_factor(exact: Increment, fallback: float) -> float:
+    """The a-posteriori variance factor the exact statistic is divided by: the pieces' own exact
+    ``chi2 / dof`` pooled, at least 1 (docs/method.md#confirmation); ``fallback`` (the fast statistic's
+    running factor) when the pieces have no degrees of freedom (two single maps)."""
+    dof = exact.left.dof + exact.right.dof
+    if dof <= 0:
+        return fallback
+    return max(1.0, (exact.left.cost + exact.right.cost) / dof)
+
+
+def piece_bounds(maps: Sequence[LocalMap], record: JoinRecord, strategy: Strategy) -> tuple[int, int, int]:
+    """``(first, middle, stop)``: the maps of the left piece (``first .. middle - 1``) and the right one
+    (``middle .. stop - 1``) of ``record``. Sequential join k puts map k onto maps 0 .. k-1; a tree join
+    at level L joins two aligned runs, the left one of 2^(L-1) maps (docs/method.md#tree-joining)."""
+    if strategy == "sequential":
+        return 0, record.join, record.join + 1
+    starts = np.fromiter((m.start_id for m in maps), np.int64, len(maps))
+    ends = np.fromiter((m.end_id for m in maps), np.int64, len(maps))
+    middle = int(np.flatnonzero(starts == record.start_id)[0])
+    stop = int(np.flatnonzero(ends == record.end_id)[0]) + 1
+    return middle - 2 ** (record.level - 1), middle, stop
+
+
+def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, gate: float,
+            budget: float = BUDGET) -> JoinResult:
+    """``result`` with each join that fails the fast test confirmed on the exact statistic (stage 2).
+
+    A join is confirmed when its ``p`` is below ``gate``, it has one minimum (two are flagged always),
+    it was joined with the heading link and tests something (``dof > 0``). Its ``exact_chi2`` is
+    :func:`increment`, its ``exact_p`` the upper tail of ``exact_chi2 / s`` (:func:`variance_factor`)
+    under chi-square(dof), and it stays flagged only if ``exact_p < gate``. In chain order, while the
+    maps solved so far are at most ``budget`` times the chain's length; joins past the budget keep the
+    fast test's flag (``exact_p`` None).
+    """
+    chosen = [r for r in result.report if r.p < gate and r.minima == 1 and r.action == "joined" and r.dof > 0]
+    if not chosen:
+        return result
+    pieces = Pieces(maps, result.global_map)
+    limit = budget * len(maps)
+    confirmed: dict[int, JoinRecord] = {}
+    for record in sorted(chosen, key=lambda r: (r.start_id, r.level)):
+        if pieces.solved >= limit:
+            break
+        exact = increment(pieces, *piece_bounds(maps, record, strategy))
+        s = variance_factor(exact, record.variance_factor)
+        p = float(p_values(np.array([exact.chi2 / s]), np.array([exact.dof]))[0])
+        confirmed[record.join] = dataclasses.replace(record, exact_chi2=exact.chi2, exact_p=p,
+                                                     flag=bool(p < gate) or not exact.converged)
+    report = tuple(confirmed.get(r.join, r) for r in result.report)
+    return dataclasses.replace(result, report=report)
