@@ -24,8 +24,8 @@ is computed once however many joins read it (docs/method.md#confirmation).
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +33,9 @@ from .consistency import p_values
 from .joining import JoinRecord, JoinResult, Strategy
 from .maps import GlobalMap, LocalMap, locate
 from .se2 import relative, to_frame
+
+if TYPE_CHECKING:
+    from .refine.problem import ExactProblem
 
 __all__ = ["BUDGET", "Increment", "Optimum", "Pieces", "confirm", "increment", "piece_bounds", "variance_factor"]
 
@@ -42,13 +45,12 @@ BUDGET = 20.0
 
 @dataclasses.dataclass(frozen=True)
 class Optimum:
-    """The exact optimum of a run of maps: ``cost`` chi^2, ``dof`` residuals minus unknowns."""
+    """The exact optimum of a run of maps: ``cost`` chi^2, ``dof`` residuals minus unknowns, ``converged``
+    whether the solver says so."""
 
     cost: float
     dof: int
     converged: bool
-    iterations: int
-    seconds: float
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,14 +69,13 @@ class Increment:
         return self.union.converged and self.left.converged and self.right.converged
 
 
-def start_values(problem, maps: Sequence[LocalMap], global_map: GlobalMap) -> np.ndarray:
+def start_values(problem: ExactProblem, maps: Sequence[LocalMap], global_map: GlobalMap) -> np.ndarray:
     """The unknowns of ``problem`` (the exact problem of the run ``maps``) from ``global_map``,
     moved into the frame of the run's first start pose (the problem's fixed origin)."""
     origin = _origin(maps[0].start_id, global_map)
     index, _ = locate(global_map.pose_ids, problem.pose_ids, np.argsort(global_map.pose_ids, kind="stable"))
     poses = relative(origin, global_map.poses[index])
-    index, _ = locate(global_map.feature_ids, problem.feature_ids,
-                          np.argsort(global_map.feature_ids, kind="stable"))
+    index, _ = locate(global_map.feature_ids, problem.feature_ids, np.argsort(global_map.feature_ids, kind="stable"))
     features = to_frame(origin, global_map.features[index])
     return np.concatenate([poses.ravel(), features.ravel()])
 
@@ -94,7 +95,6 @@ class Pieces:
         self._optima: dict[tuple[int, int], Optimum] = {}
         self.solved = 0  # maps in the exact problems solved so far
 
-
     def optimum(self, first: int, stop: int) -> Optimum:
         """The exact optimum of maps ``first .. stop - 1``."""
         key = (first, stop)
@@ -104,17 +104,15 @@ class Pieces:
 
     def _solve(self, first: int, stop: int) -> Optimum:
         if stop - first == 1:  # one map fits its own measurements exactly
-            return Optimum(0.0, 0, True, 0, 0.0)
+            return Optimum(0.0, 0, True)
         from .refine.problem import ExactProblem  # scipy.sparse: only when a join is confirmed
         from .refine.solver import minimise
 
         self.solved += stop - first
-        began = time.perf_counter()
         run = self._maps[first:stop]
         problem = ExactProblem(run)
         found = minimise(problem, start_values(problem, run, self._global_map), max_iterations=self._max_iterations)
-        return Optimum(found.cost, problem.n_residuals - problem.n_unknowns, found.converged, found.iterations,
-                       time.perf_counter() - began)
+        return Optimum(found.cost, problem.n_residuals - problem.n_unknowns, found.converged)
 
 
 def increment(pieces: Pieces, first: int, middle: int, stop: int) -> Increment:
@@ -153,9 +151,10 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
     A join is confirmed when its ``p`` is below ``gate``, it has one minimum (two are flagged always),
     it was joined with the heading link and tests something (``dof > 0``). Its ``exact_chi2`` is
     :func:`increment`, its ``exact_p`` the upper tail of ``exact_chi2 / s`` (:func:`variance_factor`)
-    under chi-square(dof), and it stays flagged only if ``exact_p < gate``. In chain order, while the
-    maps solved so far are at most ``budget`` times the chain's length; joins past the budget keep the
-    fast test's flag (``exact_p`` None).
+    under chi-square(dof), and it stays flagged only if ``exact_p < gate`` (or if a solve did not
+    converge: nothing is then confirmed either way). In report order (chain order; the tree's level by
+    level), while the exact problems solved so far hold fewer than ``budget`` times the chain's maps;
+    joins past the budget keep the fast test's flag (``exact_p`` None).
     """
     chosen = [r for r in result.report if r.p < gate and r.minima == 1 and r.action == "joined" and r.dof > 0]
     if not chosen:
@@ -163,7 +162,7 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
     pieces = Pieces(maps, result.global_map)
     limit = budget * len(maps)
     confirmed: dict[int, JoinRecord] = {}
-    for record in sorted(chosen, key=lambda r: (r.start_id, r.level)):
+    for record in chosen:
         if pieces.solved >= limit:
             break
         exact = increment(pieces, *piece_bounds(maps, record, strategy))

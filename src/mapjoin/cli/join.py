@@ -91,6 +91,9 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
             streamed = join_stream(stream, covariance, solver, progress, gate=gate, on_inconsistent=on_inconsistent)
         result, global_map, read = streamed.result, streamed.result.global_map, streamed.read_seconds
         origin_id, count = streamed.origin_id, len(global_map.pose_ids)
+        if flagged := int(result.report.flagged.sum()):  # type: ignore[attr-defined]  # a CompactReport
+            say(ctx, f"{common.counted(flagged, 'flagged join')} tested by the fast statistic only: the streamed join "
+                     "keeps no maps for the exact confirmation (--refine confirms; docs/method.md#confirmation)")
     else:
         maps = common.read_local_maps(inputs, input_format, outputs)
         read = time.perf_counter() - start
