@@ -16,7 +16,7 @@ end pose, fixed at B's own origin), so ``dof = 2n`` for ``n`` shared features: t
 dof (docs/method.md#each-join). A sequential join is B = one map, whose own optimum is 0.
 
 Each piece is solved by :func:`mapjoin.refine.solver.minimise` from the fast join's global map,
-expressed in the frame of the piece's first start pose. Cost: two exact solves of at most the
+expressed in the frame of the piece's first start pose, and the union from the two pieces' optima. Cost: two exact solves of at most the
 whole chain per confirmed join; only joins failing stage 1 are confirmed, and a piece's optimum
 is computed once however many joins read it (docs/method.md#confirmation).
 """
@@ -32,12 +32,12 @@ import numpy as np
 from .consistency import p_values
 from .joining import JoinRecord, JoinResult, Strategy
 from .maps import GlobalMap, LocalMap, locate
-from .se2 import relative, to_frame
+from .se2 import compose, relative, to_frame, transform
 
 if TYPE_CHECKING:
     from .refine.problem import ExactProblem
 
-__all__ = ["BUDGET", "Increment", "Optimum", "Pieces", "confirm", "increment", "piece_bounds", "variance_factor"]
+__all__ = ["BUDGET", "Estimate", "Increment", "Optimum", "Pieces", "confirm", "increment", "piece_bounds", "variance_factor"]
 
 #: the exact solves of a run's confirmations stop once they have solved this many times the chain's maps
 BUDGET = 20.0
@@ -69,55 +69,96 @@ class Increment:
         return self.union.converged and self.left.converged and self.right.converged
 
 
-def start_values(problem: ExactProblem, maps: Sequence[LocalMap], global_map: GlobalMap) -> np.ndarray:
-    """The unknowns of ``problem`` (the exact problem of the run ``maps``) from ``global_map``,
-    moved into the frame of the run's first start pose (the problem's fixed origin)."""
-    origin = _origin(maps[0].start_id, global_map)
-    index, _ = locate(global_map.pose_ids, problem.pose_ids, np.argsort(global_map.pose_ids, kind="stable"))
-    poses = relative(origin, global_map.poses[index])
-    index, _ = locate(global_map.feature_ids, problem.feature_ids, np.argsort(global_map.feature_ids, kind="stable"))
-    features = to_frame(origin, global_map.features[index])
-    return np.concatenate([poses.ravel(), features.ravel()])
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """Poses (by id, x y phi) and features (by id, x y) in one frame: where an exact solve starts or ended."""
 
+    pose_ids: np.ndarray
+    poses: np.ndarray
+    feature_ids: np.ndarray
+    features: np.ndarray
 
-def _origin(pose_id: int, global_map: GlobalMap) -> np.ndarray:
-    """The global pose ``pose_id`` (the global origin when the map does not hold it: the chain's start)."""
-    at = np.flatnonzero(global_map.pose_ids == pose_id)
-    return global_map.poses[at[0]] if at.size else np.zeros(3)
+    @classmethod
+    def of(cls, global_map: GlobalMap) -> Estimate:
+        return cls(global_map.pose_ids, global_map.poses, global_map.feature_ids, global_map.features)
+
+    def pose(self, pose_id: int) -> np.ndarray:
+        """Pose ``pose_id`` (the frame's origin when it is not held: the chain's first start pose)."""
+        at = np.flatnonzero(self.pose_ids == pose_id)
+        return self.poses[at[0]] if at.size else np.zeros(3)
+
+    def values(self, problem: ExactProblem, origin_id: int) -> np.ndarray:
+        """The unknowns of ``problem`` (which must all be held here), moved into the frame of pose ``origin_id``
+        (the problem's fixed origin)."""
+        origin = self.pose(origin_id)
+        index, _ = locate(self.pose_ids, problem.pose_ids, np.argsort(self.pose_ids, kind="stable"))
+        poses = relative(origin, self.poses[index])
+        index, _ = locate(self.feature_ids, problem.feature_ids, np.argsort(self.feature_ids, kind="stable"))
+        return np.concatenate([poses.ravel(), to_frame(origin, self.features[index]).ravel()])
+
+    def then(self, other: Estimate, junction: int) -> Estimate:
+        """This estimate and ``other`` (given in the frame of this one's pose ``junction``) in this frame; a
+        feature both hold keeps this one's position."""
+        at = self.pose(junction)
+        extra = ~np.isin(other.feature_ids, self.feature_ids)
+        return Estimate(np.concatenate([self.pose_ids, other.pose_ids]),
+                        np.concatenate([self.poses, compose(at, other.poses)]),
+                        np.concatenate([self.feature_ids, other.feature_ids[extra]]),
+                        np.concatenate([self.features, transform(at, other.features[extra])]))
 
 
 class Pieces:
     """Exact optima of runs ``maps[first:stop]`` of one chain, each solved once (a join's pieces are
-    shared: sequential join k's union is join k+1's left piece)."""
+    shared: sequential join k's union is join k+1's left piece).
+
+    A piece is solved from the fast join's ``global_map``; the union of a join's two pieces from the
+    two pieces' optima put together (the right one placed at the left one's end): measured, the fast
+    sequential map after a loop closure can lead the union's solve into another, higher minimum
+    (docs/method.md#confirmation), the pieces' optima do not.
+    """
 
     def __init__(self, maps: Sequence[LocalMap], global_map: GlobalMap, max_iterations: int = 100) -> None:
-        self._maps, self._global_map, self._max_iterations = list(maps), global_map, max_iterations
-        self._optima: dict[tuple[int, int], Optimum] = {}
+        self._maps, self._fast, self._max_iterations = list(maps), Estimate.of(global_map), max_iterations
+        self._optima: dict[tuple[int, int], tuple[Optimum, Estimate]] = {}
         self.solved = 0  # maps in the exact problems solved so far
 
-    def optimum(self, first: int, stop: int) -> Optimum:
-        """The exact optimum of maps ``first .. stop - 1``."""
+    def optimum(self, first: int, stop: int, start: Estimate | None = None) -> Optimum:
+        """The exact optimum of maps ``first .. stop - 1``, solved from ``start`` (default: the fast join's
+        map) if not known yet."""
         key = (first, stop)
         if key not in self._optima:
-            self._optima[key] = self._solve(first, stop)
-        return self._optima[key]
+            self._optima[key] = self._solve(first, stop, start or self._fast)
+        return self._optima[key][0]
 
-    def _solve(self, first: int, stop: int) -> Optimum:
+    def union(self, first: int, middle: int, stop: int) -> Optimum:
+        """The exact optimum of maps ``first .. stop - 1``, solved from those of ``first .. middle - 1`` and
+        ``middle .. stop - 1`` put together."""
+        if (first, stop) not in self._optima:
+            left, right = self._optima[first, middle][1], self._optima[middle, stop][1]
+            return self.optimum(first, stop, left.then(right, self._maps[middle].start_id))
+        return self.optimum(first, stop)
+
+    def _solve(self, first: int, stop: int, start: Estimate) -> tuple[Optimum, Estimate]:
+        run = self._maps[first:stop]
         if stop - first == 1:  # one map fits its own measurements exactly
-            return Optimum(0.0, 0, True)
+            m = run[0]
+            return Optimum(0.0, 0, True), Estimate(np.array([m.end_id]), m.end_pose[None, :], m.feature_ids,
+                                                   m.features)
         from .refine.problem import ExactProblem  # scipy.sparse: only when a join is confirmed
         from .refine.solver import minimise
 
         self.solved += stop - first
-        run = self._maps[first:stop]
         problem = ExactProblem(run)
-        found = minimise(problem, start_values(problem, run, self._global_map), max_iterations=self._max_iterations)
-        return Optimum(found.cost, problem.n_residuals - problem.n_unknowns, found.converged)
+        found = minimise(problem, start.values(problem, run[0].start_id), max_iterations=self._max_iterations)
+        poses, features = problem.unpack(found.x)
+        return (Optimum(found.cost, problem.n_residuals - problem.n_unknowns, found.converged),
+                Estimate(problem.pose_ids, poses, problem.feature_ids, features))
 
 
 def increment(pieces: Pieces, first: int, middle: int, stop: int) -> Increment:
     """The exact statistic of joining maps ``middle .. stop - 1`` onto maps ``first .. middle - 1``."""
-    union, left, right = pieces.optimum(first, stop), pieces.optimum(first, middle), pieces.optimum(middle, stop)
+    left, right = pieces.optimum(first, middle), pieces.optimum(middle, stop)
+    union = pieces.union(first, middle, stop)
     return Increment(union.cost - left.cost - right.cost, union.dof - left.dof - right.dof, union, left, right)
 
 
