@@ -191,3 +191,13 @@ def test_past_the_budget_a_join_keeps_the_fast_flag(data_dir):
     some = confirm(maps, fast, "sequential", 1e-10, budget=0.5)  # join 71's two prefixes: 143 maps, over 100
     confirmed = [r.join for r in some.report if r.exact_p is not None]
     assert confirmed == [r.join for r in fast.report if r.flag][:1]
+
+
+def test_skip_acts_on_the_confirmed_flags(data_dir):
+    """With the skip policy the re-joined chains are confirmed too: the corrupted heading's map is joined by its
+    features alone, and the clean loop closures the fast statistic flags are left as they are."""
+    maps = mapio.read_maps(str(data_dir / "DLR_200_local_maps"))
+    chain, number = _corrupted(maps, 100, "heading")
+    report = join(chain, on_inconsistent="skip", confirm=confirm).report
+    assert [(r.join, r.action) for r in report if r.action != "joined"] == [(number, "features only")]
+    assert not any(r.flag for r in report)
