@@ -138,6 +138,14 @@ class Pieces:
             return self.optimum(first, stop, left.then(right, self._maps[middle].start_id))
         return self.optimum(first, stop)
 
+    def from_fast_join(self, first: int, stop: int) -> Optimum:
+        """The exact optimum of maps ``first .. stop - 1`` solved again from the fast join's map; the lower of
+        the two is kept (a solve can end in a higher local minimum from either start)."""
+        solved = self._solve(first, stop, self._fast)
+        if (first, stop) not in self._optima or solved[0].cost < self._optima[first, stop][0].cost:
+            self._optima[first, stop] = solved
+        return self._optima[first, stop][0]
+
     def _solve(self, first: int, stop: int, start: Estimate) -> tuple[Optimum, Estimate]:
         run = self._maps[first:stop]
         if stop - first == 1:  # one map fits its own measurements exactly
@@ -192,8 +200,9 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
     A join is confirmed when its ``p`` is below ``gate``, it has one minimum (two are flagged always),
     it was joined with the heading link and tests something (``dof > 0``). Its ``exact_chi2`` is
     :func:`increment`, its ``exact_p`` the upper tail of ``exact_chi2 / s`` (:func:`variance_factor`)
-    under chi-square(dof), and it stays flagged only if ``exact_p < gate`` (or if a solve did not
-    converge: nothing is then confirmed either way). In report order (chain order; the tree's level by
+    under chi-square(dof). It stays flagged only if ``exact_p < gate`` with the union solved from both
+    starts (its pieces' optima, then the fast join's map; the lower optimum counts), or if a solve did not
+    converge (nothing is then confirmed either way). In report order (chain order; the tree's level by
     level), while the exact problems solved so far hold fewer than ``budget`` times the chain's maps;
     joins past the budget keep the fast test's flag (``exact_p`` None).
     """
@@ -206,9 +215,14 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
     for record in chosen:
         if pieces.solved >= limit:
             break
-        exact = increment(pieces, *piece_bounds(maps, record, strategy))
+        first, middle, stop = piece_bounds(maps, record, strategy)
+        exact = increment(pieces, first, middle, stop)
         s = variance_factor(exact, record.variance_factor)
         p = float(p_values(np.array([exact.chi2 / s]), np.array([exact.dof]))[0])
+        if p < gate:  # a flag must not come from a higher local minimum: the union from the other start too
+            pieces.from_fast_join(first, stop)
+            exact = increment(pieces, first, middle, stop)
+            p = float(p_values(np.array([exact.chi2 / s]), np.array([exact.dof]))[0])
         confirmed[record.join] = dataclasses.replace(record, exact_chi2=exact.chi2, exact_p=p,
                                                      flag=bool(p < gate) or not exact.converged)
     report = tuple(confirmed.get(r.join, r) for r in result.report)
