@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 
 import numpy as np
@@ -201,3 +202,41 @@ def test_skip_acts_on_the_confirmed_flags(data_dir):
     report = join(chain, on_inconsistent="skip", confirm=confirm).report
     assert [(r.join, r.action) for r in report if r.action != "joined"] == [(number, "features only")]
     assert not any(r.flag for r in report)
+
+
+def test_the_streamed_join_reads_its_files_again_to_confirm(data_dir, tmp_path):
+    """``mapjoin join FOLDER`` (streamed) confirms its flagged joins as the in-memory join does, bit for bit."""
+    from cli_runner import run
+
+    folder = data_dir / "DLR_200_local_maps"
+    result = run("join", str(folder), "-o", str(tmp_path / "g.csv"), "--report", str(tmp_path / "r.csv"))
+    assert result.exit_code == 0, result.output
+    with open(tmp_path / "r.csv", newline="") as table:
+        rows = list(csv.DictReader(table))
+    expected = join(mapio.read_maps(str(folder)), confirm=confirm).report
+    assert [row["flag"] for row in rows] == [str(r.flag) for r in expected]
+    assert [row["exact_p"] for row in rows] == ["" if r.exact_p is None else repr(r.exact_p) for r in expected]
+    assert sum(r.exact_p is not None for r in expected) == 6 and not any(r.flag for r in expected)
+
+
+def test_a_streamed_join_from_stdin_keeps_the_fast_flags_and_says_so(tmp_path):
+    from cli_runner import run
+
+    text = run("simulate", "-o", "-", "--maps", "200", "--seed", "0").stdout
+    result = run("join", "-", "-o", str(tmp_path / "g.csv"), input=text)
+    assert result.exit_code == 0
+    assert "17 flagged joins tested by the fast statistic only" in result.output
+    assert "its maps came from stdin" in result.output
+
+
+def test_a_streamed_join_whose_input_changed_is_not_confirmed():
+    from mapjoin.confirmation import confirm_streamed
+
+    maps = list(simulate(200, seed=0).maps)
+    result = join(maps)
+    renamed = [dataclasses.replace(m, name=f"other-{k}") for k, m in enumerate(maps)]
+    unchanged, why = confirm_streamed(result, lambda: renamed, 1e-10)
+    assert unchanged is result and "its input changed" in why
+    confirmed, why = confirm_streamed(result, lambda: maps, 1e-10)
+    assert why is None and not any(r.flag for r in confirmed.report)
+    assert confirm_streamed(result, None, 1e-10)[0] is result

@@ -24,7 +24,7 @@ is computed once however many joins read it (docs/method.md#confirmation).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -33,14 +33,19 @@ from .consistency import p_values
 from .joining import JoinRecord, JoinResult, Strategy
 from .maps import GlobalMap, LocalMap, locate
 from .se2 import compose, relative, to_frame, transform
+from .streaming import CompactReport
 
 if TYPE_CHECKING:
     from .refine.problem import ExactProblem
 
-__all__ = ["BUDGET", "Estimate", "Increment", "Optimum", "Pieces", "confirm", "increment", "piece_bounds", "variance_factor"]
+__all__ = ["BUDGET", "REREAD_LIMIT", "Estimate", "Increment", "Optimum", "Pieces", "confirm", "confirm_streamed",
+           "increment", "piece_bounds", "variance_factor"]
 
 #: the exact solves of a run's confirmations stop once they have solved this many times the chain's maps
 BUDGET = 20.0
+#: a streamed join's maps are read again for its confirmation only up to this many maps (a longer stream
+#: keeps its memory bound, and its fast flags)
+REREAD_LIMIT = 100_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,3 +232,24 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
                                                      flag=bool(p < gate) or not exact.converged)
     report = tuple(confirmed.get(r.join, r) for r in result.report)
     return dataclasses.replace(result, report=report)
+
+
+def confirm_streamed(result: JoinResult, read: Callable[[], Sequence[LocalMap]] | None, gate: float
+                     ) -> tuple[JoinResult, str | None]:
+    """:func:`confirm` for a streamed sequential join, whose maps are gone: when it flags joins, ``read()``
+    reads them again (``None``: they cannot be, e.g. from stdin), unless the chain has more than
+    :data:`REREAD_LIMIT` maps. Returns the result and, when its flags stay unconfirmed, why (a sentence)."""
+    report = result.report
+    count = int(report.flagged.sum()) if isinstance(report, CompactReport) else sum(r.flag for r in report)
+    if not count:
+        return result, None
+    why = ("its maps came from stdin" if read is None else
+           f"it has more than {REREAD_LIMIT} maps" if len(report) + 1 > REREAD_LIMIT else None)
+    if why is None:
+        maps = read()
+        if [m.name for m in maps[1:]] == [r.map for r in report]:
+            return confirm(maps, result, "sequential", gate), None
+        why = "its input changed since it was read"
+    joins = "join" if count == 1 else "joins"
+    return result, (f"{count} flagged {joins} tested by the fast statistic only: the streamed join's maps are not "
+                    f"read again for the exact confirmation ({why}; docs/method.md#confirmation)")

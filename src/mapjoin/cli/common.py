@@ -65,7 +65,7 @@ gate_option = click.option(
     help="Flag a join whose chi-square p-value is below LEVEL (and every join with two minima); the statistic "
          "allows for the chain's drift and the run's variance factor, and the default comes from the clean real "
          "datasets (docs/joining.md, 'Consistency'). A join that fails is confirmed on the exact least-squares "
-         "problem, except in the streamed sequential join (docs/method.md#confirmation).")
+         "problem (docs/method.md#confirmation).")
 on_inconsistent_option = click.option(
     "--on-inconsistent", type=click.Choice(POLICIES), default="warn", show_default=True,
     help="What a flagged join does: warn (one warning per map), stop (exit 1 naming the map, nothing written) "
