@@ -10,7 +10,8 @@ one used). Then the times: the join, the confirmations, and the maps the exact s
 on ``mapjoin simulate`` runs (consistent by construction; 200 maps, seeds 0-4, two laps and half a
 lap, both covariance modes). Then each dataset with one map corrupted (end heading + 0.6 rad; a
 common feature moved 5 m; two feature ids swapped), the sequential join holding the corrupted value:
-its exact statistic, whether it stays flagged and what its confirmation cost. Written between the
+its exact statistic, whether it stays flagged and what its confirmation cost; and the first flagged (confirmed)
+tree join whose pieces hold the corrupted map. Written between the
 ``confirmation`` markers of benchmarks/README.md.
 """
 
@@ -66,13 +67,23 @@ def measure(maps, covariance, strategy):
             sum(r.flag for r in confirmed.report), join_seconds, confirm_seconds, solved)
 
 
+def tree_flag(chain, k: int) -> str:
+    """The first flagged tree join (confirmed) whose pieces hold map k: its number and exact p (or two minima)."""
+    report = join(chain, strategy="tree", confirm=confirm).report
+    for r in report:
+        first, _, stop = piece_bounds(chain, r, "tree")
+        if r.flag and first <= k < stop:
+            return f"join {r.join}, " + ("two minima" if r.exact_p is None else f"exact p = {r.exact_p:.2g}")
+    return "none"
+
+
 def main() -> None:
     args = dataset_arguments(__doc__, DATASETS)
     load = os.getloadavg()[0]
     clean = ["| dataset | strategy | stage 1 flags | exact: nominal / fast factor / pieces' factor | flagged after | "
              "join s | confirmations s |", "|---|---|---|---|---|---|---|"]
     bad = ["| dataset | corrupted | join | stage 1 p | exact chi2 / dof | exact p | flagged | join s | "
-           "confirmation s |", "|---|---|---|---|---|---|---|---|---|"]
+           "confirmation s | tree: flagged join holding it |", "|---|---|---|---|---|---|---|---|---|---|"]
     totals = np.zeros(2, dtype=int)
     for name in args.datasets:
         maps = mapio.read_maps(str(args.data / name))
@@ -88,7 +99,8 @@ def main() -> None:
             confirmed, tc = timed(lambda: confirm(chain, result, "sequential", DEFAULT_GATE))
             r = confirmed.report[number - 1]
             bad.append(f"| {name} | {how} | {number} | {result.report[number - 1].p:.2g} | "
-                       f"{r.exact_chi2 / r.dof:.3g} | {r.exact_p:.2g} | {r.flag} | {tj:.3f} | {tc:.3f} |")
+                       f"{r.exact_chi2 / r.dof:.3g} | {r.exact_p:.2g} | {r.flag} | {tj:.3f} | {tc:.3f} | "
+                       f"{tree_flag(chain, k)} |")
     clean.append(f"| all five | both | {totals[0]} | | {totals[1]} | | |")
     simulated = ["| run | mode | strategy | stage 1 flags | exact: nominal / fast factor / pieces' factor | "
                  "flagged after | join s | confirmations s |", "|---|---|---|---|---|---|---|---|"]
