@@ -171,6 +171,17 @@ def test_the_join_holding_a_corrupted_value_is_confirmed(data_dir, name, how):
 
 
 @pytest.mark.parametrize("name", SMALL_SETS)
+@pytest.mark.parametrize("how", ["heading", "feature", "swap"])
+def test_a_tree_join_whose_pieces_hold_a_corrupted_value_stays_flagged(data_dir, name, how):
+    maps = mapio.read_maps(str(data_dir / name))
+    k = len(maps) // 2
+    chain, _ = _corrupted(maps, k, how)
+    report = join(chain, strategy="tree", confirm=confirm).report
+    holding = [r for r in report if r.flag and k in range(*piece_bounds(chain, r, "tree")[::2])]
+    assert holding and (holding[0].minima == 2 or holding[0].exact_p < 1e-10)
+
+
+@pytest.mark.parametrize("name", SMALL_SETS)
 @pytest.mark.parametrize("strategy", ["sequential", "tree"])
 def test_clean_datasets_flag_only_the_joins_the_exact_statistic_confirms(data_dir, name, strategy):
     """At the default gate, clean joins are flagged at the level's rate: none, except DLR's two level-1 tree
