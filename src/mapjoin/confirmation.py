@@ -83,6 +83,10 @@ class Estimate:
     feature_ids: np.ndarray
     features: np.ndarray
 
+    def __post_init__(self) -> None:
+        if self.poses.shape != (len(self.pose_ids), 3) or self.features.shape != (len(self.feature_ids), 2):
+            raise ValueError("Estimate: one pose (x, y, phi) per pose id and one point (x, y) per feature id")
+
     @classmethod
     def of(cls, global_map: GlobalMap) -> Estimate:
         return cls(global_map.pose_ids, global_map.poses, global_map.feature_ids, global_map.features)
