@@ -15,6 +15,7 @@ used, so ``import mapjoin`` stays cheap and scipy is loaded only by :func:`refin
     fast.report[0].minima                              # each join's certificate: 1 or 2 local minima
     fast.report[0].p                                   # its chi-square check (chi2, dof, p, flag)
     mapjoin.join(maps, gate=1e-10, on_inconsistent="stop")  # or "warn" (default), "skip"
+    mapjoin.join(maps, confirm=mapjoin.confirm)       # failing joins confirmed on the exact problem
     exact = mapjoin.join_and_refine(maps)              # the fast join, then the exact optimum
     mapjoin.write_global_map(exact.global_map, "exact.csv")
     mapjoin.check_minima(a=5.0, c_phi=2.5)             # Theorem 2 for one join's (a, C_phi)
@@ -52,6 +53,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "read_truth": ("io", "read_truth"),
     "write_truth": ("io", "write_truth"),
     "join": ("joining", "join"),
+    "confirm": ("confirmation", "confirm"),
     "join_stream": ("streaming", "join_stream"),
     "join_associated": ("association", "join_associated"),
     "local_ids": ("association", "local_ids"),

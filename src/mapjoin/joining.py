@@ -50,6 +50,9 @@ log = logging.getLogger("mapjoin")
 
 Strategy = Literal["sequential", "tree"]
 STRATEGIES: tuple[str, ...] = ("sequential", "tree")
+#: stage 2 of the consistency test, passed in by the callers above (:func:`mapjoin.confirmation.confirm`):
+#: ``(maps, result, strategy, gate)`` -> ``result`` with its failing joins confirmed on the exact problem
+Confirm = Callable[[Sequence[LocalMap], "JoinResult", Strategy, float], "JoinResult"]
 
 
 @dataclass(frozen=True)
@@ -71,7 +74,9 @@ class JoinRecord:
     the heading link (c0 - 2 a0) of the same problem; ``p`` the upper tail probability of
     ``chi2 / s``, ``flag`` whether the join failed the gate (or has two minima). ``action``:
     ``joined``, ``features only`` (joined without the heading link) or ``left out`` (its features
-    dropped, its end pose kept), as the policy decided.
+    dropped, its end pose kept), as the policy decided. ``exact_chi2``, ``exact_p``: the exact statistic
+    of a join that failed the gate, when it was confirmed (:mod:`mapjoin.confirmation`,
+    docs/method.md#confirmation; then ``flag`` is its verdict), else None.
     """
 
     join: int
@@ -96,6 +101,8 @@ class JoinRecord:
     p: float = 1.0
     flag: bool = False
     action: str = "joined"
+    exact_chi2: float | None = None
+    exact_p: float | None = None
 
 
 _ROW = [field.name for field in dataclasses.fields(JoinRecord)][1:]  # a report row: the fields after ``join``
@@ -622,7 +629,8 @@ def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:
 def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection",
          strategy: Strategy = "sequential", jobs: int = 1,
          progress: Callable[[int], None] | None = None, *, gate: float = DEFAULT_GATE,
-         on_inconsistent: Policy = "warn", associate: _Associator | None = None) -> JoinResult:
+         on_inconsistent: Policy = "warn", associate: _Associator | None = None,
+         confirm: Confirm | None = None) -> JoinResult:
     """Join ``maps`` with ``strategy`` (``jobs`` only matters for the tree; ``associate``: see
     :func:`join_sequential`, used by :func:`mapjoin.association.join_associated`).
 
@@ -630,8 +638,12 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
     ``gate``, or that has two minima, is flagged in the report, and ``on_inconsistent`` says what
     happens then: ``warn`` (one warning per flagged map), ``stop`` (:class:`JoinError` naming the
     map) or ``skip`` (sequential only: such a map is joined by its features alone or left out; see
-    :func:`mapjoin.consistency.enforce`).
+    :func:`mapjoin.consistency.enforce`). ``confirm`` (:func:`mapjoin.confirmation.confirm`, passed in
+    by the callers above this module): the joins that fail the gate are confirmed on the exact problem
+    before the policy acts (not with ``associate``: the maps' ids are local).
     """
+    if associate is not None:
+        confirm = None
     if on_inconsistent == "skip" and associate is not None:
         raise ValueError("on_inconsistent='skip' re-joins the chain with the maps' own ids: not with association")
     if on_inconsistent == "skip" and strategy != "sequential":
@@ -642,10 +654,13 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
         result = join_tree(maps, covariance, solver, jobs, progress, associate, gate=gate)
     else:
         raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
+    if confirm is not None:
+        result = confirm(maps, result, strategy, gate)
 
     def rejoin(unlinked: frozenset[int], left_out: frozenset[int]) -> JoinResult:
         chain = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
-        return join_sequential(chain, covariance, solver, warn=False, gate=gate, unlinked=unlinked)
+        rejoined = join_sequential(chain, covariance, solver, warn=False, gate=gate, unlinked=unlinked)
+        return rejoined if confirm is None else confirm(chain, rejoined, "sequential", gate)
 
     return enforce(result, on_inconsistent, gate, rejoin if strategy == "sequential" else None)
 

@@ -248,11 +248,14 @@ class _Chain:
 
 def join_stream(maps: Iterable[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
                 solver: Solver = "bisection", progress: Callable[[int], None] | None = None, *,
-                gate: float = DEFAULT_GATE, on_inconsistent: Policy = "warn", chunk: int | None = None) -> StreamedJoin:
+                gate: float = DEFAULT_GATE, on_inconsistent: Policy = "warn", chunk: int | None = None,
+                confirm: Callable[[JoinResult], JoinResult] | None = None) -> StreamedJoin:
     """:func:`mapjoin.joining.join` of ``maps`` with the sequential strategy, taking them from the iterable
     ``chunk`` at a time (module docstring): the same global map and report, with memory bounded by the global
     map; ``chunk`` maps at a time (default :data:`CHUNK`). ``on_inconsistent``: ``warn`` or ``stop`` (``skip`` re-joins the whole chain: join a list instead).
     An error in the input (raised by the iterator) or the chain stops the join before anything is returned.
+    ``confirm``: applied to the result before the policy (the stream keeps no maps; a caller that can read
+    them again confirms the flagged joins on the exact problem, :func:`mapjoin.confirmation.confirm_streamed`).
     """
     if on_inconsistent == "skip":
         raise ValueError("on_inconsistent='skip' re-joins the whole chain: it needs the maps in memory")
@@ -275,4 +278,6 @@ def join_stream(maps: Iterable[LocalMap], covariance: CovarianceMode = DEFAULT_C
     if chain.last is None:
         raise JoinError("no local maps to join")
     result = chain.result(covariance, solver, gate)
+    if confirm is not None:
+        result = confirm(result)
     return StreamedJoin(enforce(result, on_inconsistent, gate, None), origin, read)

@@ -64,7 +64,8 @@ gate_option = click.option(
     "--gate", type=FiniteFloat(Range("gate", 0.0, 1.0)), default=DEFAULT_GATE, show_default=True, metavar="LEVEL",
     help="Flag a join whose chi-square p-value is below LEVEL (and every join with two minima); the statistic "
          "allows for the chain's drift and the run's variance factor, and the default comes from the clean real "
-         "datasets (docs/joining.md, 'Consistency').")
+         "datasets (docs/joining.md, 'Consistency'). A join that fails is confirmed on the exact least-squares "
+         "problem (docs/method.md#confirmation).")
 on_inconsistent_option = click.option(
     "--on-inconsistent", type=click.Choice(POLICIES), default="warn", show_default=True,
     help="What a flagged join does: warn (one warning per map), stop (exit 1 naming the map, nothing written) "

@@ -9,7 +9,8 @@ import click
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
 from ..association import DEFAULT_GATE as DEFAULT_ASSOCIATION_GATE
-from ..joining import join as join_maps
+from ..confirmation import confirm, confirm_streamed
+from ..joining import JoinResult, join as join_maps
 from ..streaming import join_stream
 from ..maps import Range
 from . import common, main
@@ -87,7 +88,9 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     if strategy == "sequential" and not (exact or associate or on_inconsistent == "skip"):
         with common.local_map_stream(inputs, input_format, outputs) as stream, \
                 progress_bar(ctx, None, "maps joined") as progress:  # read as they are joined: a count, not a bar
-            streamed = join_stream(stream, covariance, solver, progress, gate=gate, on_inconsistent=on_inconsistent)
+            streamed = join_stream(stream, covariance, solver, progress, gate=gate, on_inconsistent=on_inconsistent,
+                                   confirm=lambda joined: confirm_stream(ctx, joined, inputs, input_format, outputs,
+                                                                         gate))
         result, global_map, read = streamed.result, streamed.result.global_map, streamed.read_seconds
         origin_id, count = streamed.origin_id, len(global_map.pose_ids)
     else:
@@ -100,7 +103,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
 
                 refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
                                           join_progress=progress, progress=common.iteration_printer(ctx),
-                                          gate=gate, on_inconsistent=on_inconsistent,
+                                          gate=gate, on_inconsistent=on_inconsistent, confirm=confirm,
                                           **common.solve_arguments(max_iterations, tolerance, no_covariances))
                 result, global_map = refined.fast_join, refined.global_map
             elif associate:
@@ -110,7 +113,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                 global_map = result.global_map
             else:
                 result = join_maps(maps, covariance, solver, strategy, jobs, progress, gate=gate,
-                                   on_inconsistent=on_inconsistent)
+                                   on_inconsistent=on_inconsistent, confirm=confirm)
                 global_map = result.global_map
     if exact:
         common.warn_if_doubtful(refined)
@@ -147,3 +150,13 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                    data_on_stdout=output == "-" or trajectory_path == "-")
     if exact:
         common.exit_if_not_converged(ctx, refined, output)
+
+
+def confirm_stream(ctx: click.Context, result: JoinResult, inputs: tuple[str, ...], input_format: str | None,
+                   outputs: mapio.Outputs, gate: float) -> JoinResult:
+    """The streamed join's flags confirmed on the exact problem, its maps read again from files (not stdin)."""
+    read = None if "-" in inputs else (lambda: common.read_local_maps(inputs, input_format, outputs))
+    confirmed, unconfirmed = confirm_streamed(result, read, gate)
+    if unconfirmed:
+        say(ctx, unconfirmed)
+    return confirmed

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..covariance import DEFAULT_COVARIANCE, CovarianceMode, spherical_summary
 from ..consistency import DEFAULT_GATE, Policy
-from ..joining import JoinResult, Strategy, without_features, join
+from ..joining import Confirm, JoinResult, Strategy, without_features, join
 from ..maps import GlobalMap, LocalMap, Provenance
 from ..onestep import Solver
 from .problem import ExactProblem
@@ -102,17 +102,19 @@ def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy | None = None,
                     join_progress: Callable[[int], None] | None = None, max_iterations: int = 100,
                     tolerance: float = TOLERANCE, covariances: bool = True,
                     progress: Callable[[int, float], None] | None = None, gate: float = DEFAULT_GATE,
-                    on_inconsistent: Policy = "warn") -> RefineResult:
+                    on_inconsistent: Policy = "warn", confirm: Confirm | None = None) -> RefineResult:
     """Join the chain ``maps`` fast (:func:`mapjoin.joining.join` with strategy ``start``, by default
     :func:`default_start`,
     ``covariance``, ``solver``, ``jobs``, ``join_progress``, ``gate`` and ``on_inconsistent``: a map
-    the skip policy leaves out keeps only its end pose in the refinement too), then refine that to the
+    the skip policy leaves out keeps only its end pose in the refinement too; ``confirm``: see
+    :func:`mapjoin.joining.join`), then refine that to the
     exact least-squares join (:func:`refine` with the other arguments). The result holds
     the fast join (``fast_join``) and its time (``initial_seconds``)."""
     maps = list(maps)
     start = start or default_start(on_inconsistent)
     began = time.perf_counter()
-    fast = join(maps, covariance, solver, start, jobs, join_progress, gate=gate, on_inconsistent=on_inconsistent)
+    fast = join(maps, covariance, solver, start, jobs, join_progress, gate=gate, on_inconsistent=on_inconsistent,
+                confirm=confirm)
     left_out = {r.join for r in fast.report if r.action == "left out"}
     maps = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
     initial_seconds = time.perf_counter() - began
