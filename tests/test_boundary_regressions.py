@@ -310,3 +310,38 @@ def test_a_long_source_in_a_fetch_error_is_cut(tmp_path):
     code, lines = run(tmp_path, "datasets", "fetch", "sim-535", "--source", "x" * 3000, "--into", "cache")
     assert code == 1 and len(lines) == 1 and len(lines[0]) < 800, (code, len(lines[0]))
     assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------------------------------
+# Found by the property fuzz after the merges of 2026-11-26
+
+
+def test_an_end_pose_variance_written_as_a_huge_integer_is_read_as_a_number(tmp_path):
+    """`var_xy: 99999999999999999999999` (an int beyond int64, below the float range) made an object array
+    and a TypeError in the missing-variance check, when a map gives variances and no covariance."""
+    text = ("format: mapjoin/local-map\nversion: 1\nname: example\nstart_id: 0\nend_id: 1\n"
+            "end_pose: {x: 1.0, y: 2.0, phi: 0.1, var_xy: 99999999999999999999999, var_phi: 0.001}\n"
+            "features:\n- {id: 12, x: 3.0, y: 4.0, var: 0.02}\n- {id: 14, x: 5.0, y: 6.0, var: 0.02}\n")
+    (tmp_path / "huge.yaml").write_text(text)
+    from mapjoin.io import read_maps
+
+    [local_map] = read_maps(tmp_path / "huge.yaml")
+    assert local_map.pose_variances[0] == 1e23
+
+
+def test_a_label_the_font_cannot_draw_is_one_warning_line_not_python_warnings(tmp_path):
+    """`plot --label $'\\a'`: matplotlib warned "Glyph 7 (\\x07) missing from font(s)" through Python's
+    warnings, once per character; now one line of mapjoin's naming the code points, and the figure written."""
+    pytest.importorskip("matplotlib")
+    import warnings
+
+    assert run(tmp_path, "simulate", "--maps", "3", "--seed", "2", "-o", "maps.yaml")[0] == 0
+    assert run(tmp_path, "join", "maps.yaml", "-o", "global.csv")[0] == 0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = CliRunner().invoke(main, ["plot", str(tmp_path / "global.csv"), "-o", str(tmp_path / "p.png"),
+                                           "--label", "a\x07b\u4e00\x07"])
+    assert result.exit_code == 0 and not caught, (result.stderr, [str(w.message) for w in caught])
+    lines = [line for line in result.stderr.splitlines() if "glyph" in line]
+    assert lines == ["warning: the font has no glyph for U+0007, U+4E00 (drawn as a box)"]
+    assert (tmp_path / "p.png").stat().st_size > 0

@@ -16,6 +16,8 @@ import io
 import itertools
 import math
 import os
+import re
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
@@ -56,6 +58,8 @@ INSTALL_HINT = install_hint("plot")
 #: chi-square quantile is -2 ln(1 - p) in closed form (5.991 for 95%)
 ELLIPSE_PROBABILITY = 0.95
 _WEIGHTS = "spherical weights"  # what a map without covariances holds (GlobalMap.has_covariances)
+#: matplotlib's warning for a character its font cannot draw ("Glyph 7 (\\x07) missing from font(s) ...")
+_MISSING_GLYPH = re.compile(r"Glyph (\d+) ")
 DPI = 150
 #: |C_phi| below which one minimum is certain for every a (docs/method.md#the-arcsin-bound): atan(pi), 72.3 degrees
 ONE_MINIMUM_C_PHI = math.atan(math.pi)
@@ -94,11 +98,25 @@ def figure_format(path: str) -> str:
     return suffix
 
 
-def save(figure: Figure, path: str) -> None:
-    """Render ``figure`` into ``path`` (format from the extension), atomically like every mapjoin output."""
+def save(figure: Figure, path: str) -> str:
+    """Render ``figure`` into ``path`` (format from the extension), atomically like every mapjoin output.
+
+    Returns the characters of its text that the font has no glyph for (drawn as boxes; a label or map
+    name may hold any character), for the caller to say in one line: matplotlib would warn once per
+    character, through Python's warnings."""
     buffer = io.BytesIO()
-    figure.savefig(buffer, format=figure_format(path), dpi=DPI)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        figure.savefig(buffer, format=figure_format(path), dpi=DPI)
     mapio.write_output(buffer.getvalue(), path)
+    missing = []
+    for warning in caught:
+        glyph = _MISSING_GLYPH.match(str(warning.message))
+        if glyph is None:
+            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
+        elif chr(int(glyph.group(1))) not in missing:
+            missing.append(chr(int(glyph.group(1))))
+    return "".join(missing)
 
 
 # ---------------------------------------------------------------------------------------

@@ -67,7 +67,7 @@ def plot(ctx: click.Context, maps: tuple[str, ...], output: str, truth_path: str
     truth = mapio.read_truth(truth_path) if truth_path else None
     names = labels or [global_map.name for global_map in global_maps]
     with outputs:
-        figures.save(figures.map_figure(global_maps, names, truth, ellipses), output)
+        _say_missing(ctx, figures.save(figures.map_figure(global_maps, names, truth, ellipses), output))
     common.summary(ctx, f"plotted {common.counted(len(global_maps), 'map')}"
                         f"{' and the ground truth' if truth else ''} -> {output}",
                    {"maps": len(global_maps), "truth": truth is not None, "output": output}, data_on_stdout=output == "-")
@@ -98,7 +98,7 @@ def plot_minima(ctx: click.Context, report: str, output: str) -> None:
     outputs.guard([report])
     table = mapio.read_minima_table(report)
     with outputs:
-        figures.save(figures.minima_figure(table), output)
+        _say_missing(ctx, figures.save(figures.minima_figure(table), output))
     what = "join" if table.join is not None else "problem"
     common.summary(ctx, f"plotted {common.counted(len(table.a), what)} -> {output}",
                    {what + "s": len(table.a), "output": output},
@@ -150,7 +150,7 @@ def plot_join(ctx: click.Context, inputs: tuple[str, ...], output: str, join_num
              f"{_short(maps[0].name) if join_number == 1 else f'maps 1..{join_number}'} "
              f"({len(problem.z0)} common features, covariance {covariance})")
     with outputs:
-        figures.save(figures.join_figure(curve, title), output)
+        _say_missing(ctx, figures.save(figures.join_figure(curve, title), output))
     common.summary(ctx, f"plotted join {join_number} ({common.counted(len(curve.minima), 'minimum', 'minima')}, "
                         f"phi* = {curve.minima[0][0]:+.6f} rad) -> {output}",
                    {"join": join_number, "minima": len(curve.minima), "phi": curve.minima[0][0], "output": output},
@@ -188,3 +188,10 @@ def _drawable(argument: str, ellipses: bool) -> GlobalMap:
 def _short(name: str) -> str:
     """A map's name without its folders, for a title."""
     return os.path.basename(name) or name
+
+
+def _say_missing(ctx: click.Context, missing: str) -> None:
+    """One warning line for the characters the figure's font could not draw (drawn as boxes)."""
+    if missing:
+        common.say(ctx, "warning: the font has no glyph for " + ", ".join(f"U+{ord(c):04X}" for c in missing)
+                   + " (drawn as a box)")

@@ -194,7 +194,7 @@ def _local_map_from_yaml(document: yamldoc.Document, number: int | None) -> Loca
     features = document.records(("features",), _FEATURE_FIELDS, optional=_VARIANCES)
     size = 3 + 2 * len(features["id"])
     covariance = document.matrix(("covariance",), (size, size), optional=True)
-    pose_variances = np.array([np.nan if pose[key] is None else pose[key] for key in ("var_xy", "var_phi")])
+    pose_variances = np.array([np.nan if pose[key] is None else pose[key] for key in ("var_xy", "var_phi")], dtype=float)
     feature_variances = features["var"]
     if covariance is None:
         _require_variances(document, pose_variances, feature_variances)
