@@ -27,10 +27,12 @@ __all__ = ["BACKENDS", "DENSE_UNKNOWNS", "Backend", "DenseFactor", "backend_for"
 Backend = Literal["auto", "dense", "sparse"]
 BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse")
 
-#: problems with at most this many unknowns are solved densely under ``auto``: measured on whole ``refine``
-#: commands of simulated chains (benchmarks/startup.py --crossover), where the dense solve stops paying for
-#: itself against the import of scipy.sparse.linalg (benchmarks/README.md, "Start-up")
-DENSE_UNKNOWNS = 400
+#: problems with at most this many unknowns are solved densely under ``auto``: on whole refines of the first
+#: maps of VicPark 200 and DLR 200 (benchmarks/startup.py --crossover) the dense backend took 0.33-0.76 of the
+#: sparse one's time up to 148 unknowns, and from 184 to 464 about as long or longer (0.77-1.63: OpenBLAS's
+#: threads on a loaded machine); the real datasets' 1198-1698 unknowns are far beyond (benchmarks/README.md,
+#: "Start-up")
+DENSE_UNKNOWNS = 150
 
 
 def backend_for(backend: Backend, unknowns: int) -> Literal["dense", "sparse"]:
