@@ -143,8 +143,17 @@ def test_join_imports_neither_scipy_nor_the_other_commands(data_dir, tmp_path):
     assert "mapjoin.cli.join" in modules
     heavy = {m for m in modules if m.split(".")[0] in ("scipy", "yaml", "matplotlib")
              or m in ("numpy.ma", "numpy.random", "mapjoin.refine", "mapjoin.cli.refine", "mapjoin.cli.build",
-                      "mapjoin.build", "mapjoin.evaluation", "mapjoin.simulation", "mapjoin.cli.plot")}
+                      "mapjoin.build", "mapjoin.evaluation", "mapjoin.simulation", "mapjoin.cli.plot",
+                      "mapjoin.association")}
     assert not heavy
+
+
+def test_joins_default_association_gate_is_the_librarys():
+    """cli/join.py writes the association gate's default out (not to import the association module)."""
+    from mapjoin.association import DEFAULT_GATE
+    from mapjoin.cli.join import DEFAULT_ASSOCIATION_GATE
+
+    assert DEFAULT_ASSOCIATION_GATE == DEFAULT_GATE
 
 
 def test_a_small_refine_imports_no_scipy_and_a_plausible_chi2_no_scipy_special(data_dir, tmp_path):
