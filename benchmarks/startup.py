@@ -1,4 +1,4 @@
-"""Start-up: whole commands on the small datasets, before and after, beside Linear SLAM's times (issue 17, item 6).
+"""Start-up: whole commands on the issue's datasets, before and after, beside Linear SLAM's times (issue 17, item 6).
 
     python benchmarks/startup.py [--rounds N] [--before SRC] [--data DIR]
     python benchmarks/startup.py --crossover [--rounds N]
@@ -35,11 +35,11 @@ from pathlib import Path
 
 from common import DATA, ROOT, write_section
 
-SMALL = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps")
+DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps", "VicPark_6898_local_maps")
 TINY = "535_data_5_local_maps"  # not in the issue's table: a refine small enough for the dense backend
 #: the issue's table (same run there): Linear SLAM C++, mapjoin join, mapjoin refine; whole commands, seconds
 ISSUE = {"VicPark_200_local_maps": (0.50, 0.40, 1.03), "DLR_200_local_maps": (0.27, 0.50, 1.17),
-         "8240_data_50_local_maps": (0.13, 0.40, 1.05)}
+         "8240_data_50_local_maps": (0.13, 0.40, 1.05), "VicPark_6898_local_maps": (5.36, 1.76, 4.05)}
 #: the issue's machine: a fresh interpreter importing numpy and scipy.sparse.linalg (0.63-0.77 s: the middle),
 #: and `mapjoin --help`
 ISSUE_SCIPY, ISSUE_HELP = 0.70, 0.33
@@ -67,7 +67,7 @@ def timed(command: list[str], src: Path | None, cwd: str) -> tuple[float, float,
         env["PYTHONPATH"] = str(src)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
-    process = subprocess.run(command, env=env, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.run(command, env=env, cwd=cwd, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if process.returncode:
@@ -108,7 +108,8 @@ def commands(args: argparse.Namespace) -> str:
         "import numpy, scipy.sparse.linalg": ([python, "-c", "import numpy, scipy.sparse.linalg"], None)}
     for tree, src in trees.items():
         cases[f"--help ({tree})"] = ([python, "-m", "mapjoin", "--help"], src)
-        for name, command in [(name, command) for name in SMALL for command in ("join", "refine")] + [(TINY, "refine")]:
+        runs = [(name, command) for name in DATASETS for command in ("join", "refine")] + [(TINY, "refine")]
+        for name, command in runs:
             cases[f"{command} {name} ({tree})"] = ([python, "-m", "mapjoin", command, str(args.data / name),
                                                     "-o", os.path.join(scratch, f"{tree}.csv")], src)
     load = os.getloadavg()
@@ -122,20 +123,20 @@ def commands(args: argparse.Namespace) -> str:
         wall, cpu = medians[key]
         return f"{wall:.3f} ({cpu:.3f})"
 
-    lines = [f"Medians of {args.rounds} interleaved rounds, wall seconds (CPU seconds of the process in brackets), "
-             f"a fresh `{Path(python).name}` per run, bytecode compiled, 2-core shared machine, load average "
-             f"{load[0]:.2f} at the start and {load_end[0]:.2f} at the end.", "",
+    lines = [(f"Medians of {args.rounds} interleaved rounds, wall seconds (CPU seconds of the process in brackets), "
+              f"a fresh `{Path(python).name}` per run, bytecode compiled, 2-core shared machine, load average "
+              f"{load[0]:.2f} at the start and {load_end[0]:.2f} at the end."), "",
              "| reference | here | issue's machine | here / there |", "|---|---:|---:|---:|",
              f"| `python -c pass` | {cell('python -c pass')} | | |",
              f"| `python -c \"import numpy\"` | {cell('import numpy')} | | |",
-             f"| `python -c \"import numpy, scipy.sparse.linalg\"` | {cell('import numpy, scipy.sparse.linalg')} | "
-             f"0.63-0.77 | {scipy_ratio:.2f} |"]
+             (f"| `python -c \"import numpy, scipy.sparse.linalg\"` | {cell('import numpy, scipy.sparse.linalg')} | "
+              f"0.63-0.77 | {scipy_ratio:.2f} |")]
     lines += [f"| `mapjoin --help` ({tree}) | {cell(f'--help ({tree})')} | 0.33 | "
               f"{medians[f'--help ({tree})'][0] / ISSUE_HELP:.2f} |" for tree in trees]
     columns = [tree for tree in ("before", "after") if tree in trees]
     lines += ["", "| command | " + " | ".join(columns) + " | Linear SLAM there | scaled by the scipy import | "
               "scaled by `--help` | issue's mapjoin there |", "|---|" + "---:|" * (len(columns) + 4)]
-    for name in SMALL:
+    for name in DATASETS:
         linear, join_there, refine_there = ISSUE[name]
         for command, there in (("join", join_there), ("refine", refine_there)):
             key = f"{command} {name}"
@@ -161,9 +162,9 @@ def crossover(args: argparse.Namespace) -> str:
             unknowns[(name, count)] = int(timed(*cases[f"{name} {count} dense"], scratch)[2])
     load = os.getloadavg()
     medians = run_rounds(cases, args.rounds, scratch)
-    lines = [f"Medians of {args.rounds} interleaved rounds (load average {load[0]:.2f} at the start), wall seconds "
-             "(CPU seconds in brackets) of a fresh interpreter reading the maps, joining them (tree), solving and "
-             "computing the marginal covariances with the backend forced:", "",
+    lines = [(f"Medians of {args.rounds} interleaved rounds (load average {load[0]:.2f} at the start), wall seconds "
+              "(CPU seconds in brackets) of a fresh interpreter reading the maps, joining them (tree), solving and "
+              "computing the marginal covariances with the backend forced:"), "",
              "| maps | unknowns | dense | sparse | dense / sparse (wall) |", "|---|---:|---:|---:|---:|"]
     for (name, count), n in sorted(unknowns.items(), key=lambda item: item[1]):
         dense, sparse = medians[f"{name} {count} dense"], medians[f"{name} {count} sparse"]
