@@ -49,6 +49,7 @@ def assert_same_solve(solved, rtol):
     np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9 * scale)
     for dense_blocks, sparse_blocks in ((pa, pb), (fa, fb)):
         np.testing.assert_allclose(dense_blocks, sparse_blocks, rtol=rtol, atol=rtol * np.abs(sparse_blocks).max())
+        assert np.array_equal(dense_blocks, dense_blocks.transpose(0, 2, 1))   # written as a triangle in CSV
 
 
 @pytest.mark.parametrize("name", ["VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps"])

@@ -72,6 +72,9 @@ def factorise(pattern: BlockPattern, data: np.ndarray) -> DenseFactor:
 
 def diagonal_blocks(factor: DenseFactor, blocks: list[np.ndarray]) -> list[np.ndarray]:
     """Diagonal blocks of ``A^-1`` for each (k, s) array of unknowns in ``blocks``: (k, s, s) each, from the
-    whole inverse (what a selected inversion avoids for large problems costs little here)."""
+    whole inverse (what a selected inversion avoids for large problems costs little here), symmetrised: an
+    LU inverse is symmetric only to rounding, and a covariance written as its upper triangle (CSV) must read
+    back equal to one written whole (JSON, YAML)."""
     inverse = np.linalg.inv(factor.matrix)
+    inverse = (inverse + inverse.T) / 2
     return [inverse[b[:, :, None], b[:, None, :]] for b in blocks]
