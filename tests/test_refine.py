@@ -35,6 +35,7 @@ from mapjoin.refine import (
     join_and_refine,
     refine,
 )
+from mapjoin.refine import dense
 from mapjoin.refine.groups import (
     _GROUP_OVERHEAD,
     _block_whitening,
@@ -51,6 +52,14 @@ KNOWN_OPTIMA = {  # chi^2 at the exact optimum
     "DLR_200_local_maps": 11163.64,
     "8240_data_50_local_maps": 458.15,
 }
+
+
+@pytest.fixture(autouse=True)
+def sparse_backend(monkeypatch):
+    """These tests are of the sparse backend (SuperLU, selected inversion), which the exact solve would leave
+    for the dense one on most of their small problems (refine/dense.py); tests/test_startup.py checks the dense
+    backend against the sparse one."""
+    monkeypatch.setattr(dense, "DENSE_UNKNOWNS", -1)
 
 
 @pytest.fixture(scope="module")

@@ -66,7 +66,7 @@ class StreamCalibration:
         def retest(joins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             starts, ends_common, ids = segment.starts, segment.ends_common, segment.ids
             needed = np.concatenate([ids[starts[j]:ends_common[j]] for j in (joins + 1).tolist()])
-            needed = np.unique(needed)
+            needed = np.unique(needed, return_index=True)[0]   # sorted; without the hash path, which imports numpy.ma
             known = needed[needed < len(self._seen)]
             carried = known[self._seen[known] >= 0]
             table_maps = np.concatenate([self._seen[carried], maps])

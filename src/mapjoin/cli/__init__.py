@@ -11,8 +11,10 @@ input is read and writes them all or none.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
+from collections.abc import Iterator, MutableMapping
 
 import click
 
@@ -109,5 +111,40 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
     ctx.obj = {"quiet": quiet, "verbose": verbose, "warnings": handler}
 
 
+#: each command's module in this package: imported when the command is first looked up (to run it, show its
+#: help, or list it in ``mapjoin --help``), so that a command pays for its own imports only
+COMMAND_MODULES = {"build": "build", "check-minima": "check_minima", "compare": "compare", "convert": "convert",
+                   "datasets": "datasets", "evaluate": "evaluate", "join": "join", "merge": "merge", "plot": "plot",
+                   "plot-join": "plot", "plot-minima": "plot", "refine": "refine", "simulate": "simulate"}
+
+
+class LazyCommands(MutableMapping):
+    """A group's commands by name (``click.Group.commands``), each one's module imported on first lookup:
+    the module registers its commands (``@main.command()``), as they were when all were imported up front."""
+
+    def __init__(self, modules: dict[str, str]):
+        self._modules = dict(modules)
+        self._loaded: dict[str, click.Command] = {}
+
+    def __getitem__(self, name: str) -> click.Command:
+        if name not in self._loaded and name in self._modules:
+            importlib.import_module(f"{__name__}.{self._modules[name]}")
+        return self._loaded[name]
+
+    def __setitem__(self, name: str, command: click.Command) -> None:
+        self._loaded[name] = command
+
+    def __delitem__(self, name: str) -> None:
+        self._modules.pop(name, None)
+        del self._loaded[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(sorted(self._modules.keys() | self._loaded.keys()))
+
+    def __len__(self) -> int:
+        return len(self._modules.keys() | self._loaded.keys())
+
+
+main.commands = LazyCommands(COMMAND_MODULES)
+
 from .messages import StderrHandler  # noqa: E402
-from . import build, check_minima, compare, convert, datasets, evaluate, join, merge, plot, refine, simulate  # noqa: E402,F401  (registers the commands)

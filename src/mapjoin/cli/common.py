@@ -353,11 +353,14 @@ def exit_if_not_converged(ctx: click.Context, result: RefineResult, output: str)
 def warn_if_doubtful(result: RefineResult) -> None:
     """Warn when the exact join's chi^2 is outside the 99.9% interval
     of its chi-square distribution (skipped under -q, which silences warnings: the interval
-    costs scipy.special's import, ~0.08 s)."""
+    costs scipy.special's import, ~0.08 s, so a chi^2 certainly inside it is not asked for it either)."""
     dof = result.degrees_of_freedom
     if dof <= 0 or not log.isEnabledFor(logging.WARNING):
         return
-    from ..evaluation import chi2_verdict
+    from ..evaluation import chi2_surely_inside, chi2_verdict
+
+    if chi2_surely_inside(result.cost, dof):
+        return
 
     verdict = chi2_verdict([result.cost], [dof])
     if not verdict.outside.size:

@@ -8,7 +8,6 @@ import click
 
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
-from ..association import DEFAULT_GATE as DEFAULT_ASSOCIATION_GATE
 from ..confirmation import confirm, confirm_streamed
 from ..joining import JoinResult, join as join_maps
 from ..streaming import join_stream
@@ -19,6 +18,9 @@ from .common import (TABLE_EXTENSIONS, covariance_option, gate_option, global_ma
                      on_inconsistent_option, progress_bar, say, solver_option, trajectory_option)
 
 ASSOCIATION_GATE = Range("chi-square levels", 0.5, 0.999999)
+#: association.DEFAULT_GATE, written out so that a join without --associate does not import the association
+#: module (~10 ms of every join's start-up); tests/test_startup.py checks that the two agree
+DEFAULT_ASSOCIATION_GATE = 0.999
 
 
 @main.command()

@@ -22,12 +22,10 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-import scipy.linalg
 
 from ..errors import JoinError
 
 _GROUP_OVERHEAD = 2e4      # entries of a map's block worth one group's Python overhead in the evaluation
-_TRTRI = scipy.linalg.lapack.get_lapack_funcs("trtri", (np.zeros(1),))
 
 
 @dataclass
@@ -131,15 +129,16 @@ def _inverse_cholesky(covariance: np.ndarray) -> np.ndarray:
 
 
 def _triangular_inverse(L: np.ndarray) -> np.ndarray:
-    """Inverses of a stack of lower triangular matrices (G, d, d): a third of the work of a
-    general inverse. Few or large matrices one by one (LAPACK's trtri, on the transposes:
-    no copies); many small ones row by row, the forward substitution vectorised over the stack."""
+    """Inverses of a stack of lower triangular matrices (G, d, d). Few or large matrices by
+    LAPACK's solve (numpy's batched inverse) of the upper triangular transposes: partial
+    pivoting finds nothing below the diagonal there, so no row moves and the factorisation
+    leaves the matrix as it is, and the back substitution keeps every zero of the inverse
+    exactly zero (as the pattern of J^T J, read from the information, needs); numpy's, so
+    that a small exact join imports no scipy. Many small ones row by row, the forward
+    substitution vectorised over the stack."""
     G, d = L.shape[0], L.shape[-1]
     if d >= 24 or G < 4 * d:
-        W = np.empty_like(L)
-        for g in range(G):
-            W[g].T[...] = _TRTRI(L[g].T, lower=0)[0]
-        return W
+        return np.linalg.inv(L.transpose(0, 2, 1)).transpose(0, 2, 1)
     W = np.zeros_like(L)
     reciprocal = 1.0 / np.diagonal(L, axis1=1, axis2=2)
     W[:, 0, 0] = reciprocal[:, 0]

@@ -17,7 +17,8 @@ residuals.
 
 Maps are evaluated in groups of nearby sizes (:mod:`.groups`); the blocks of ``J^T J``
 they give go into the fixed sparse pattern of ``J^T J`` (:mod:`.sparse`) with one
-``bincount``, in a fill-reducing order computed once.
+``bincount``, in a fill-reducing order computed once; a small problem's linear algebra is
+dense (:mod:`.dense`, the natural order), on the same assembled data.
 """
 
 from __future__ import annotations
@@ -26,18 +27,22 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..covariance import state_covariance
 from ..errors import JoinError
 from ..maps import GlobalMap, LocalMap, locate
 from ..se2 import to_frame, wrap
+from . import dense
 from . import groups as grouping
+from .dense import Backend, backend_for
 from .groups import Group
 from .sparse import BlockPattern, diagonal_blocks, factorise, fill_reducing_order
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 __all__ = ["Blocks", "ExactProblem"]
 
@@ -90,10 +95,14 @@ class ExactProblem:
 
     ``measurements``: the local maps, or :class:`Blocks` of the same shape. ``origins``: the
     pose ids held fixed at the origin (default: the first map's start). Maps starting at
-    different origins make independent problems, solved together.
+    different origins make independent problems, solved together. ``backend``: the linear
+    algebra of the normal equations, ``sparse`` (SuperLU, selected inversion: :mod:`.sparse`)
+    or ``dense`` (numpy: :mod:`.dense`); ``auto`` takes dense for small problems
+    (:func:`.dense.backend_for`), where importing scipy would cost more than the solve.
     """
 
-    def __init__(self, measurements: Sequence[LocalMap] | Blocks, origins: Sequence[int] | None = None):
+    def __init__(self, measurements: Sequence[LocalMap] | Blocks, origins: Sequence[int] | None = None,
+                 backend: Backend = "auto"):
         blocks = _as_blocks(measurements)
         self.n_maps = N = len(blocks.end_ids)
         if not N:
@@ -104,6 +113,7 @@ class ExactProblem:
         self.feature_ids, compact = np.unique(blocks.feature_ids, return_inverse=True)
         self.n_features = n = len(self.feature_ids)
         self.n_unknowns = 3 * N + 2 * n
+        self.backend = backend_for(backend, self.n_unknowns)
         self.row0 = np.concatenate([[0], np.cumsum(3 + 2 * sizes)])
         self.n_residuals = int(self.row0[-1])
         chain = _Chain(base, compact.ravel(), np.concatenate([[0], np.cumsum(sizes)]), sizes)
@@ -162,7 +172,7 @@ class ExactProblem:
         point = np.arange(p) <= real[:, None]                   # real points (the rest is padding)
         entry = np.concatenate([point, point, np.ones((G, 1), dtype=bool)], axis=1)
         stacks = []                                             # (which maps, their covariances) by size
-        for r in np.unique(real).tolist():
+        for r in np.flatnonzero(np.bincount(real)).tolist():   # the sizes present (np.unique imports numpy.ma)
             members, stack = covariances[r]
             mine = real == r
             stacks.append((mine, stack[np.searchsorted(members, ks[mine])]))
@@ -270,6 +280,8 @@ class ExactProblem:
 
     def jacobian(self, x: np.ndarray) -> sp.csr_matrix:
         """The sparse Jacobian of :meth:`residual` (CSR, n_residuals x n_unknowns)."""
+        import scipy.sparse as sp
+
         x = np.asarray(x, dtype=float)
         rows, cols, vals = [], [], []
         for group in self.groups:
@@ -284,8 +296,9 @@ class ExactProblem:
     # ---- normal equations ---------------------------------------------------------------
 
     def _prepare(self) -> None:
-        """Once: the fill-reducing node order, the CSC pattern of J^T J in it (with the closed
-        node pattern for the marginal covariances), and where each map block's entries go."""
+        """Once: the fill-reducing node order (the natural one for the dense backend), the CSC
+        pattern of J^T J in it (with the closed node pattern for the sparse marginal
+        covariances), and where each map block's entries go."""
         if self._pattern is not None:
             return
         N, n = self.n_maps, self.n_features
@@ -293,7 +306,10 @@ class ExactProblem:
         keys = self._node_pairs(n_nodes)
         natural, inverse = np.unique(np.concatenate(keys), return_inverse=True)
         col, row = natural // n_nodes, natural % n_nodes
-        order, self._closed = fill_reducing_order(row, col, n_nodes)
+        if self.backend == "dense":
+            order, self._closed = np.arange(n_nodes), None
+        else:
+            order, self._closed = fill_reducing_order(row, col, n_nodes)
         self._pattern = BlockPattern(col, row, order, np.concatenate([np.full(N, 3), np.full(n, 2)]))
         slots = np.split(self._pattern.rank[inverse], np.cumsum([k.size for k in keys])[:-1])
         self._place_blocks(order, slots)
@@ -389,10 +405,13 @@ class ExactProblem:
         return self._pattern.matrix(data)
 
     def factorise(self, data: np.ndarray, damping: float = 0.0):
-        """SuperLU factor of ``J^T J + damping diag(J^T J)`` (symmetric mode, fill-reducing order)."""
+        """The factor of ``J^T J + damping diag(J^T J)``: SuperLU's (symmetric mode, fill-reducing
+        order), or the dense backend's (:func:`.dense.factorise`); raises RuntimeError if singular."""
         if damping:
             data = data.copy()
             data[self._pattern.diagonal] *= 1.0 + damping
+        if self.backend == "dense":
+            return dense.factorise(self._pattern, data)
         return factorise(self.normal_matrix(data))
 
     def solve(self, factor, rhs: np.ndarray) -> np.ndarray:
@@ -409,12 +428,16 @@ class ExactProblem:
 
     def marginals(self, factor) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariances ``(poses (N, 3, 3), features (n, 2, 2))``, the diagonal blocks
-        of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise`."""
+        of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise` (the
+        dense backend: from the whole inverse)."""
         N, n = self.n_maps, self.n_features
         poses = np.arange(3 * N).reshape(N, 3)
         features = 3 * N + np.arange(2 * n).reshape(n, 2)
-        pose_covariances, feature_covariances = diagonal_blocks(factor, self._pattern, self._closed,
-                                                                [poses, features])
+        if self.backend == "dense":
+            pose_covariances, feature_covariances = dense.diagonal_blocks(factor, [poses, features])
+        else:
+            pose_covariances, feature_covariances = diagonal_blocks(factor, self._pattern, self._closed,
+                                                                    [poses, features])
         return pose_covariances, feature_covariances
 
 
@@ -444,7 +467,7 @@ def _covariances_by_size(blocks: Blocks, sizes: np.ndarray) -> tuple[dict[int, t
     """The blocks' covariances by size m, ``{m: (blocks of that size, their covariances)}``,
     and which blocks' points are independent (:func:`.groups.independent_points`)."""
     covariances, independent = {}, np.zeros(len(sizes), dtype=bool)
-    for m in np.unique(sizes).tolist():
+    for m in np.flatnonzero(np.bincount(sizes)).tolist():   # the sizes present (np.unique imports numpy.ma)
         ks = np.flatnonzero(sizes == m)
         covariances[m] = ks, np.asarray(blocks.covariances(ks), dtype=float)
         independent[ks] = grouping.independent_points(covariances[m][1])

@@ -20,10 +20,15 @@ are computed, top-down along the supernodal elimination tree, never the whole in
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import scipy.linalg
-import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+# scipy is imported by the functions that use it: BlockPattern's arithmetic is numpy's, and the dense
+# backend (.dense) of a small problem uses it without scipy
 
 __all__ = ["BlockPattern", "Supernodes", "closed_pattern", "diagonal_blocks", "factorise", "fill_reducing_order",
            "selected_inverse"]
@@ -42,6 +47,9 @@ def fill_reducing_order(row: np.ndarray, col: np.ndarray, n_nodes: int) -> tuple
     # The values make the matrix a weighted Laplacian plus 1e-3 I: an M-matrix, so its factor
     # has no cancellation (nor, as the shift is small, decay to underflow), and its pattern is
     # the symbolic one.
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
     off = row != col
     graph = sp.csc_matrix((np.where(off, -1.0, 1e-3 + np.bincount(col[off], minlength=n_nodes)[col]),
                            (row, col)), shape=(n_nodes, n_nodes))
@@ -126,11 +134,15 @@ class BlockPattern:
 
     def matrix(self, data: np.ndarray) -> sp.csc_matrix:
         """The matrix of CSC ``data``: entry (position[i], position[j]) is (i, j)."""
+        import scipy.sparse as sp
+
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
 
 
 def factorise(matrix: sp.csc_matrix):
     """SuperLU factor ``L D L^T`` of a positive definite matrix in its given order (symmetric mode)."""
+    from scipy.sparse.linalg import splu
+
     return splu(matrix, permc_spec="NATURAL", **_SUPERLU)
 
 
@@ -347,6 +359,8 @@ def selected_inverse(structure: Supernodes, Lrow: np.ndarray, Lcol: np.ndarray, 
     result = np.empty(st.block_offset[-1])        # the same layout for [Z_JJ; Z_SJ]
     frontal: dict[int, np.ndarray] = {}
     children = st.children.copy()
+    import scipy.linalg
+
     dtrtri = scipy.linalg.lapack.get_lapack_funcs("trtri", (D,))
     for J in range(st.count - 1, -1, -1):
         j0, b, s = st.start[J], st.size[J], st.below[J]

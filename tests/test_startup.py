@@ -1,0 +1,196 @@
+"""Start-up (issue 17, item 6): the dense backend of the exact solve against the sparse one, the chi^2
+certificate that spares scipy.special against scipy's interval, and what each command imports."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapjoin import io as mapio
+from mapjoin.cli import COMMAND_MODULES, main
+from mapjoin.evaluation import CHI2_LEVEL, chi2_interval, chi2_surely_inside
+from mapjoin.joining import join
+from mapjoin.refine import dense
+from mapjoin.refine.dense import DENSE_UNKNOWNS, backend_for
+from mapjoin.refine.problem import ExactProblem
+from mapjoin.refine.solver import minimise
+from mapjoin.simulation import simulate
+
+KNOWN_OPTIMA = {"VicPark_200_local_maps": 3643.435, "DLR_200_local_maps": 11163.64}
+
+
+def solve_both(maps, start, offset: float = 0.0, seed: int = 0):
+    """The exact solve from ``start`` (a global map; its unknowns moved by normal noise of deviation
+    ``offset``) with each backend: {backend: (problem, minimum, (pose, feature) marginal covariances)}."""
+    solved = {}
+    for backend in ("dense", "sparse"):
+        problem = ExactProblem(maps, backend=backend)
+        assert problem.backend == backend
+        x = problem.pack(start)
+        found = minimise(problem, x + np.random.default_rng(seed).normal(0, offset, x.size))
+        solved[backend] = problem, found, problem.marginals(found.final_factor(problem))
+    return solved
+
+
+def assert_same_solve(solved, rtol):
+    """Same number of steps, the same chi^2 after each (down to rounding: a single map's optimum is 0), the
+    same optimum and marginal covariances."""
+    (_, a, (pa, fa)), (_, b, (pb, fb)) = solved["dense"], solved["sparse"]
+    assert a.iterations == b.iterations and a.converged and b.converged
+    np.testing.assert_allclose(a.costs, b.costs, rtol=1e-9, atol=1e-14 * b.costs[0])
+    scale = 1.0 + np.max(np.abs(b.x))
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9 * scale)
+    for dense_blocks, sparse_blocks in ((pa, pb), (fa, fb)):
+        np.testing.assert_allclose(dense_blocks, sparse_blocks, rtol=rtol, atol=rtol * np.abs(sparse_blocks).max())
+        assert np.array_equal(dense_blocks, dense_blocks.transpose(0, 2, 1))   # written as a triangle in CSV
+
+
+@pytest.mark.parametrize("name", ["VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps"])
+def test_dense_and_sparse_backends_solve_the_real_datasets_alike(name, data_dir):
+    """Every chi^2 on the way (1e-9 relative), the optimum and the marginal covariances agree, and the dense
+    backend reaches the known optima (1e-6 relative)."""
+    maps = mapio.read_maps([str(data_dir / name)])
+    solved = solve_both(maps, join(maps, strategy="tree").global_map)
+    assert_same_solve(solved, rtol=1e-7)
+    if name in KNOWN_OPTIMA:
+        assert solved["dense"][1].cost == pytest.approx(KNOWN_OPTIMA[name], rel=1e-6)
+
+
+@settings(max_examples=25, deadline=None)
+@given(count=st.integers(1, 8), seed=st.integers(0, 10_000), full=st.booleans(), noise=st.floats(0.0, 0.3))
+def test_dense_and_sparse_backends_solve_small_simulations_alike(count, seed, full, noise):
+    """Small simulated chains (full or spherical covariances), started off the fast join by noise."""
+    maps = list(simulate(count, seed=seed, full_covariance=full).maps)
+    assert_same_solve(solve_both(maps, join(maps).global_map, noise, seed), rtol=1e-6)
+
+
+def test_dense_backend_equals_the_sparse_one_on_a_singular_problem():
+    """A feature seen by no map's information cannot be: both backends call exact singularity RuntimeError."""
+    maps = list(simulate(3, seed=1).maps)
+    for backend in ("dense", "sparse"):
+        problem = ExactProblem(maps, backend=backend)
+        data = problem.linearise(problem.pack(join(maps).global_map))[0] * 0.0
+        with pytest.raises(RuntimeError):
+            problem.solve(problem.factorise(data), np.ones(problem.n_unknowns))
+
+
+def test_auto_backend_is_dense_up_to_the_measured_crossover():
+    assert backend_for("auto", DENSE_UNKNOWNS) == "dense"
+    assert backend_for("auto", DENSE_UNKNOWNS + 1) == "sparse"
+    assert backend_for("sparse", 3) == "sparse" and backend_for("dense", 10**6) == "dense"
+    with pytest.raises(ValueError, match="backend"):
+        backend_for("cholmod", 10)
+    small = list(simulate(2, seed=0).maps)
+    assert ExactProblem(small).n_unknowns <= DENSE_UNKNOWNS and ExactProblem(small).backend == "dense"
+
+
+# ---- the chi^2 certificate ------------------------------------------------------------------------
+
+
+@settings(max_examples=400, deadline=None)
+@given(dof=st.one_of(st.integers(1, 30), st.integers(1, 10**7)), z=st.floats(-6.0, 6.0))
+def test_a_chi2_surely_inside_is_inside_scipys_interval(dof, z):
+    """Sound: whatever it certifies lies in scipy's central interval (chdtri), around dof +- 6 sigma."""
+    cost = dof + z * math.sqrt(2 * dof)
+    if cost <= 0:
+        cost = dof * 1e-3
+    if chi2_surely_inside(cost, dof):
+        low, high = chi2_interval(dof, CHI2_LEVEL)
+        assert low <= cost <= high
+
+
+@pytest.mark.parametrize("dof", [10, 100, 2800, 7180, 10**6])
+def test_the_chi2_certificate_covers_two_sigma(dof):
+    """Useful: the values a well-weighted problem gives (within two standard deviations) need no scipy; far
+    out it certifies nothing (and the verdict, with scipy, decides)."""
+    sigma = math.sqrt(2 * dof)
+    assert all(chi2_surely_inside(dof + z * sigma, dof) for z in np.linspace(-1.7, 2.0, 9))
+    low, high = chi2_interval(dof, CHI2_LEVEL)
+    assert not chi2_surely_inside(low * 0.999, dof) and not chi2_surely_inside(high * 1.001, dof)
+    assert not chi2_surely_inside(0.0, dof) and not chi2_surely_inside(math.inf, dof)
+    assert not chi2_surely_inside(dof, 0)
+
+
+# ---- what the commands import -------------------------------------------------------------------------
+
+_IMPORTS = """
+import json, runpy, sys
+sys.argv = ["mapjoin", *sys.argv[1:]]
+try:
+    runpy.run_module("mapjoin", run_name="__main__", alter_sys=True)
+except SystemExit as exit:
+    code = exit.code
+print(json.dumps([code, sorted(sys.modules)]), file=sys.stderr)
+"""
+
+
+def imported(*args: str) -> set[str]:
+    """The modules a fresh interpreter holds after ``mapjoin ARGS`` (which must succeed)."""
+    process = subprocess.run([sys.executable, "-c", _IMPORTS, *args], capture_output=True, text=True, check=False)
+    code, modules = json.loads(process.stderr.splitlines()[-1])
+    assert code in (0, None), process.stderr
+    return set(modules)
+
+
+def test_join_imports_neither_scipy_nor_the_other_commands(data_dir, tmp_path):
+    modules = imported("join", str(data_dir / "8240_data_50_local_maps"), "-o", str(tmp_path / "g.csv"))
+    assert "mapjoin.cli.join" in modules
+    heavy = {m for m in modules if m.split(".")[0] in ("scipy", "yaml", "matplotlib")
+             or m in ("numpy.ma", "numpy.random", "mapjoin.refine", "mapjoin.cli.refine", "mapjoin.cli.build",
+                      "mapjoin.build", "mapjoin.evaluation", "mapjoin.simulation", "mapjoin.cli.plot",
+                      "mapjoin.association")}
+    assert not heavy
+
+
+def test_joins_default_association_gate_is_the_librarys():
+    """cli/join.py writes the association gate's default out (not to import the association module)."""
+    from mapjoin.association import DEFAULT_GATE
+    from mapjoin.cli.join import DEFAULT_ASSOCIATION_GATE
+
+    assert DEFAULT_ASSOCIATION_GATE == DEFAULT_GATE
+
+
+def test_a_small_refine_imports_no_scipy_and_a_plausible_chi2_no_scipy_special(data_dir, tmp_path):
+    small = imported("refine", str(data_dir / "535_data_5_local_maps"), "-o", str(tmp_path / "exact.csv"))
+    assert "mapjoin.refine.dense" in small and not {m for m in small if m.startswith("scipy")}
+    # 8240's chi^2 (458.15) is certified inside its interval: the solve is sparse, the check needs no scipy.special
+    larger = imported("refine", str(data_dir / "8240_data_50_local_maps"), "-o", str(tmp_path / "exact.csv"))
+    assert "scipy.sparse.linalg" in larger and "scipy.special" not in larger
+
+
+# ---- the lazily loaded commands ---------------------------------------------------------------------
+
+
+def test_every_command_lives_in_the_module_it_is_listed_under():
+    """COMMAND_MODULES names each command's module, and no module registers a command it does not list."""
+    commands = dict(main.commands.items())       # imports every command's module
+    assert set(commands) == set(COMMAND_MODULES)
+    for name, command in commands.items():
+        assert command.callback.__module__ == f"mapjoin.cli.{COMMAND_MODULES[name]}", name
+        assert command.name == name
+
+
+def test_help_lists_every_command_with_its_short_help():
+    from click.testing import CliRunner
+
+    output = CliRunner().invoke(main, ["--help"]).output
+    listed = output.split("Commands:\n", 1)[1].splitlines()
+    assert [line.split()[0] for line in listed if line.strip()] == sorted(COMMAND_MODULES)
+    for name in COMMAND_MODULES:
+        short = main.commands[name].get_short_help_str(limit=200)
+        assert any(line.split(None, 1) == [name, short] for line in listed), name
+
+
+def test_dense_module_needs_no_scipy():
+    """refine/dense.py is numpy's: imported alone it loads no scipy."""
+    code = "import sys, mapjoin.refine.problem; print(any(m.startswith('scipy') for m in sys.modules))"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() \
+        == "False"
+    assert dense.backend_for("auto", 1) == "dense"
