@@ -38,16 +38,7 @@ class Table:
     def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]] | None, line_offset: int = 0):
         self.source = source
         self.plain = text.isascii() and "_" not in text  # then every number is plain (no cell to check)
-        reader = csv.reader(io.StringIO(text, newline=""))
-        rows: list[list[str]] = []
-        lines: list[int] = []
-        try:
-            for row in reader:
-                if row:
-                    rows.append(row)
-                    lines.append(reader.line_num + line_offset)
-        except csv.Error as error:
-            raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num + line_offset}") from None
+        rows, lines = _rows(text, source, line_offset)
         if " " in text or "\t" in text:  # spaces around separators are not part of a cell
             rows = [[cell.strip(" \t") for cell in row] for row in rows]
         header = tuple(rows[0]) if rows else ()
@@ -148,6 +139,25 @@ class Table:
         return blocks
 
 
+def _rows(text: str, source: str, line_offset: int) -> tuple[list[list[str]], list[int]]:
+    """The rows of ``text`` that have a cell, and the line of each."""
+    if not ('"' in text or "\r" in text or "\0" in text):  # each line a row, split at its commas (the fast path)
+        physical = text.split("\n")
+        lines = [number for number, line in enumerate(physical, 1 + line_offset) if line]
+        return [line.split(",") for line in physical if line], lines
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[list[str]] = []
+    lines = []
+    try:
+        for row in reader:
+            if row:
+                rows.append(row)
+                lines.append(reader.line_num + line_offset)
+    except csv.Error as error:
+        raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num + line_offset}") from None
+    return rows, lines
+
+
 def _parses(cell: Any, dtype: type) -> bool:
     """Whether numpy reads ``cell`` as ``dtype`` (to find the bad cell after a column failed)."""
     try:
@@ -170,6 +180,11 @@ class _LineSink(list):
 
 def to_text(rows: Sequence[Sequence[Any]]) -> str:
     """``rows`` as CSV text, LF line ends."""
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\r\n").writerows(rows)
+    text = buffer.getvalue()
+    if '"' not in text:  # no cell quoted, so none holds a line end: every CRLF ends a record (the fast path)
+        return text.replace("\r\n", "\n")
     sink = _LineSink()
     csv.writer(sink, lineterminator="\r\n").writerows(rows)
     return "".join(sink)
