@@ -41,7 +41,7 @@ class Table:
         rows, lines = _rows(text, source, line_offset)
         if " " in text or "\t" in text:  # spaces around separators are not part of a cell
             rows = [[cell.strip(" \t") for cell in row] for row in rows]
-        header = tuple(rows[0]) if rows else ()
+        header = tuple(rows[0]) if len(rows) else ()
         self.header_line = lines[0] if lines else 1 + line_offset
         if headers is not None and header not in headers:
             expected = " or ".join(",".join(header) for header in headers)
@@ -139,12 +139,17 @@ class Table:
         return blocks
 
 
-def _rows(text: str, source: str, line_offset: int) -> tuple[list[list[str]], list[int]]:
-    """The rows of ``text`` that have a cell, and the line of each."""
+def _rows(text: str, source: str, line_offset: int) -> tuple[list[list[str]] | np.ndarray, list[int]]:
+    """The rows of ``text`` that have a cell (a list of rows, or a 2-D array of cells when all are as wide),
+    and the line of each."""
     if not ('"' in text or "\r" in text or "\0" in text):  # each line a row, split at its commas (the fast path)
         physical = text.split("\n")
         lines = [number for number, line in enumerate(physical, 1 + line_offset) if line]
-        return [line.split(",") for line in physical if line], lines
+        rows = [line for line in physical if line]
+        commas = {line.count(",") for line in rows}
+        if len(commas) == 1:  # as wide: all the text's cells at once
+            return np.array(",".join(rows).split(","), dtype=object).reshape(len(rows), commas.pop() + 1), lines
+        return [line.split(",") for line in rows], lines
     reader = csv.reader(io.StringIO(text, newline=""))
     rows: list[list[str]] = []
     lines = []
