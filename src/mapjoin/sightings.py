@@ -11,6 +11,7 @@ simulator's output does not depend on how its scans are grouped.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,21 +67,21 @@ class Sightings:
 
     ``world``: feature positions (n x 2); ``poses``: the scan poses of phases ``0..len(poses)-1`` (of a lap
     of ``lap`` steps: lobe A's ``lap // 2`` first, then lobe B's); ``radius``: the circles' radius; a scan sees
-    the features at distances in ``[min_range, max_range]``. ``ids`` (optional): the number each feature is
-    reported by (-1: never seen, never reported); default its index.
+    the features at distances in ``[min_range, max_range]``. Features are reported by their index in
+    ``world`` (:meth:`renumbered`: by other numbers).
     """
 
     def __init__(self, world: np.ndarray, poses: np.ndarray, lap: int, radius: float, min_range: float,
-                 max_range: float, ids: np.ndarray | None = None):
+                 max_range: float):
         self.world, self.poses, self.lobe = world, poses, lap // 2
         self.min_range, self.max_range = min_range, max_range
-        self.ids = np.arange(len(world)) if ids is None else ids
+        self.ids = np.arange(len(world))
         self._windows = [_windows(world, side, self.lobe, radius, max_range) for side in (1.0, -1.0)]
 
     def renumbered(self, ids: np.ndarray) -> Sightings:
-        """The same sightings with feature ``i`` reported as ``ids[i]``."""
-        other = object.__new__(Sightings)
-        other.__dict__.update(self.__dict__, ids=ids)
+        """The same sightings with feature ``i`` reported as ``ids[i]`` (-1 for a feature no scan sees)."""
+        other = copy.copy(self)
+        other.ids = ids
         return other
 
     def first_seen(self) -> np.ndarray:
