@@ -3,7 +3,9 @@
 The digests were recorded at commit 7a05a2a (before the simulator built its world's visibility a chunk of
 maps at a time and checked its maps as stacks), by the fingerprint below and by ``sha256sum`` of the
 command's standard output. A change that alters them breaks users' reproducibility: it must bump a
-documented version of the simulation instead (docs/commands.md, ``simulate``).
+documented version of the simulation instead (docs/commands.md, ``simulate``). The covariances come
+from BLAS products, so the digests hold for this machine's numpy and OpenBLAS; another BLAS may round
+the last bits differently (then re-record them from the commit above, not from the code under test).
 """
 
 from __future__ import annotations
