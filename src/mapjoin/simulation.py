@@ -65,8 +65,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .maps import GroundTruth, LocalMap, locate
+from .covariance import marginal_variances
+from .maps import (
+    GroundTruth,
+    LocalMap,
+    StackedMaps,
+    first_invalid_map,
+    locate,
+    size_groups,
+    unstack,
+)
 from .se2 import relative, to_frame, wrap
+from .sightings import Sightings
 
 __all__ = ["MAX_STEPS", "Robots", "Simulation", "SimulationStream", "simulate", "simulate_robots", "simulate_stream"]
 
@@ -167,25 +177,21 @@ def simulate_stream(maps: int = 20, *, seed: int = 0, features: int | None = Non
     radius = _radius(lap, step_length)
     scan_poses = _figure_eight(np.arange(scanned), lap, step_length)
     world = _scatter(rng, features, density, radius, sensor_range)
-    phase, feature = _visible_pairs(world, lap, step_length, scanned, min_range, sensor_range)
-    visible = _Visibility(phase, feature, scanned)
+    sightings = Sightings(world, scan_poses, lap, radius, min_range, sensor_range)
     required = _required_pairs(maps, n, lap)
-    extra = _top_up(rng, visible, required, scan_poses, min_shared, min_range, sensor_range, step_length)
+    extra = _top_up(rng, sightings, required, scan_poses, min_shared, min_range, sensor_range, step_length)
     if len(extra):
-        extra_phase, extra_feature = _visible_pairs(extra, lap, step_length, scanned, min_range, sensor_range)
-        phase = np.concatenate([phase, extra_phase])
-        feature = np.concatenate([feature, extra_feature + len(world)])
         world = np.concatenate([world, extra])
+        sightings = Sightings(world, scan_poses, lap, radius, min_range, sensor_range)
 
     # ids in order of first sighting; unseen features dropped
-    first_seen = np.full(len(world), scanned, dtype=np.int64)
-    np.minimum.at(first_seen, feature, phase)
+    first_seen = sightings.first_seen()
     seen = np.flatnonzero(first_seen < scanned)
     seen = seen[np.argsort(first_seen[seen], kind="stable")]
     new_id = np.full(len(world), -1, dtype=np.int64)
     new_id[seen] = np.arange(len(seen))
     true_features = world[seen]
-    visible = _Visibility(phase, new_id[feature], scanned)
+    visible = sightings.renumbered(new_id)
 
     truth = GroundTruth(np.arange(len(seen)), true_features, np.arange(maps + 1),
                         _figure_eight(np.arange(maps + 1) * n, lap, step_length), name="sim truth")
@@ -328,60 +334,6 @@ def _scatter(rng: np.random.Generator, count: int | None, density: float, radius
     return np.concatenate(kept)[:count] if count else np.empty((0, 2))
 
 
-class _Visibility:
-    """Which features each scan phase sees, as sorted (phase, feature) pairs with CSR offsets."""
-
-    def __init__(self, phase: np.ndarray, feature: np.ndarray, phases: int):
-        order = np.argsort(phase * (int(feature.max(initial=0)) + 1) + feature, kind="stable")
-        self.phase, self.feature = phase[order], feature[order]
-        self.offsets = np.searchsorted(self.phase, np.arange(phases + 1))
-
-    def expand(self, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For each entry of ``phases`` its features: (index into ``phases``, feature) pairs."""
-        starts, lengths = self.offsets[phases], self.offsets[phases + 1] - self.offsets[phases]
-        owner = np.repeat(np.arange(len(phases)), lengths)
-        position = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
-        return owner, self.feature[np.repeat(starts, lengths) + position]
-
-
-def _visible_pairs(world: np.ndarray, lap: int, step_length: float, scanned: int, min_range: float,
-                   max_range: float) -> tuple[np.ndarray, np.ndarray]:
-    """Unsorted (scan phase, feature) pairs at distances in ``[min_range, max_range]``.
-
-    Uses the geometry (O(pairs), unlike a k-d tree on a long thin path): on each circle of
-    the figure-eight, the poses within ``max_range`` of a feature at distance ``d`` from the
-    centre span the angles ``beta +- arccos((d^2 + rho^2 - max_range^2) / (2 d rho))``;
-    the pose indices there (plus one on each side) are checked exactly.
-    """
-    lobe = lap // 2
-    turn = 2 * np.pi / lobe
-    radius = _radius(lap, step_length)
-    poses = _figure_eight(np.arange(min(scanned, lap)), lap, step_length)
-    phases, features = [], []
-    for side in (1.0, -1.0):                            # lobe A (centre y = +rho), lobe B
-        vx, vy = world[:, 0], world[:, 1] - side * radius
-        d = np.hypot(vx, vy)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cosine = (d * d + radius * radius - max_range * max_range) / (2 * d * radius)
-        cosine = np.where(np.isnan(cosine), -1.0, cosine)
-        half = np.arccos(np.clip(cosine, -1.0, 1.0))
-        # pose i of the lobe sits at polar angle i*turn - pi/2 (A) or pi/2 - i*turn (B)
-        centre = np.pi / 2 + side * np.arctan2(vy, vx)
-        low = np.floor((centre - half) / turn).astype(np.int64) - 1
-        count = np.minimum(np.ceil((centre + half) / turn).astype(np.int64) + 2 - low, lobe)
-        count[cosine > 1] = 0
-        which = np.repeat(np.arange(len(world)), count)
-        index = np.repeat(low, count) + np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-        phase = index % lobe + (0 if side > 0 else lobe)
-        keep = phase < len(poses)
-        phases.append(phase[keep])
-        features.append(which[keep])
-    phase, feature = np.concatenate(phases), np.concatenate(features)
-    distance = np.hypot(world[feature, 0] - poses[phase, 0], world[feature, 1] - poses[phase, 1])
-    keep = (distance >= min_range) & (distance <= max_range)
-    return phase[keep], feature[keep]
-
-
 def _required_pairs(maps: int, n: int, lap: int) -> np.ndarray:
     """Scan phases (a, c) that must share ``min_shared`` features: the last scan of map k and
     the first of map k+1, and (so that a single map sees features) the first scan twice."""
@@ -390,18 +342,17 @@ def _required_pairs(maps: int, n: int, lap: int) -> np.ndarray:
     return np.unique(np.concatenate([[[0, 0]], pairs]), axis=0)
 
 
-def _top_up(rng: np.random.Generator, visible: _Visibility, required: np.ndarray, poses: np.ndarray,
+def _top_up(rng: np.random.Generator, sightings: Sightings, required: np.ndarray, poses: np.ndarray,
             min_shared: int, min_range: float, max_range: float, step_length: float) -> np.ndarray:
     """Features to add so that every required pair of scans shares ``min_shared`` features."""
     if min_shared == 0:
         return np.empty((0, 2))
-    owner, feature = visible.expand(required[:, 0])
-    # is (c, feature) among the sorted (phase, feature) pairs?
-    width = int(visible.feature.max(initial=0)) + 1
-    key = visible.phase * width + visible.feature
-    probe = required[owner, 1] * width + feature
-    both = locate(key, probe)[1]
-    shared = np.bincount(owner[both], minlength=len(required))
+    shared = np.zeros(len(required), dtype=np.int64)
+    for lo in range(0, len(required), _CHUNK * 8):   # a block of pairs at a time (bounds memory)
+        pairs = required[lo:lo + _CHUNK * 8]
+        seen = sightings.at(pairs.ravel())
+        owner, feature = seen.expand(pairs[:, 0])
+        shared[lo:lo + len(pairs)] = np.bincount(owner[seen.sees(pairs[owner, 1], feature)], minlength=len(pairs))
     deficit = np.maximum(0, min_shared - shared)
     if not deficit.any():
         return np.empty((0, 2))
@@ -420,7 +371,7 @@ def _top_up(rng: np.random.Generator, visible: _Visibility, required: np.ndarray
 # --- local maps ------------------------------------------------------------------------
 
 def _chunk_maps(chunk: np.ndarray, n: int, lap: int, step_length: float, true_features: np.ndarray,
-                visible: _Visibility, sigmas: tuple[float, ...], rng: np.random.Generator | None,
+                visible: Sightings, sigmas: tuple[float, ...], rng: np.random.Generator | None,
                 odometry_xi: np.ndarray | None, full_covariance: bool) -> list[LocalMap]:
     """The local maps with 0-based indices ``chunk`` (vectorised over maps and features); ``odometry_xi``: their
     odometry noise (len(chunk) x n x 3 standard normal draws)."""
@@ -433,7 +384,8 @@ def _chunk_maps(chunk: np.ndarray, n: int, lap: int, step_length: float, true_fe
     local[..., 2] = wrap(local[..., 2])
 
     # observations: (map, scan i, feature), grouped by (map, feature) in id order
-    scan_index, obs_feature = visible.expand((steps[:, :n] % lap).ravel())
+    phases = (steps[:, :n] % lap).ravel()
+    scan_index, obs_feature = visible.at(phases).expand(phases)
     obs_map, obs_scan = np.divmod(scan_index, n)
     width = max(len(true_features), 1)
     key = obs_map * width + obs_feature
@@ -503,26 +455,30 @@ def _chunk_maps(chunk: np.ndarray, n: int, lap: int, step_length: float, true_fe
     end = local[:, n] + error[:, :3]
     end[:, 2] = wrap(end[:, 2])
     estimate = f_local + np.stack([error[group_map, row], error[group_map, row + 1]], axis=1)
-    bounds = np.r_[0, np.cumsum(per_map)].tolist()
-    result = []
     if not full_covariance:   # the ``marginal`` summary of P only: diagonal of J_u J_u^T + obs
         diagonal = np.einsum("crk,crk->cr", jac, jac)
         feature_variances = (diagonal[group_map, row] + diagonal[group_map, row + 1] + sxx + syy) / 2
         pose_variances = np.stack([(diagonal[:, 0] + diagonal[:, 1]) / 2, diagonal[:, 2]], axis=1)
-        for index, k in enumerate(chunk.tolist()):
-            lo, hi = bounds[index], bounds[index + 1]
-            result.append(LocalMap(f"sim-{k + 1}", k, k + 1, end[index], group_feature[lo:hi], estimate[lo:hi],
-                                   feature_variances[lo:hi], pose_variances[index]))
-        return result
-    for index, k in enumerate(chunk.tolist()):
-        lo, hi = bounds[index], bounds[index + 1]
-        size = 3 + 2 * (hi - lo)
-        odometry = jac[index, :size]
-        cov = odometry @ odometry.T                               # P = J_u J_u^T + blockdiag(obs)
-        diagonal_blocks = np.lib.stride_tricks.as_strided(
-            cov[3:, 3:], shape=(hi - lo, 2, 2), strides=(2 * (size + 1) * cov.itemsize,
-                                                         size * cov.itemsize, cov.itemsize))
-        diagonal_blocks += obs_blocks[lo:hi]
-        result.append(LocalMap.from_covariance(f"sim-{k + 1}", k, k + 1, end[index], group_feature[lo:hi],
-                                               estimate[lo:hi], (cov + cov.T) / 2))
-    return result
+    names = [f"sim-{k + 1}" for k in chunk.tolist()]
+    first_group = np.cumsum(per_map) - per_map
+    stacks = []
+    for places in size_groups(per_map):   # the maps of one size, made and checked as one stack
+        m = int(per_map[places[0]])
+        members = first_group[places, None] + np.arange(m)             # their groups (features): k x m
+        if full_covariance:
+            odometry = jac[places, :3 + 2 * m]
+            covariance = odometry @ odometry.transpose(0, 2, 1)         # P = J_u J_u^T + blockdiag(obs)
+            diagonal_block = 3 + 2 * np.arange(m)
+            for i in range(2):
+                for j in range(2):
+                    covariance[:, diagonal_block + i, diagonal_block + j] += obs_blocks[members, i, j]
+            covariance = (covariance + covariance.transpose(0, 2, 1)) / 2
+            variances = marginal_variances(covariance)
+        else:
+            covariance, variances = None, (feature_variances[members], pose_variances[places])
+        stacks.append((places, StackedMaps([names[i] for i in places.tolist()], end[places], group_feature[members],
+                                           estimate[members], *variances, covariance)))
+    invalid = first_invalid_map(stacks)
+    if invalid is not None:
+        raise invalid[1]
+    return unstack(stacks, chunk.tolist(), (chunk + 1).tolist())

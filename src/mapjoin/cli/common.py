@@ -7,7 +7,7 @@ import logging
 import math
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING
 
 import click
@@ -373,10 +373,24 @@ def warn_if_doubtful(result: RefineResult) -> None:
                 result.unknowns, result.cost / dof, which)
 
 
-def inconsistency(report: Sequence[JoinRecord]) -> str:
-    """The summary's count of flagged joins, and what the skip policy did with them."""
-    text = f"{sum(r.flag for r in report)} inconsistent"
-    unlinked, left_out = (sum(r.action == action for r in report) for action in ("features only", "left out"))
+def join_counts(report: Iterable[JoinRecord]) -> dict[str, int]:
+    """The report's counts the summaries give, in one pass over its records (a streamed join's report makes
+    each record as it is taken): ``two_minima``, ``inconsistent`` (flagged), and the skip policy's
+    ``features only`` and ``left out`` joins."""
+    counts = dict.fromkeys(("two_minima", "inconsistent", "features only", "left out"), 0)
+    for r in report:
+        counts["two_minima"] += r.minima == 2
+        counts["inconsistent"] += bool(r.flag)
+        if r.action in counts:
+            counts[r.action] += 1
+    return counts
+
+
+def inconsistency(counts: dict[str, int]) -> str:
+    """The summary's count of flagged joins, and what the skip policy did with them (``counts``:
+    :func:`join_counts`)."""
+    text = f"{counts['inconsistent']} inconsistent"
+    unlinked, left_out = counts["features only"], counts["left out"]
     if unlinked or left_out:
         text += f": {unlinked} joined by features alone, {left_out} left out"
     return text

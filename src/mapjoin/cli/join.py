@@ -135,16 +135,17 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
             second = f", other minimum at {r.phi2:+.4f} rad" if r.minima == 2 else ""
             say(ctx, f"join {r.join}: {r.map}: {r.common} common, {r.new} new, a={r.a:.6g}, "
                      f"C_phi={r.c_phi:+.4f}, minima={r.minima}, phi*={r.phi:+.6f}{second}")
-    two = sum(r.minima == 2 for r in result.report)
+    counts = common.join_counts(result.report)
+    two = counts["two_minima"]
     g = global_map
     common.summary(ctx, f"joined {common.counted(count, 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
                         f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
-                        f"({two} with two minima, {common.inconsistency(result.report)}), covariance {covariance}, "
+                        f"({two} with two minima, {common.inconsistency(counts)}), covariance {covariance}, "
                         f"{strategy}, read {read:.3f} s, joined {elapsed - read:.3f} s -> "
                         f"{'stdout' if output == '-' else output}",
                    {"maps": count, "features": len(g.feature_ids), "poses": len(g.pose_ids),
                     "joins": len(result.report), "two_minima": two,
-                    "inconsistent": sum(bool(r.flag) for r in result.report), "covariance": covariance,
+                    "inconsistent": counts["inconsistent"], "covariance": covariance,
                     "strategy": strategy,
                     **({"chi2_initial": refined.costs[0], "chi2": refined.cost, "iterations": refined.iterations,
                         "converged": refined.converged} if exact else {}),

@@ -81,16 +81,17 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
         common.write_trajectory(result.global_map, maps[0].start_id, trajectory_path)
     common.warn_if_doubtful(result)
     g, joins = result.global_map, result.fast_join.report
-    two = sum(r.minima == 2 for r in joins)
+    counts = common.join_counts(joins)
+    two = counts["two_minima"]
     common.summary(ctx, f"refined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
              f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(joins), 'join')} ({two} with two "
-             f"minima, {common.inconsistency(joins)}), from the {strategy} join, "
+             f"minima, {common.inconsistency(counts)}), from the {strategy} join, "
              f"{common.counted(result.iterations, 'iteration')}, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}",
                    {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids), "joins": len(joins),
-                    "start": strategy, "two_minima": two, "inconsistent": sum(bool(r.flag) for r in joins),
+                    "start": strategy, "two_minima": two, "inconsistent": counts["inconsistent"],
                     "iterations": result.iterations, "chi2_initial": result.costs[0],
                     "chi2": result.cost, "reason": result.reason, "converged": result.converged,
                     "degrees_of_freedom": result.degrees_of_freedom, "seconds": elapsed, "read_seconds": read,

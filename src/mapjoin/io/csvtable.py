@@ -38,19 +38,10 @@ class Table:
     def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]] | None, line_offset: int = 0):
         self.source = source
         self.plain = text.isascii() and "_" not in text  # then every number is plain (no cell to check)
-        reader = csv.reader(io.StringIO(text, newline=""))
-        rows: list[list[str]] = []
-        lines: list[int] = []
-        try:
-            for row in reader:
-                if row:
-                    rows.append(row)
-                    lines.append(reader.line_num + line_offset)
-        except csv.Error as error:
-            raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num + line_offset}") from None
+        rows, lines = _rows(text, source, line_offset)
         if " " in text or "\t" in text:  # spaces around separators are not part of a cell
             rows = [[cell.strip(" \t") for cell in row] for row in rows]
-        header = tuple(rows[0]) if rows else ()
+        header = tuple(rows[0]) if len(rows) else ()
         self.header_line = lines[0] if lines else 1 + line_offset
         if headers is not None and header not in headers:
             expected = " or ".join(",".join(header) for header in headers)
@@ -148,6 +139,30 @@ class Table:
         return blocks
 
 
+def _rows(text: str, source: str, line_offset: int) -> tuple[list[list[str]] | np.ndarray, list[int]]:
+    """The rows of ``text`` that have a cell (a list of rows, or a 2-D array of cells when all are as wide),
+    and the line of each."""
+    if not ('"' in text or "\r" in text or "\0" in text):  # each line a row, split at its commas (the fast path)
+        physical = text.split("\n")
+        lines = [number for number, line in enumerate(physical, 1 + line_offset) if line]
+        rows = [line for line in physical if line]
+        commas = {line.count(",") for line in rows}
+        if len(commas) == 1:  # as wide: all the text's cells at once
+            return np.array(",".join(rows).split(","), dtype=object).reshape(len(rows), commas.pop() + 1), lines
+        return [line.split(",") for line in rows], lines
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[list[str]] = []
+    lines = []
+    try:
+        for row in reader:
+            if row:
+                rows.append(row)
+                lines.append(reader.line_num + line_offset)
+    except csv.Error as error:
+        raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num + line_offset}") from None
+    return rows, lines
+
+
 def _parses(cell: Any, dtype: type) -> bool:
     """Whether numpy reads ``cell`` as ``dtype`` (to find the bad cell after a column failed)."""
     try:
@@ -170,6 +185,11 @@ class _LineSink(list):
 
 def to_text(rows: Sequence[Sequence[Any]]) -> str:
     """``rows`` as CSV text, LF line ends."""
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\r\n").writerows(rows)
+    text = buffer.getvalue()
+    if '"' not in text:  # no cell quoted, so none holds a line end: every CRLF ends a record (the fast path)
+        return text.replace("\r\n", "\n")
     sink = _LineSink()
     csv.writer(sink, lineterminator="\r\n").writerows(rows)
     return "".join(sink)

@@ -1,0 +1,67 @@
+"""The CSV layer's fast paths (``mapjoin.io.csvtable``) give exactly what the csv module gives.
+
+Reading text without quotes, CR or NUL splits lines at commas instead of running ``csv.reader`` (all
+cells at once when every line has as many);
+writing rows of which none needs quoting replaces the CRLF record ends at once instead of record by
+record. Both are compared here with the csv module used directly, on text and rows drawn to hit the
+awkward cases (blank lines, blanks, quotes, line ends inside cells, a missing last line end).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapjoin.io.csvtable import Table, _rows, to_text
+
+pieces = st.sampled_from(["a", "1.5", "-2e-3", ",", "\n", "\n\n", " ", "\t", "x,y", "é", '"', '""', "\r\n", "\r",
+                          "map", "kind"])
+texts = st.lists(pieces, max_size=40).map("".join)
+
+
+def reference_rows(text: str, offset: int) -> tuple[list[list[str]], list[int]]:
+    """``csv.reader``'s rows with a cell and their lines (a malformed text: None)."""
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows, lines = [], []
+    for row in reader:
+        if row:
+            rows.append(row)
+            lines.append(reader.line_num + offset)
+    return rows, lines
+
+
+@settings(max_examples=400, deadline=None)
+@given(texts, st.integers(0, 5))
+def test_rows_are_the_csv_readers(text, offset):
+    try:
+        expected = reference_rows(text, offset)
+    except csv.Error:
+        return  # malformed (the csv module's own path handles it, and it has quotes)
+    rows, lines = _rows(text, "s", offset)
+    assert ([list(row) for row in rows], lines) == expected
+
+
+def test_a_plain_table_reads_as_through_the_csv_module():
+    text = "map,kind,x\n\nm1, pose ,1.5\nm2,feature,2\n"
+    table = Table(text, "s", None)
+    quoted = Table(text.replace("m1", '"m1"'), "s", None)   # the csv module's path
+    assert table.cells.tolist() == quoted.cells.tolist() == [["m1", "pose", "1.5"], ["m2", "feature", "2"]]
+    assert table.lines.tolist() == quoted.lines.tolist() == [3, 4]
+
+
+cells = st.one_of(st.none(), st.integers(-10**6, 10**6), st.floats(allow_nan=False),
+                  st.text(st.sampled_from(["a", ",", " ", '"', "\n", "\r", "é", "1"]), max_size=5))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.lists(cells, min_size=1, max_size=5), max_size=8))
+def test_written_text_is_the_csv_writers_with_lf_record_ends(rows):
+    expected = []
+    for row in rows:  # one record at a time, its CRLF end made LF (a CR or LF inside a cell is quoted)
+        buffer = io.StringIO()
+        csv.writer(buffer, lineterminator="\r\n").writerow(row)
+        expected.append(buffer.getvalue()[:-2] + "\n")
+    assert to_text(rows) == "".join(expected)
