@@ -249,6 +249,23 @@ def test_solve_matches_dense_grid_search_random(problem, solver):
     event(f"{len(minima)} local minima, link={problem.link}")
 
 
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_a_second_minimum_just_inside_the_end_of_the_turn(solver):
+    """Found by hypothesis: the second minimum lies 6e-4 rad below z_phi + pi, where the link's term
+    has its cusp; the grid oracle missed it (its last cell did not close the turn) and the solver was right."""
+    z0 = np.array([[39.4291948, -96.41360092], [-217.68276428, -656.44278968], [-88.64168343, 38.18771431],
+                   [-23.13455717, 483.81461683], [-393.09107201, 608.46992819], [277.80083067, 478.64809417],
+                   [355.79789344, -241.64414338]])
+    z1 = np.array([[753.44863185, -156.65093229], [-604.04357837, -139.16278358], [-351.03317218, 116.77075346],
+                   [-239.23656195, -296.97210759], [169.06185592, -404.08617563], [411.47419475, -63.441957],
+                   [-586.44367129, -269.87235988]])
+    problem = OneStepProblem(z0=z0, var0=np.ones(7), z1=z1, var1=np.ones(7),
+                             odometry=np.array([-349.64080299, -56.42323188, -1.37232]),
+                             odometry_variances=np.array([1.0, 1.74657605e-04]), link=True)
+    sol, minima = _check_against_grid(problem, solver)
+    assert len(minima) == 2 and 0 < problem.odometry[2] + PI - minima[1][0] < 1e-3
+
+
 # (a, C_phi) with two minima (checked by the grid search itself): large a0 p_phi and an
 # odometry orientation contradicting the features by more than 1.3 rad.
 TWO_MINIMA = [(10.0, 2.9), (5.0, -2.6), (3.0, 3.1), (25.0, -3.05), (1.5, PI - 0.01),

@@ -125,13 +125,16 @@ class Dense:
         accurate in phi). Returns [(phi, f)] sorted by f.
         """
         start = self.z_phi - PI if self.link else -PI
-        grid = start + 2 * PI * np.arange(n_grid) / n_grid
+        grid = start + 2 * PI * np.arange(n_grid + 1) / n_grid  # the last point closes the turn: a minimum
+        # just below its end changes sign between the last point and the first, turned by 2 pi
         d = self.df(grid)
         step = 2 * PI / n_grid
         found = []
         for i in np.nonzero((d[:-1] < 0) & (d[1:] >= 0))[0]:
             lo, hi = grid[i], grid[i + 1]
-            res = minimize_scalar(lambda x: float(self.f(x)[0]), bounds=(lo - step, hi + step),
+            # never across the window's ends: with the link, f has a cusp (a local maximum) at z_phi +- pi
+            res = minimize_scalar(lambda x: float(self.f(x)[0]),
+                                  bounds=(max(lo - step, grid[0]), min(hi + step, grid[-1])),
                                   method="bounded", options={"xatol": 1e-12})
             x = res.x
             g = lambda x: float(self.df(x)[0])  # noqa: E731
