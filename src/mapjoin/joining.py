@@ -67,7 +67,7 @@ class JoinRecord:
 
     The consistency check (:mod:`mapjoin.consistency`, docs/method.md#calibration): ``dof`` the
     degrees of freedom, ``variance_factor`` the a-posteriori variance factor ``s`` from the joins
-    before it; ``chi2`` the statistic: the join's own minimum (``cost``, or ``c0 - 2 a0`` for a map
+    before it (a tree join: from the joins of its own level and the levels below); ``chi2`` the statistic: the join's own minimum (``cost``, or ``c0 - 2 a0`` for a map
     joined by its features alone) when that passes the gate (``p`` of ``chi2 / s`` at least
     ``gate``), else the same minimum with the chain's drift added to the common features'
     variances (docs/method.md#drift), which is never larger; ``features_cost`` the minimum without
