@@ -19,6 +19,7 @@ from mapjoin.consistency import (
     VarianceFactors,
     calibrated,
     chi2_median,
+    level_variance_factors,
     p_values,
     variance_factors,
 )
@@ -197,6 +198,48 @@ def test_variance_factors_of_blocks_are_those_of_the_whole_run(cases, cuts, warm
         expected = max(1.0, float(np.median(before))) if len(before) >= max(warm_up, 1) else 1.0
         assert found[k] == pytest.approx(expected, rel=0.014)
     assert np.array_equal(found, variance_factors(chi2, dof, warm_up))
+
+
+def _sorted_median(values: list[float]) -> float:
+    """The median by sorting: the middle value, or the mean of the two middle ones."""
+    ordered, middle = sorted(values), len(values) // 2
+    return ordered[middle] if len(ordered) % 2 else (ordered[middle - 1] + ordered[middle]) / 2
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.lists(st.tuples(st.floats(0, 1e3), st.one_of(st.just(0), st.integers(2, 60))), min_size=1,
+                         max_size=12), min_size=0, max_size=7),
+       st.integers(0, 12), st.randoms(use_true_random=False))
+def test_a_tree_levels_factor_is_the_median_over_its_level_and_the_levels_below(levels, warm_up, random):
+    """Against a sorted median over the tested joins (dof > 0) of every level up to each join's own,
+    floored at 1, 1 while fewer than ``warm_up`` of them are tested; the joins given in any order."""
+    rows = [(chi2, dof, level) for level, joins in enumerate(levels, start=1) for chi2, dof in joins]
+    random.shuffle(rows)
+    chi2, dof, level = (np.array(column) for column in zip(*rows)) if rows else (np.zeros(0),) * 3
+    found = level_variance_factors(chi2, dof.astype(np.int64), level.astype(np.int64), warm_up)
+    assert found.shape == (len(rows),)
+    for (c, d, own), factor in zip(rows, found.tolist()):
+        q = [c / scipy.stats.chi2.median(d) for c, d, at in rows if d > 0 and at <= own]
+        expected = max(1.0, _sorted_median(q)) if len(q) >= max(warm_up, 1) else 1.0
+        assert factor == pytest.approx(expected, rel=0.014)  # Wilson-Hilferty's median
+
+
+def test_the_tree_reports_each_levels_factor_and_the_sequential_join_the_online_one():
+    """A tree join's factor comes from its own level and those below (not from the levels above, nor only the
+    joins before it); the sequential join keeps the online factor of the joins before each."""
+    maps = list(simulate(64, seed=1, laps=1.5).maps)
+    tree = join(maps, strategy="tree", gate=1.0).report
+    cost, dof, level = (np.array([getattr(r, name) for r in tree]) for name in ("cost", "dof", "level"))
+    factors = np.array([r.variance_factor for r in tree])
+    np.testing.assert_array_equal(factors, level_variance_factors(cost, dof, level))
+    for r in tree:  # the level's own joins count: its factor is that of the joins of every level up to it
+        upto = level <= r.level
+        assert r.variance_factor == variance_factors(np.append(cost[upto], 0.0), np.append(dof[upto], 0))[-1]
+    assert len(set(factors[level == 1].tolist())) == 1 and not np.array_equal(factors, variance_factors(cost, dof))
+    sequential = join(maps, gate=1.0).report
+    np.testing.assert_array_equal([r.variance_factor for r in sequential],
+                                  variance_factors(np.array([r.cost for r in sequential]),
+                                                   np.array([r.dof for r in sequential])))
 
 
 def test_chi2_median_against_scipy():

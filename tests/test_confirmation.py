@@ -183,16 +183,15 @@ def test_a_tree_join_whose_pieces_hold_a_corrupted_value_stays_flagged(data_dir,
 
 @pytest.mark.parametrize("name", SMALL_SETS)
 @pytest.mark.parametrize("strategy", ["sequential", "tree"])
-def test_clean_datasets_flag_only_the_joins_the_exact_statistic_confirms(data_dir, name, strategy):
-    """At the default gate, clean joins are flagged at the level's rate: none, except DLR's two level-1 tree
-    joins that come before the variance factor is known (two raw maps whose exact chi2 is 93 for 8 and 74
-    for 12 dof: DLR's maps are optimistic by a factor of about 4, which these joins cannot know yet)."""
+def test_clean_datasets_flag_no_join_at_the_default_gate(data_dir, name, strategy):
+    """At the default gate no clean join is flagged (the level's rate, 1e-10, implies none). DLR's level-1 tree
+    joins 2 and 4 (two raw maps, exact chi2 93 for 8 and 74 for 12 dof: DLR's maps are optimistic by a factor
+    of about 4) were flagged while the factor was online; the tree's factor now comes from the whole level."""
     maps = mapio.read_maps(str(data_dir / name))
     report = join(maps, strategy=strategy, confirm=confirm).report
-    flagged = [(r.join, r.level) for r in report if r.flag]
-    expected = [(2, 1), (4, 1)] if (name, strategy) == ("DLR_200_local_maps", "tree") else []
-    assert flagged == expected
-    assert all(r.variance_factor == 1.0 for r in report if r.flag)
+    assert [(r.join, r.level) for r in report if r.flag] == []
+    if (name, strategy) == ("DLR_200_local_maps", "tree"):
+        assert min(r.variance_factor for r in report if r.level == 1) > 2.0  # the level's own factor, known
 
 
 def test_past_the_budget_a_join_keeps_the_fast_flag(data_dir):

@@ -179,16 +179,31 @@ def test_the_join_holding_a_corrupted_value_is_flagged(chains, name, how):
 
 
 @pytest.mark.parametrize("name, strategy", [("535_data_5_local_maps", "sequential"), ("535_data_5_local_maps", "tree"),
-                                            ("8240_data_50_local_maps", "sequential"),
+                                            ("8240_data_50_local_maps", "sequential"), ("8240_data_50_local_maps", "tree"),
+                                            ("DLR_200_local_maps", "tree"),
                                             ("VicPark_200_local_maps", "sequential"), ("VicPark_200_local_maps", "tree"),
                                             ("VicPark_6898_local_maps", "sequential"),
                                             ("VicPark_6898_local_maps", "tree")])
 def test_clean_runs_without_loop_closure_trouble_flag_nothing(chains, name, strategy):
     """At the default gate (1e-10 over ~7000 joins: expected 0) these runs flag no join (before the
-    calibration, 8240's last join, a loop closure, and 7 of VicPark 6898's tree joins were flagged);
-    the others flag a few (benchmarks/README.md, 'Consistency'): DLR's sequential loop closures and
-    its first tree joins, tested before the variance factor is known, and one of 8240's tree joins."""
+    calibration, 8240's last join, a loop closure, and 7 of VicPark 6898's tree joins were flagged;
+    before the tree's factor was taken a level at a time, DLR's first tree joins, tested before the
+    factor was known, and one of 8240's level-1 joins); DLR's sequential loop closures still flag a few
+    (benchmarks/README.md, 'Consistency'), which the exact confirmation clears."""
     assert not [r.join for r in join(chains[name], strategy=strategy).report if r.flag]
+
+
+def test_the_tree_policy_acts_on_the_levels_solved(chains):
+    """The tree's policy acts once its levels are solved, each with its level's factor: stop passes DLR's
+    clean tree (its level-1 joins 2 and 4 stopped it while their factor was 1, in the warm-up) and names the
+    right map of the tree join holding a corrupted heading (join 51: map 101 onto map 100)."""
+    maps = chains["DLR_200_local_maps"]
+    report = join(maps, strategy="tree", on_inconsistent="stop").report
+    assert {r.variance_factor for r in report if r.level == 1} == {report[0].variance_factor} and \
+        report[0].variance_factor > 1.0
+    corrupted, _ = _corrupt(maps, 100, "heading")
+    with pytest.raises(JoinError, match=r"localmap_102\.mat: join 51 is inconsistent"):
+        join(corrupted, strategy="tree", on_inconsistent="stop")
 
 
 def test_stop_names_the_map(chains):

@@ -17,7 +17,8 @@ on real maps (docs/method.md#calibration, measured over all clean joins of the f
   too small by a common factor (DLR's exact chi2/dof is 4); each join is tested against
   ``s`` times chi-square(dof), ``s`` the median, over the joins before it, of
   ``cost / median(chi-square(dof))`` (the joins' own minima; at least 1, and 1 during the first
-  :data:`WARM_UP` joins);
+  :data:`WARM_UP` joins; for the tree, :func:`level_variance_factors`: the joins of its own level and
+  the levels below);
 - the variances of common features last seen many maps away include the chain's odometry
   drift since (:mod:`mapjoin.drift`). That only lowers the minimum, so it is computed only for
   the joins whose own minimum fails the gate (:func:`calibrated`).
@@ -50,7 +51,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("mapjoin")
 
 __all__ = ["DEFAULT_GATE", "POLICIES", "WARM_UP", "Calibrated", "Policy", "VarianceFactors", "blame", "calibrated",
-           "chi2_median", "degrees_of_freedom", "describe", "enforce", "flags", "p_values", "variance_factors"]
+           "chi2_median", "degrees_of_freedom", "describe", "enforce", "flags", "level_variance_factors", "p_values",
+           "variance_factors"]
 
 #: a join is flagged when its p-value is below this (docs/method.md#chi-square-check, measured)
 DEFAULT_GATE = 1e-10
@@ -118,6 +120,30 @@ def variance_factors(chi2: np.ndarray, dof: np.ndarray, warm_up: int = WARM_UP) 
     k only), so that ``stop`` and ``skip`` decide each join as it happens. O(joins log joins).
     """
     return VarianceFactors(warm_up).extend(chi2, dof)
+
+
+def level_variance_factors(chi2: np.ndarray, dof: np.ndarray, level: np.ndarray,
+                           warm_up: int = WARM_UP) -> np.ndarray:
+    """Each tree join's variance factor ``s`` (docs/method.md#calibration): the running median of
+    :func:`variance_factors` taken over the joins of the levels up to and including its own.
+
+    A tree level's joins are independent of each other and are solved as one batch before the next
+    level (:func:`mapjoin.joining.join_tree`), and the policy acts once the tree is joined, so a level
+    can be tested with the whole level known: its first joins then share the level's factor instead of
+    being tested before the factor is known (DLR's first tree joins, in the warm-up, were flagged).
+    The same rule otherwise: tested joins (dof > 0) only, at least 1, 1 while fewer than ``warm_up``
+    joins of these levels are tested. One factor per level: it is the factor :class:`VarianceFactors`
+    gives a join placed after the level's last one, in level order. O(joins log joins).
+    """
+    chi2, dof, level = np.asarray(chi2, dtype=float), np.asarray(dof, dtype=np.int64), np.asarray(level)
+    order = np.argsort(level, kind="stable")
+    levels = level[order]
+    # online factors over the joins in level order, plus one untested join after the last (dof 0): entry i
+    # is the factor from the joins before i, so entry ``end`` that of every join of the levels up to its own
+    online = VarianceFactors(warm_up).extend(np.append(chi2[order], 0.0), np.append(dof[order], 0))
+    factors = np.empty(len(chi2))
+    factors[order] = online[np.searchsorted(levels, levels, side="right")]
+    return factors
 
 
 class VarianceFactors:

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from .arithmetic import backend
-from .consistency import DEFAULT_GATE, Policy, calibrated, degrees_of_freedom, enforce, flags
+from .consistency import DEFAULT_GATE, Policy, calibrated, degrees_of_freedom, enforce, flags, level_variance_factors
 from .errors import JoinError
 from .covariance import (DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances, fuse, placed_variances,
                          squared_norm, translation_variance)
@@ -67,7 +67,7 @@ class JoinRecord:
 
     The consistency check (:mod:`mapjoin.consistency`, docs/method.md#calibration): ``dof`` the
     degrees of freedom, ``variance_factor`` the a-posteriori variance factor ``s`` from the joins
-    before it; ``chi2`` the statistic: the join's own minimum (``cost``, or ``c0 - 2 a0`` for a map
+    before it (a tree join: from the joins of its own level and the levels below); ``chi2`` the statistic: the join's own minimum (``cost``, or ``c0 - 2 a0`` for a map
     joined by its features alone) when that passes the gate (``p`` of ``chi2 / s`` at least
     ``gate``), else the same minimum with the chain's drift added to the common features'
     variances (docs/method.md#drift), which is never larger; ``features_cost`` the minimum without
@@ -266,17 +266,20 @@ def solve_widened(problems: list[tuple], solver: Solver) -> tuple[np.ndarray, np
 
 
 def _report(rows: Sequence[tuple], unlinked: frozenset[int] = frozenset(),
-            gate: float = DEFAULT_GATE, retest: Retest | None = None) -> tuple[JoinRecord, ...]:
+            gate: float = DEFAULT_GATE, retest: Retest | None = None, by_level: bool = False) -> tuple[JoinRecord, ...]:
     """The report: the joins' rows numbered from 1, each with its consistency check
     (:mod:`mapjoin.consistency`); ``unlinked`` are the numbers of the joins made by features alone;
-    ``retest`` (:mod:`mapjoin.drift`) the drift-aware statistic of the joins whose own cost fails."""
+    ``retest`` (:mod:`mapjoin.drift`) the drift-aware statistic of the joins whose own cost fails;
+    ``by_level`` (the tree): each join's variance factor from its own level and the levels below
+    (:func:`mapjoin.consistency.level_variance_factors`), else from the joins before it."""
     if not rows:
         return ()
     link = np.array([number not in unlinked for number in range(1, len(rows) + 1)])
     common, minima = np.array([row[_COMMON] for row in rows]), np.array([row[_MINIMA] for row in rows])
     dof = degrees_of_freedom(common, link)
-    test = calibrated(np.array([row[_COST] for row in rows], dtype=float),
-                      np.array([row[_FEATURES] for row in rows], dtype=float), dof, link, gate, retest)
+    cost = np.array([row[_COST] for row in rows], dtype=float)
+    factors = level_variance_factors(cost, dof, np.array([row[_LEVEL] for row in rows])) if by_level else None
+    test = calibrated(cost, np.array([row[_FEATURES] for row in rows], dtype=float), dof, link, gate, retest, factors)
     flagged = flags(test.p, minima, gate)
     return tuple(JoinRecord(number, *row[:_FEATURES], fc, c, d, s, q, f, "joined" if ln else "features only")
                  for number, (row, fc, c, d, s, q, f, ln) in enumerate(zip(
@@ -612,7 +615,7 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
     if associate is not None:  # the compact ids the associator handed out
         feature_ids = np.arange(associate.count)
     return JoinResult(_global_map(maps, feature_ids, pieces, covariance, solver, "tree"),
-                      _report(records, gate=gate, retest=retest))
+                      _report(records, gate=gate, retest=retest, by_level=True))
 
 
 def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:
