@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 from collections.abc import Sequence
 from typing import Any
 
@@ -38,20 +39,12 @@ class Table:
     def __init__(self, text: str, source: str, headers: Sequence[tuple[str, ...]] | None, line_offset: int = 0):
         self.source = source
         self.plain = text.isascii() and "_" not in text  # then every number is plain (no cell to check)
-        reader = csv.reader(io.StringIO(text, newline=""))
-        rows: list[list[str]] = []
-        lines: list[int] = []
-        try:
-            for row in reader:
-                if row:
-                    rows.append(row)
-                    lines.append(reader.line_num + line_offset)
-        except csv.Error as error:
-            raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num + line_offset}") from None
-        if " " in text or "\t" in text:  # spaces around separators are not part of a cell
-            rows = [[cell.strip(" \t") for cell in row] for row in rows]
-        header = tuple(rows[0]) if rows else ()
-        self.header_line = lines[0] if lines else 1 + line_offset
+        simple = _split_simple(text, line_offset)
+        if simple is None:
+            header, body, lines = _split_csv(text, source, line_offset)
+        else:
+            header, body, lines = simple
+        self.header_line = int(lines[0]) if len(lines) else 1 + line_offset
         if headers is not None and header not in headers:
             expected = " or ".join(",".join(header) for header in headers)
             raise InputError(f"expected the header {expected}, got {shown(','.join(header)) if header else 'nothing'}",
@@ -62,8 +55,10 @@ class Table:
                              f"line {self.header_line}")
         self.header = header
         self.columns = {name: index for index, name in enumerate(header)}
-        body = rows[1:]
         self.lines = np.array(lines[1:], dtype=np.int64)
+        if isinstance(body, np.ndarray):
+            self.cells = body
+            return
         widths = np.fromiter(map(len, body), dtype=np.int64, count=len(body))
         short = np.flatnonzero(widths != len(header))
         if short.size:
@@ -146,6 +141,48 @@ class Table:
             i, j = COV_ENTRIES[column]
             blocks[:, i, j] = blocks[:, j, i] = values[:, k]
         return blocks
+
+
+def _split_csv(text: str, source: str, line_offset: int) -> tuple[tuple[str, ...], list[list[str]], list[int]]:
+    """``(header, body rows, line numbers of the header and the rows)``: the non-blank rows of CSV ``text`` by
+    :mod:`csv`, their cells stripped of spaces and tabs."""
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    try:
+        for row in reader:
+            if row:
+                rows.append(row)
+                lines.append(reader.line_num + line_offset)
+    except csv.Error as error:
+        raise InputError(f"malformed CSV: {error}", source, f"line {reader.line_num + line_offset}") from None
+    if " " in text or "\t" in text:  # spaces around separators are not part of a cell
+        rows = [[cell.strip(" \t") for cell in row] for row in rows]
+    return (tuple(rows[0]) if rows else ()), rows[1:], lines
+
+
+def _split_simple(text: str, line_offset: int) -> tuple[tuple[str, ...], np.ndarray, np.ndarray] | None:
+    """:func:`_split_csv` of a text with a header, no quotes, carriage returns, NULs or blank lines, and every
+    row as wide as the header, by ``str.split`` on its commas and line ends (5-10x faster than :mod:`csv`:
+    a CSV of covariance rows has millions of lines), the body as a (rows, columns) object array; None for
+    any other text, which :func:`_split_csv` reads (and a row of another width is its error)."""
+    if '"' in text or "\r" in text or "\0" in text:
+        return None
+    body = text[:-1] if text.endswith("\n") else text
+    if not body or "\n\n" in body or body.startswith("\n"):
+        return None
+    texts = body.split("\n")
+    commas = np.fromiter(map(str.count, texts, itertools.repeat(",", len(texts))), dtype=np.int64,
+                         count=len(texts))
+    if not (commas == commas[0]).all():
+        return None
+    header = texts[0].split(",")
+    cells = body[len(texts[0]) + 1:].replace("\n", ",").split(",") if len(texts) > 1 else []
+    if " " in text or "\t" in text:  # spaces around separators are not part of a cell
+        header = [cell.strip(" \t") for cell in header]
+        cells = [cell.strip(" \t") for cell in cells]
+    lines = np.arange(1 + line_offset, len(texts) + 1 + line_offset)
+    return tuple(header), np.array(cells, dtype=object).reshape(len(texts) - 1, len(header)), lines
 
 
 def _parses(cell: Any, dtype: type) -> bool:

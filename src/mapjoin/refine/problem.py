@@ -37,7 +37,8 @@ from ..maps import GlobalMap, LocalMap, locate
 from ..se2 import to_frame, wrap
 from . import groups as grouping
 from .groups import Group
-from .sparse import BlockPattern, diagonal_blocks, factorise, fill_reducing_order
+from .factor import Factor, Factoriser
+from .sparse import BlockPattern, diagonal_blocks, fill_reducing_order
 
 __all__ = ["Blocks", "ExactProblem"]
 
@@ -113,6 +114,8 @@ class ExactProblem:
                                     for ks in grouping.size_classes(sizes, independent)]
         self._pattern: BlockPattern | None = None
         self._evaluated: tuple[np.ndarray, list] | None = None
+        #: what factorises J^T J (:mod:`.factor`: CHOLMOD if installed and the problem is large, else SuperLU)
+        self.factoriser = Factoriser()
 
     # ---- set-up -------------------------------------------------------------------------
 
@@ -316,8 +319,11 @@ class ExactProblem:
         ``slots``: per group, the node entry of each of its coupled node pairs."""
         pattern = self._pattern
         csc = pattern.column_start, pattern.col_length, pattern.row_offset, pattern.nnz   # see groups.entries
-        targets, gradient_columns, angle_targets = [], [], []
+        gradient_columns, angle_targets = [], []
         block_offset = gradient_offset = 0
+        # where each block entry goes, filled group by group (a list of the pieces and its concatenation
+        # would hold them twice: 2 x 88 MB at 10^4 maps)
+        self._targets = np.empty(sum(len(g.maps) * len(g.layout.rows) for g in self.groups), dtype=np.int64)
         for group, slot in zip(self.groups, slots):
             G, m2 = group.nodes.shape
             m = m2 - 2
@@ -330,15 +336,15 @@ class ExactProblem:
             layout = group.layout
             pieces = grouping.entries(layout.rows, layout.cols, node_of, offset_of, placed, full, csc)
             group.block_offset, group.gradient_offset = block_offset, gradient_offset
-            block_offset += pieces.size
             gradient_offset += group.columns.size
             bounds = np.cumsum([0] + [math.prod(shape) for shape in layout.shapes])
-            targets.extend(pieces[:, lo:hi].ravel() for lo, hi in itertools.pairwise(bounds))   # piece by piece
+            for lo, hi in itertools.pairwise(bounds):   # piece by piece (see groups.pieces)
+                self._targets[block_offset:block_offset + G * (hi - lo)] = pieces[:, lo:hi].ravel()
+                block_offset += G * (hi - lo)
             gradient_columns.append(group.columns.ravel())
             w = group.columns.shape[1]
             angle_targets.append(grouping.entries(np.full(w, w - 1), np.arange(w), node_of, offset_of, placed,
                                                   full, csc).ravel())
-        self._targets = np.concatenate(targets)
         self._gradient_columns = np.concatenate(gradient_columns)
         self._angle_targets = np.concatenate(angle_targets)
         self._buffer, self._gradient_buffer = np.empty(block_offset), np.empty(gradient_offset)
@@ -388,14 +394,14 @@ class ExactProblem:
         """J^T J as a CSC matrix in the factor's order: entry (position[i], position[j]) is (i, j)."""
         return self._pattern.matrix(data)
 
-    def factorise(self, data: np.ndarray, damping: float = 0.0):
-        """SuperLU factor of ``J^T J + damping diag(J^T J)`` (symmetric mode, fill-reducing order)."""
+    def factorise(self, data: np.ndarray, damping: float = 0.0) -> Factor:
+        """The factor of ``J^T J + damping diag(J^T J)`` in the fill-reducing order (:attr:`factoriser`)."""
         if damping:
             data = data.copy()
             data[self._pattern.diagonal] *= 1.0 + damping
-        return factorise(self.normal_matrix(data))
+        return self.factoriser(self.normal_matrix(data))
 
-    def solve(self, factor, rhs: np.ndarray) -> np.ndarray:
+    def solve(self, factor: Factor, rhs: np.ndarray) -> np.ndarray:
         """``(J^T J)^-1 rhs`` (natural order; ``rhs`` a vector or a matrix of columns) with a
         factor from :meth:`factorise`."""
         position = self._pattern.position
@@ -407,9 +413,10 @@ class ExactProblem:
         """diag(J^T J) in natural order."""
         return data[self._pattern.diagonal]
 
-    def marginals(self, factor) -> tuple[np.ndarray, np.ndarray]:
+    def marginals(self, factor: Factor) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariances ``(poses (N, 3, 3), features (n, 2, 2))``, the diagonal blocks
-        of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise`."""
+        of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise`,
+        which it uses up (:func:`.sparse.diagonal_blocks`)."""
         N, n = self.n_maps, self.n_features
         poses = np.arange(3 * N).reshape(N, 3)
         features = 3 * N + np.arange(2 * n).reshape(n, 2)
