@@ -102,9 +102,15 @@ class Factoriser:
         self.backend = backend
         self._analysis = None
 
+    def reads_lower(self, n: int) -> bool:
+        """Whether the factorisation of an n x n matrix reads only its lower triangle (CHOLMOD: the slots above
+        the diagonal may hold anything)."""
+        return (self.backend or default_backend(n)) == "cholmod"
+
     def __call__(self, matrix: sp.csc_matrix) -> Factor:
-        """The factor of the symmetric ``matrix`` (CSC, both triangles) in its given order; RuntimeError if it is
-        singular (CHOLMOD: not positive definite)."""
+        """The factor of the symmetric ``matrix`` (CSC; both triangles, or the lower one where
+        :meth:`reads_lower`) in its given order; RuntimeError if it is singular (CHOLMOD: not positive
+        definite)."""
         backend = self.backend or default_backend(matrix.shape[0])
         if backend == "superlu":
             return Factor.of_superlu(splu(matrix, permc_spec="NATURAL", **_SUPERLU))

@@ -146,8 +146,8 @@ class BlockPattern:
                          + unknown_offset)                # CSC index of A[i, i], natural order
 
     def mirrored(self, lower: np.ndarray) -> np.ndarray:
-        """The CSC data from data holding the lower triangle (and a spare last slot), a chunk at a time (numpy
-        makes a 64-bit copy of 32-bit indices)."""
+        """The CSC data from data holding the lower triangle (and possibly a spare last slot), a chunk at a time
+        (numpy makes a 64-bit copy of 32-bit indices)."""
         data = np.empty(self.nnz)
         for a in range(0, self.nnz, _CHUNK):
             data[a:a + _CHUNK] = lower[self.from_lower[a:a + _CHUNK]]
