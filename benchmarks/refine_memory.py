@@ -1,6 +1,6 @@
 """Where refine's memory goes: resident memory and time by phase of one exact refine.
 
-    python benchmarks/refine_memory.py MAPS [--no-covariances] [--backend superlu|cholmod] [--json OUT]
+    python benchmarks/refine_memory.py MAPS [--no-covariances] [--json OUT]
 
 MAPS: anything ``mapjoin refine`` reads (a .mat folder, a CSV stream of ``mapjoin simulate``).
 The phases are those of the command, in one process: reading, the fast join (refine's default
@@ -25,7 +25,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from mapjoin import io as mapio  # noqa: E402
 from mapjoin.joining import join  # noqa: E402
-from mapjoin.refine import DEFAULT_START, factor, problem as problem_module, refine  # noqa: E402
+from mapjoin.refine import DEFAULT_START, problem as problem_module, refine  # noqa: E402
 
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 
@@ -91,11 +91,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("maps")
     parser.add_argument("--no-covariances", action="store_true", help="no marginal covariances (as the option)")
-    parser.add_argument("--backend", choices=factor.BACKENDS, help="factorise with this (default: refine's choice)")
     parser.add_argument("--json", help="also write the rows as JSON here")
     args = parser.parse_args()
-    if args.backend:
-        factor.default_backend = lambda unknowns: args.backend
+
     phases = Phases()
     Problem = problem_module.ExactProblem
     phases.wrap(Problem, "_prepare", "pattern (ordering, CSC; in the first linearise)",
@@ -115,7 +113,7 @@ def main() -> None:
         mapio.write_global_map(result.global_map, "/dev/null", "csv")
     total = time.perf_counter() - began
     phases.close()
-    print(f"{len(maps)} maps, {result.unknowns} unknowns, backend {factor.default_backend(result.unknowns)}, {result.iterations} iterations, chi^2 {result.cost:.6f} "
+    print(f"{len(maps)} maps, {result.unknowns} unknowns, {result.iterations} iterations, chi^2 {result.cost:.6f} "
           f"({result.reason}), {total:.1f} s; load average {os.getloadavg()[0]:.2f}")
     print("| phase | calls | seconds | resident at start (MB) | peak (MB) | peak above start (MB) |")
     print("|---|---:|---:|---:|---:|---:|")

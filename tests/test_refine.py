@@ -402,7 +402,7 @@ def test_marginals_of_a_factor_in_another_order_take_the_general_path(real):
     other = splu(problem.normal_matrix(data), permc_spec="COLAMD", diag_pivot_thresh=0.0,
                  options={"SymmetricMode": True})
     assert not np.array_equal(other.perm_c, np.arange(problem.n_unknowns))
-    fast, general = problem.marginals(problem.factorise(data)), problem.marginals(Factor.of_superlu(other))
+    fast, general = problem.marginals(problem.factorise(data)), problem.marginals(Factor(other))
     for a, b in zip(fast, general):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.abs(a).max())
 

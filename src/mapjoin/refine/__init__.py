@@ -5,7 +5,7 @@ global positions of all features minimising ``sum_k e_k^T P_k^-1 e_k`` over the 
 maps k, each weighted by its full covariance (:mod:`.problem`). It is solved by
 Gauss-Newton with Levenberg-Marquardt and Newton safeguards (:mod:`.solver`) from a fast
 join (:func:`join_and_refine`; the tree join by default, :data:`DEFAULT_START`), on normal
-equations of fixed sparse pattern factorised by CHOLMOD or SuperLU (:mod:`.factor`); the marginal covariances at the optimum
+equations of fixed sparse pattern factorised by SuperLU (:mod:`.factor`); the marginal covariances at the optimum
 come by selected inversion of that factor (:mod:`.sparse`).
 
 :func:`join_and_refine` is the whole pipeline, fast join then refinement, that ``mapjoin

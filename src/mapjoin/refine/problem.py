@@ -37,7 +37,7 @@ from ..maps import GlobalMap, LocalMap, locate
 from ..se2 import to_frame, wrap
 from . import groups as grouping
 from .groups import Group
-from .factor import Factor, Factoriser
+from .factor import Factor, factorise
 from .sparse import BlockPattern, diagonal_blocks, fill_reducing_order
 
 __all__ = ["Blocks", "ExactProblem"]
@@ -114,8 +114,6 @@ class ExactProblem:
                                     for ks in grouping.size_classes(sizes, independent)]
         self._pattern: BlockPattern | None = None
         self._evaluated: tuple[np.ndarray, list] | None = None
-        #: what factorises J^T J (:mod:`.factor`: CHOLMOD if installed and the problem is large, else SuperLU)
-        self.factoriser = Factoriser()
 
     # ---- set-up -------------------------------------------------------------------------
 
@@ -300,6 +298,7 @@ class ExactProblem:
         self._pattern = BlockPattern(col, row, order, np.concatenate([np.full(N, 3), np.full(n, 2)]))
         slots = np.split(self._pattern.rank[inverse], np.cumsum([k.size for k in keys])[:-1])
         self._place_blocks(order, slots)
+        self._pattern.placed()
 
     def _node_pairs(self, n_nodes: int) -> list[np.ndarray]:
         """Per group, the node pairs (keys ``column * n_nodes + row``) its maps' information
@@ -323,7 +322,8 @@ class ExactProblem:
         block_offset = gradient_offset = 0
         # where each block entry goes, filled group by group (a list of the pieces and its concatenation
         # would hold them twice: 2 x 88 MB at 10^4 maps)
-        self._targets = np.empty(sum(len(g.maps) * len(g.layout.rows) for g in self.groups), dtype=np.int64)
+        self._targets = np.empty(sum(len(g.maps) * len(g.layout.rows) for g in self.groups),
+                                 dtype=np.int32 if pattern.nnz < 2 ** 31 - 1 else np.int64)   # 32 bits: half of 88 MB
         for group, slot in zip(self.groups, slots):
             G, m2 = group.nodes.shape
             m = m2 - 2
@@ -347,7 +347,9 @@ class ExactProblem:
                                                   full, csc).ravel())
         self._gradient_columns = np.concatenate(gradient_columns)
         self._angle_targets = np.concatenate(angle_targets)
-        self._buffer, self._gradient_buffer = np.empty(block_offset), np.empty(gradient_offset)
+        # the blocks' buffer is made by each linearisation (its 88 MB at 10^4 maps not held through the
+        # factorisations); the gradient's is small
+        self._buffer_size, self._gradient_buffer = block_offset, np.empty(gradient_offset)
 
     @property
     def position(self) -> np.ndarray:
@@ -365,18 +367,19 @@ class ExactProblem:
         rotation by the base angle (:func:`.groups.own_blocks`); the base pose's columns are
         combinations of the own columns (:func:`.groups.base_blocks`); so a map costs one
         matrix-vector product and O(d^2) elementwise work. Only the lower triangle is
-        accumulated (one ``bincount``), and mirrored only for a factorisation that reads both
-        (SuperLU): at 10^4 maps the mirror's gather was half of a linearisation's time.
+        accumulated (one ``bincount``), and mirrored only when factorised (:meth:`normal_matrix`):
+        a damped or Newton step's matrix is made from it first, and it is half the memory.
         """
         self._prepare()
         x = np.asarray(x, dtype=float)
         extra = [] if curvature else None
         cost = 0.0
+        buffer = np.empty(self._buffer_size)
         for group, (geometry, r) in zip(self.groups, self._evaluate(x)):
             c, s, lx, ly, *_ = geometry
             cost += float(np.einsum("gi,gi->", r, r))
             mu = np.matmul(r[:, None, :], group.whitening)[:, 0, :]      # W^T r = P^-1 e
-            views = grouping.pieces(self._buffer, group)
+            views = grouping.pieces(buffer, group)
             grouping.own_blocks(group, c, s, views)
             v = grouping.base_blocks(group, c, s, lx, ly, views)
             size = group.columns.size
@@ -385,7 +388,8 @@ class ExactProblem:
             if curvature:
                 extra.append(grouping.curvature(group, c, s, lx, ly, mu).ravel())
         pattern = self._pattern
-        data = np.bincount(self._targets, self._buffer, minlength=pattern.nnz + 1)[:-1]
+        data = np.bincount(self._targets, buffer, minlength=pattern.nnz + 1)[:-1]
+        del buffer
         gradient = np.bincount(self._gradient_columns, self._gradient_buffer, minlength=self.n_unknowns + 1)[:-1]
         if not curvature:
             return data, gradient, cost
@@ -398,13 +402,11 @@ class ExactProblem:
         return self._pattern.matrix(self._pattern.mirrored(data))
 
     def factorise(self, data: np.ndarray, damping: float = 0.0) -> Factor:
-        """The factor of ``J^T J + damping diag(J^T J)`` in the fill-reducing order (:attr:`factoriser`)."""
+        """The factor (:mod:`.factor`) of ``J^T J + damping diag(J^T J)`` in the fill-reducing order."""
         if damping:
             data = data.copy()
             data[self._pattern.diagonal] *= 1.0 + damping
-        if self.factoriser.reads_lower(self.n_unknowns):      # CHOLMOD: the lower triangle as it is
-            return self.factoriser(self._pattern.matrix(data))
-        return self.factoriser(self.normal_matrix(data))
+        return factorise(self.normal_matrix(data))
 
     def solve(self, factor: Factor, rhs: np.ndarray) -> np.ndarray:
         """``(J^T J)^-1 rhs`` (natural order; ``rhs`` a vector or a matrix of columns) with a

@@ -228,7 +228,7 @@ def _step(problem: ExactProblem, data: np.ndarray, gradient: np.ndarray, mode: _
     try:
         factor = problem.factorise(data, mode.damping)
         return factor, problem.solve(factor, -gradient)
-    except RuntimeError:          # exactly singular (CHOLMOD: not positive definite)
+    except RuntimeError:          # SuperLU: exactly singular
         if not mode.newton:
             raise JoinError("the normal equations of the exact join are singular") from None
         return factor, None
