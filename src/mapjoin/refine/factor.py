@@ -16,9 +16,10 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-__all__ = ["Factor", "factorise"]
+__all__ = ["SYMMETRIC_MODE", "Factor", "factorise"]
 
-_SUPERLU = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}
+#: SuperLU's options for a symmetric matrix whose diagonal needs no pivot exchange
+SYMMETRIC_MODE = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}
 
 
 class Factor:
@@ -51,4 +52,4 @@ class Factor:
 def factorise(matrix: sp.csc_matrix, permc_spec: str = "NATURAL") -> Factor:
     """The factor of the symmetric ``matrix`` (CSC, both triangles) in its given order (or SuperLU's
     ``permc_spec``); RuntimeError if it is exactly singular."""
-    return Factor(splu(matrix, permc_spec=permc_spec, **_SUPERLU))
+    return Factor(splu(matrix, permc_spec=permc_spec, **SYMMETRIC_MODE))

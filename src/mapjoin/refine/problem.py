@@ -367,8 +367,8 @@ class ExactProblem:
         rotation by the base angle (:func:`.groups.own_blocks`); the base pose's columns are
         combinations of the own columns (:func:`.groups.base_blocks`); so a map costs one
         matrix-vector product and O(d^2) elementwise work. Only the lower triangle is
-        accumulated (one ``bincount``), and mirrored only when factorised (:meth:`normal_matrix`):
-        a damped or Newton step's matrix is made from it first, and it is half the memory.
+        accumulated (one ``bincount``), and mirrored only when factorised (:meth:`normal_matrix`),
+        so that the mirror is not held between factorisations.
         """
         self._prepare()
         x = np.asarray(x, dtype=float)

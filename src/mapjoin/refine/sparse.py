@@ -24,12 +24,11 @@ import scipy.linalg
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from .factor import Factor
+from .factor import SYMMETRIC_MODE, Factor
 
 __all__ = ["BlockPattern", "Supernodes", "closed_pattern", "diagonal_blocks", "fill_reducing_order",
            "selected_inverse"]
 
-_SUPERLU = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}
 _SUPERNODE_OVERHEAD = 5e4  # flops worth one supernode's Python overhead in the selected inversion
 
 
@@ -46,7 +45,7 @@ def fill_reducing_order(row: np.ndarray, col: np.ndarray, n_nodes: int) -> tuple
     off = row != col
     graph = sp.csc_matrix((np.where(off, -1.0, 1e-3 + np.bincount(col[off], minlength=n_nodes)[col]),
                            (row, col)), shape=(n_nodes, n_nodes))
-    lu = splu(graph, permc_spec="MMD_AT_PLUS_A", **_SUPERLU)
+    lu = splu(graph, permc_spec="MMD_AT_PLUS_A", **SYMMETRIC_MODE)
     if not np.array_equal(lu.perm_r, lu.perm_c):
         raise np.linalg.LinAlgError("SuperLU pivoted on the node graph")
     order = np.asarray(lu.perm_c, dtype=np.int64)   # node -> position
@@ -180,8 +179,7 @@ def diagonal_blocks(factor: Factor, pattern: BlockPattern, closed: np.ndarray, b
     rows = np.concatenate([np.repeat(b, size, axis=1).ravel() for b, size in placed])
     cols = np.concatenate([np.tile(b, (1, size)).ravel() for b, size in placed])
     wanted = (np.maximum(rows, cols), np.minimum(rows, cols))
-    L, D = factor.triangle()
-    del factor
+    L, D = factor.triangle()            # the factor's own storage freed
     values = None
     if natural:   # the factor is in node order: use the symbolic node pattern
         structure = Supernodes(closed, pattern.size)
@@ -211,23 +209,30 @@ def _strictly_lower(L: sp.csc_matrix, first: int = 0, last: int | None = None
     col = np.repeat(np.arange(first, last, dtype=np.int64), np.diff(L.indptr[first:last + 1]))
     row = L.indices[lo:hi].astype(np.int64)
     value = L.data[lo:hi]
-    keep = (row > col) & (value != 0)   # explicit zeros (a supernodal factor's padding) are not entries
+    keep = (row > col) & (value != 0)   # an explicit zero needs no place
     return row[keep], col[keep], value[keep]
 
 
 def _scatter(structure: Supernodes, L: sp.csc_matrix) -> np.ndarray | None:
     """The strictly lower entries of the unit triangle ``L`` in the supernodal blocks of ``structure`` (see
     :func:`_invert`), a chunk of columns at a time; None if an entry does not fit the structure."""
-    st = structure
-    flat = np.zeros(st.block_offset[-1])          # per supernode, row jc = column jc of [L_JJ; L_SJ]
+    flat = np.zeros(structure.block_offset[-1])
     for first, last in _chunks(L.indptr, _CHUNK):
-        Lrow, Lcol, Lval = _strictly_lower(L, first, last)
-        J = st.super_of[Lcol]
-        at = st.locate(J, Lrow)
-        if at is None:
+        if not _place(structure, flat, *_strictly_lower(L, first, last)):
             return None
-        flat[st.block_offset[J] + (Lcol - st.start[J]) * (st.size[J] + st.below[J]) + at] = Lval
     return flat
+
+
+def _place(structure: Supernodes, flat: np.ndarray, Lrow: np.ndarray, Lcol: np.ndarray, Lval: np.ndarray) -> bool:
+    """Put entries of L into ``flat``, per supernode J the b x (b + s) array whose row jc is column jc of
+    ``[L_JJ; L_SJ]``; False if one does not fit the structure."""
+    st = structure
+    J = st.super_of[Lcol]
+    at = st.locate(J, Lrow)
+    if at is None:
+        return False
+    flat[st.block_offset[J] + (Lcol - st.start[J]) * (st.size[J] + st.below[J]) + at] = Lval
+    return True
 
 
 def closed_pattern(keys: np.ndarray, n: int) -> np.ndarray:
@@ -391,13 +396,9 @@ def selected_inverse(structure: Supernodes, Lrow: np.ndarray, Lcol: np.ndarray, 
     """Entries ``(rows, cols)`` (rows >= cols, factor order) of ``A^-1`` for ``A = L D L^T``
     (unit lower L given by its strictly lower entries), by supernodal selected inversion
     (Takahashi's recursion, :func:`_invert`); None if L does not fit the structure."""
-    st = structure
-    J = st.super_of[Lcol]
-    at = st.locate(J, Lrow)
-    if at is None:
+    flat = np.zeros(structure.block_offset[-1])
+    if not _place(structure, flat, Lrow, Lcol, Lval):
         return None
-    flat = np.zeros(st.block_offset[-1])
-    flat[st.block_offset[J] + (Lcol - st.start[J]) * (st.size[J] + st.below[J]) + at] = Lval
     return _invert(structure, flat, D, rows, cols)
 
 
