@@ -168,8 +168,10 @@ def _split_simple(text: str, line_offset: int) -> tuple[tuple[str, ...], np.ndar
     any other text, which :func:`_split_csv` reads (and a row of another width is its error)."""
     if '"' in text or "\r" in text or "\0" in text:
         return None
+    if "\n\n" in text or text.startswith("\n"):
+        return None   # a blank line, which csv skips
     body = text[:-1] if text.endswith("\n") else text
-    if not body or "\n\n" in body or body.startswith("\n"):
+    if not body:
         return None
     texts = body.split("\n")
     commas = np.fromiter(map(str.count, texts, itertools.repeat(",", len(texts))), dtype=np.int64,
