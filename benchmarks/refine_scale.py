@@ -50,9 +50,9 @@ def main() -> None:
         refine(maps, initial)
         peak = tracemalloc.get_traced_memory()[1] / 2**20
         tracemalloc.stop()
-        join, solve, cov, total = (statistics.median(v) for v in (joins, solves, covs, totals))
-        lines.append(f"| {name} | {len(maps)} | {result.unknowns} | {join:.3f} | {solve:.3f} | {cov:.3f} | "
-                     f"{total:.3f} | {total / join:.2f} | {result.iterations} | {result.cost:.6f} | {peak:.1f} |")
+        joined, solve, cov, total = (statistics.median(v) for v in (joins, solves, covs, totals))
+        lines.append(f"| {name} | {len(maps)} | {result.unknowns} | {joined:.3f} | {solve:.3f} | {cov:.3f} | "
+                     f"{total:.3f} | {total / joined:.2f} | {result.iterations} | {result.cost:.6f} | {peak:.1f} |")
         print(lines[-1])
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     write_section("refine", "\n".join([

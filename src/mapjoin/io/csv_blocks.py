@@ -12,6 +12,7 @@ later block is an error naming the line (within a block, rows may be in any orde
 from __future__ import annotations
 
 import csv
+import itertools
 from collections.abc import Callable, Iterable, Iterator
 
 from ..errors import InputError, shown
@@ -34,18 +35,27 @@ def read_lines(lines: Iterable[str], source: str) -> Iterator[LocalMap]:
     key_column, named = _key_column(block[-1] if block else "")
     header, first_line, number, quoted = block[-1:], 1, 1, False
     seen: set = set()  # the maps of earlier blocks (:func:`_read_block`)
-    for line in lines:
-        if quoted or len(block) < BLOCK_LINES or key_column is None or _key(block[-1], key_column) is None \
-                or _key(line, key_column) in (None, _key(block[-1], key_column)):
-            block.append(line)
-            quoted ^= line.count('"') % 2 == 1  # inside a quoted cell that spans lines
-            continue
-        maps = _read_block(block, source, first_line, number, True, key_column, named, seen)
-        yield from maps
-        first_line += len(block) - (first_line > 1)  # a later block's text starts with the header
-        number += len(maps)
-        block = [*header, line]
-        quoted = line.count('"') % 2 == 1
+    while True:
+        batch = list(itertools.islice(lines, max(BLOCK_LINES - len(block), 0)))   # the block's lines at once
+        block.extend(batch)
+        quoted ^= "".join(batch).count('"') % 2 == 1  # inside a quoted cell that spans lines
+        if len(block) < BLOCK_LINES:
+            break                                       # the stream ended
+        for line in lines:                              # then line by line, to the end of a map
+            if quoted or key_column is None or _key(block[-1], key_column) is None \
+                    or _key(line, key_column) in (None, _key(block[-1], key_column)):
+                block.append(line)
+                quoted ^= line.count('"') % 2 == 1
+                continue
+            maps = _read_block(block, source, first_line, number, True, key_column, named, seen)
+            yield from maps
+            first_line += len(block) - (first_line > 1)  # a later block's text starts with the header
+            number += len(maps)
+            block = [*header, line]
+            quoted = line.count('"') % 2 == 1
+            break
+        else:
+            break
     yield from _read_block(block, source, first_line, number, None if number == 1 else True, key_column, named,
                            seen)
 

@@ -5,9 +5,9 @@ global positions of all features minimising ``sum_k e_k^T P_k^-1 e_k`` over the 
 maps k, each weighted by its full covariance (:mod:`.problem`). It is solved by
 Gauss-Newton with Levenberg-Marquardt and Newton safeguards (:mod:`.solver`) from a fast
 join (:func:`join_and_refine`; the tree join by default, :data:`DEFAULT_START`), on normal
-equations of fixed sparse pattern factorised by SuperLU; the marginal covariances at the optimum come by selected inversion of that
-factor (:mod:`.sparse`). A small problem takes the same equations dense instead (:mod:`.dense`: numpy only,
-as importing scipy would cost the command more than the solve).
+equations of fixed sparse pattern factorised by SuperLU (:mod:`.factor`); the marginal covariances at the optimum
+come by selected inversion of that factor (:mod:`.sparse`). A small problem takes the same equations dense instead
+(:mod:`.dense`: numpy only, as importing scipy would cost the command more than the solve).
 
 :func:`join_and_refine` is the whole pipeline, fast join then refinement, that ``mapjoin
 join --refine`` and ``mapjoin refine`` run; :func:`refine` starts from a given map.

@@ -276,7 +276,9 @@ def rotated_information(information: np.ndarray, layout: PieceLayout) -> tuple[n
     :func:`base_blocks` rotate by the base angle: over the layout's pairs ``T`` (the x/x and
     y/y mean), ``D`` (their half difference), ``A`` (the x/y mean), over its cross pairs ``D``
     and ``A`` again and ``K`` (the x/y half difference), then the x/phi, y/phi and phi/phi
-    parts, the whole matrix, and its rows summed over the x's and over the y's."""
+    parts, and the matrix's rows summed over the x's and over the y's. Not the whole matrix:
+    :func:`base_blocks` multiplies by it as ``W^T (W v)``, and a group's whitening W is kept
+    anyway (at 10^4 maps the matrices would hold another 150 MB)."""
     p = (information.shape[1] - 1) // 2
     (pi, pj), (ci, cj) = layout.pairs, layout.cross
     Lxy, Lyx = information[:, ci, p + cj], information[:, p + ci, cj]
@@ -286,7 +288,7 @@ def rotated_information(information: np.ndarray, layout: PieceLayout) -> tuple[n
             (information[:, ci, cj] - information[:, p + ci, p + cj]) / 2, (Lxy + Lyx) / 2, (Lxy - Lyx) / 2,
             information[:, :p, 2 * p].copy(), information[:, p:2 * p, 2 * p].copy(),
             information[:, 2 * p, 2 * p].copy(),
-            information, information[:, :, :p].sum(axis=2), information[:, :, p:2 * p].sum(axis=2))
+            information[:, :, :p].sum(axis=2), information[:, :, p:2 * p].sum(axis=2))
 
 
 # ---- per-map blocks of J^T J and J^T r (see ExactProblem.linearise) ------------------------
@@ -320,16 +322,18 @@ def base_blocks(group: Group, c: np.ndarray, s: np.ndarray, lx: np.ndarray, ly: 
     base moves along x, y or turns (``(-c, s, 0)``, ``(-s, -c, 0)``, ``(ly, -lx, -1)`` for the
     x's, y's and phi; ``lx``, ``ly`` the points in the base frame) and ``u_a = Lambda v_a``,
     own/base ``B^T u_a`` and base/base ``v_a . u_b``. Returns ``v_phi`` (G, d)."""
-    *_, Lam, rsx, rsy = group.rotated
+    *_, rsx, rsy = group.rotated
     *_, mc, cmc = views
-    G, d = Lam.shape[:2]
+    W = group.whitening
+    G, d = W.shape[:2]
     p = (d - 1) // 2
     base = group.has_base.astype(float)[:, None]
     v = np.concatenate([ly, -lx, -np.ones((G, 1))], axis=1)
     u = np.empty((G, 3, d))
     np.multiply(s * rsy - c * rsx, base, out=u[:, 0])
     np.multiply(-(s * rsx + c * rsy), base, out=u[:, 1])
-    np.multiply(np.matmul(Lam, v[:, :, None])[:, :, 0], base, out=u[:, 2])
+    Lambda_v = np.matmul(W.transpose(0, 2, 1), np.matmul(W, v[:, :, None]))[:, :, 0]   # W^T (W v)
+    np.multiply(Lambda_v, base, out=u[:, 2])
     ux, uy = u[:, :, :p], u[:, :, p:2 * p]
     cb, sb = c[:, :, None], s[:, :, None]
     np.multiply(cb, ux, out=mc[:, :, :p])

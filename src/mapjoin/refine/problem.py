@@ -39,7 +39,8 @@ from . import dense
 from . import groups as grouping
 from .dense import Backend, backend_for
 from .groups import Group
-from .sparse import BlockPattern, diagonal_blocks, factorise, fill_reducing_order
+from .factor import Factor, factorise
+from .sparse import BlockPattern, diagonal_blocks, fill_reducing_order
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
@@ -313,6 +314,7 @@ class ExactProblem:
         self._pattern = BlockPattern(col, row, order, np.concatenate([np.full(N, 3), np.full(n, 2)]))
         slots = np.split(self._pattern.rank[inverse], np.cumsum([k.size for k in keys])[:-1])
         self._place_blocks(order, slots)
+        self._pattern.placed()
 
     def _node_pairs(self, n_nodes: int) -> list[np.ndarray]:
         """Per group, the node pairs (keys ``column * n_nodes + row``) its maps' information
@@ -332,8 +334,12 @@ class ExactProblem:
         ``slots``: per group, the node entry of each of its coupled node pairs."""
         pattern = self._pattern
         csc = pattern.column_start, pattern.col_length, pattern.row_offset, pattern.nnz   # see groups.entries
-        targets, gradient_columns, angle_targets = [], [], []
+        gradient_columns, angle_targets = [], []
         block_offset = gradient_offset = 0
+        # where each block entry goes, filled group by group (a list of the pieces and its concatenation
+        # would hold them twice: 2 x 88 MB at 10^4 maps)
+        self._targets = np.empty(sum(len(g.maps) * len(g.layout.rows) for g in self.groups),
+                                 dtype=np.int32 if pattern.nnz < 2 ** 31 - 1 else np.int64)   # 32 bits: half of 88 MB
         for group, slot in zip(self.groups, slots):
             G, m2 = group.nodes.shape
             m = m2 - 2
@@ -346,18 +352,20 @@ class ExactProblem:
             layout = group.layout
             pieces = grouping.entries(layout.rows, layout.cols, node_of, offset_of, placed, full, csc)
             group.block_offset, group.gradient_offset = block_offset, gradient_offset
-            block_offset += pieces.size
             gradient_offset += group.columns.size
             bounds = np.cumsum([0] + [math.prod(shape) for shape in layout.shapes])
-            targets.extend(pieces[:, lo:hi].ravel() for lo, hi in itertools.pairwise(bounds))   # piece by piece
+            for lo, hi in itertools.pairwise(bounds):   # piece by piece (see groups.pieces)
+                self._targets[block_offset:block_offset + G * (hi - lo)] = pieces[:, lo:hi].ravel()
+                block_offset += G * (hi - lo)
             gradient_columns.append(group.columns.ravel())
             w = group.columns.shape[1]
             angle_targets.append(grouping.entries(np.full(w, w - 1), np.arange(w), node_of, offset_of, placed,
                                                   full, csc).ravel())
-        self._targets = np.concatenate(targets)
         self._gradient_columns = np.concatenate(gradient_columns)
         self._angle_targets = np.concatenate(angle_targets)
-        self._buffer, self._gradient_buffer = np.empty(block_offset), np.empty(gradient_offset)
+        # the blocks' buffer is made by each linearisation (its 88 MB at 10^4 maps not held through the
+        # factorisations); the gradient's is small
+        self._buffer_size, self._gradient_buffer = block_offset, np.empty(gradient_offset)
 
     @property
     def position(self) -> np.ndarray:
@@ -366,25 +374,28 @@ class ExactProblem:
         return self._pattern.position
 
     def linearise(self, x: np.ndarray, curvature: bool = False):
-        """``(data, gradient, chi^2[, curvature data])`` at ``x``: the CSC data of J^T J (see
-        :meth:`normal_matrix`), J^T r (natural order), and with ``curvature`` the data of the
-        second-order term ``sum_i r_i d^2 r_i / dx^2`` (J^T J plus it is half the Hessian of chi^2).
+        """``(data, gradient, chi^2[, curvature data])`` at ``x``: the lower triangle of J^T J in its CSC
+        layout (the slots above the diagonal hold zeros; :meth:`normal_matrix` mirrors it), J^T r
+        (natural order), and with ``curvature`` the same of the second-order term ``sum_i r_i d^2 r_i
+        / dx^2`` (J^T J plus it is half the Hessian of chi^2).
 
         Per map, with ``Lambda = P_k^-1``: the own columns' block is ``B^T Lambda B``, B the
         rotation by the base angle (:func:`.groups.own_blocks`); the base pose's columns are
         combinations of the own columns (:func:`.groups.base_blocks`); so a map costs one
         matrix-vector product and O(d^2) elementwise work. Only the lower triangle is
-        accumulated (one ``bincount``), then mirrored.
+        accumulated (one ``bincount``), and mirrored only when factorised (:meth:`normal_matrix`),
+        so that the mirror is not held between factorisations.
         """
         self._prepare()
         x = np.asarray(x, dtype=float)
         extra = [] if curvature else None
         cost = 0.0
+        buffer = np.empty(self._buffer_size)
         for group, (geometry, r) in zip(self.groups, self._evaluate(x)):
             c, s, lx, ly, *_ = geometry
             cost += float(np.einsum("gi,gi->", r, r))
             mu = np.matmul(r[:, None, :], group.whitening)[:, 0, :]      # W^T r = P^-1 e
-            views = grouping.pieces(self._buffer, group)
+            views = grouping.pieces(buffer, group)
             grouping.own_blocks(group, c, s, views)
             v = grouping.base_blocks(group, c, s, lx, ly, views)
             size = group.columns.size
@@ -393,28 +404,30 @@ class ExactProblem:
             if curvature:
                 extra.append(grouping.curvature(group, c, s, lx, ly, mu).ravel())
         pattern = self._pattern
-        data = pattern.mirrored(np.bincount(self._targets, self._buffer, minlength=pattern.nnz + 1))
+        data = np.bincount(self._targets, buffer, minlength=pattern.nnz + 1)[:-1]
+        del buffer
         gradient = np.bincount(self._gradient_columns, self._gradient_buffer, minlength=self.n_unknowns + 1)[:-1]
         if not curvature:
             return data, gradient, cost
-        second = pattern.mirrored(np.bincount(self._angle_targets, np.concatenate(extra), minlength=pattern.nnz + 1))
+        second = np.bincount(self._angle_targets, np.concatenate(extra), minlength=pattern.nnz + 1)[:-1]
         return data, gradient, cost, second
 
     def normal_matrix(self, data: np.ndarray) -> sp.csc_matrix:
-        """J^T J as a CSC matrix in the factor's order: entry (position[i], position[j]) is (i, j)."""
-        return self._pattern.matrix(data)
+        """J^T J (from its lower triangle ``data``, see :meth:`linearise`) as a symmetric CSC matrix in the
+        factor's order: entry (position[i], position[j]) is (i, j)."""
+        return self._pattern.matrix(self._pattern.mirrored(data))
 
-    def factorise(self, data: np.ndarray, damping: float = 0.0):
-        """The factor of ``J^T J + damping diag(J^T J)``: SuperLU's (symmetric mode, fill-reducing
+    def factorise(self, data: np.ndarray, damping: float = 0.0) -> Factor | dense.DenseFactor:
+        """The factor of ``J^T J + damping diag(J^T J)``: SuperLU's (:mod:`.factor`, in the fill-reducing
         order), or the dense backend's (:func:`.dense.factorise`); raises RuntimeError if singular."""
         if damping:
             data = data.copy()
             data[self._pattern.diagonal] *= 1.0 + damping
         if self.backend == "dense":
-            return dense.factorise(self._pattern, data)
+            return dense.factorise(self._pattern, self._pattern.mirrored(data))
         return factorise(self.normal_matrix(data))
 
-    def solve(self, factor, rhs: np.ndarray) -> np.ndarray:
+    def solve(self, factor: Factor, rhs: np.ndarray) -> np.ndarray:
         """``(J^T J)^-1 rhs`` (natural order; ``rhs`` a vector or a matrix of columns) with a
         factor from :meth:`factorise`."""
         position = self._pattern.position
@@ -426,10 +439,10 @@ class ExactProblem:
         """diag(J^T J) in natural order."""
         return data[self._pattern.diagonal]
 
-    def marginals(self, factor) -> tuple[np.ndarray, np.ndarray]:
+    def marginals(self, factor: Factor) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariances ``(poses (N, 3, 3), features (n, 2, 2))``, the diagonal blocks
-        of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise` (the
-        dense backend: from the whole inverse)."""
+        of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise`,
+        which it uses up (:func:`.sparse.diagonal_blocks`; the dense backend: from the whole inverse)."""
         N, n = self.n_maps, self.n_features
         poses = np.arange(3 * N).reshape(N, 3)
         features = 3 * N + np.arange(2 * n).reshape(n, 2)

@@ -150,6 +150,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
     while True:
         if len(costs) - 1 >= max_iterations:
             return stop("max iterations reached")
+        factor = None   # the previous step's factor is freed before the next is made
         factor, step = _step(problem, data + second if mode.newton else data, gradient, mode)
         finite = step is not None and bool(np.all(np.isfinite(step)))
         undamped = mode.damping == 0.0          # the model's own minimiser: the only step that measures the optimum
@@ -199,6 +200,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             done = (undamped and not shortened and previous - trial_cost <= relative * previous
                     and predicted <= relative * previous)
             refused_here = False
+            data = second = None             # the last point's normal matrix freed before the new one is made
             if mode.newton and not done:     # the second-order term only where a Newton step follows
                 data, gradient, cost, second = problem.linearise(x, curvature=True)
             else:

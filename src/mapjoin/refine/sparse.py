@@ -9,8 +9,7 @@ is done once:
   re-postordered so that supernodes chain, with the closed symbolic pattern of the factor;
 * :class:`BlockPattern`: the scalar CSC pattern of the node-block matrix in that order, and
   where each scalar entry, its mirror and each diagonal entry live;
-* :func:`factorise`: SuperLU in symmetric mode without pivoting (``J^T J`` is positive
-  definite), ``J^T J = L D L^T`` in the given order.
+* the factorisation ``J^T J = L D L^T`` in that order is :mod:`.factor`'s (SuperLU).
 
 Marginal covariances (:func:`diagonal_blocks`): the diagonal blocks of ``(J^T J)^-1`` by
 supernodal selected inversion (Takahashi's recursion, :func:`selected_inverse`) on the
@@ -24,16 +23,19 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .factor import SYMMETRIC_MODE
+
 if TYPE_CHECKING:
     import scipy.sparse as sp
+
+    from .factor import Factor
 
 # scipy is imported by the functions that use it: BlockPattern's arithmetic is numpy's, and the dense
 # backend (.dense) of a small problem uses it without scipy
 
-__all__ = ["BlockPattern", "Supernodes", "closed_pattern", "diagonal_blocks", "factorise", "fill_reducing_order",
+__all__ = ["BlockPattern", "Supernodes", "closed_pattern", "diagonal_blocks", "fill_reducing_order",
            "selected_inverse"]
 
-_SUPERLU = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}
 _SUPERNODE_OVERHEAD = 5e4  # flops worth one supernode's Python overhead in the selected inversion
 
 
@@ -53,7 +55,7 @@ def fill_reducing_order(row: np.ndarray, col: np.ndarray, n_nodes: int) -> tuple
     off = row != col
     graph = sp.csc_matrix((np.where(off, -1.0, 1e-3 + np.bincount(col[off], minlength=n_nodes)[col]),
                            (row, col)), shape=(n_nodes, n_nodes))
-    lu = splu(graph, permc_spec="MMD_AT_PLUS_A", **_SUPERLU)
+    lu = splu(graph, permc_spec="MMD_AT_PLUS_A", **SYMMETRIC_MODE)
     if not np.array_equal(lu.perm_r, lu.perm_c):
         raise np.linalg.LinAlgError("SuperLU pivoted on the node graph")
     order = np.asarray(lu.perm_c, dtype=np.int64)   # node -> position
@@ -71,6 +73,20 @@ def fill_reducing_order(row: np.ndarray, col: np.ndarray, n_nodes: int) -> tuple
     relabel = _heavy_last_postorder(pattern, n_nodes)
     pattern = np.sort(relabel[pattern // n_nodes] * n_nodes + relabel[pattern % n_nodes])
     return relabel[order], pattern
+
+
+_CHUNK = 1 << 21   # entries handled at a time where whole index arrays would be large temporaries
+
+
+def _chunks(indptr: np.ndarray, size: int) -> list[tuple[int, int]]:
+    """Runs ``(a, b)`` of the columns of a CSC ``indptr`` holding about ``size`` entries each (at least a column)."""
+    n = len(indptr) - 1
+    runs, a = [], 0
+    while a < n:
+        b = min(max(int(np.searchsorted(indptr, indptr[a] + size, side="right")) - 1, a + 1), n)
+        runs.append((a, b))
+        a = b
+    return runs
 
 
 class BlockPattern:
@@ -116,21 +132,40 @@ class BlockPattern:
         transposed_slot = np.searchsorted(pkeys, nrow * n_nodes + ncol)
         template_mirror = self.row_offset[transposed_slot][template_entry]
         scalar_node = np.repeat(np.arange(n_nodes), size)
-        column = np.repeat(np.arange(len(column_length)), column_length)
-        template = np.arange(nnz) - np.repeat(indptr[:-1] - cum[nptr[scalar_node]], column_length)
-        indices = template_row[template]
-        within = np.repeat(np.arange(len(scalar_node)) - start[scalar_node], column_length)   # column offset j
-        self.from_lower = np.where(indices >= column, np.arange(nnz),
-                                   indptr[indices] + template_mirror[template] + within)
-        self.indptr, self.indices = indptr.astype(np.int32), indices.astype(np.int32)
+        template_start = indptr[:-1] - cum[nptr[scalar_node]]     # each scalar column's first template entry
+        within = np.arange(len(scalar_node)) - start[scalar_node]   # its offset j in its node
+        # the scalar entries a chunk of columns at a time, in 32-bit indices: at 10^4 maps (10^7 entries)
+        # the whole arrays' temporaries took 0.9 GB
+        index = np.int32 if nnz < 2 ** 31 - 1 else np.int64
+        self.indices, self.from_lower = np.empty(nnz, dtype=np.int32), np.empty(nnz, dtype=index)
+        for a, b in _chunks(indptr, _CHUNK):
+            e0, e1 = indptr[a], indptr[b]
+            lengths = column_length[a:b]
+            column = np.repeat(np.arange(a, b), lengths)
+            entry = np.arange(e0, e1)
+            template = entry - np.repeat(template_start[a:b], lengths)
+            indices = template_row[template]
+            self.indices[e0:e1] = indices
+            self.from_lower[e0:e1] = np.where(indices >= column, entry, indptr[indices] + template_mirror[template]
+                                              + np.repeat(within[a:b], lengths))
+        self.indptr = indptr.astype(np.int32)
         self.column_start = indptr[start[:-1]]
         diagonal_slot = np.searchsorted(pkeys, np.arange(n_nodes) * (n_nodes + 1))
         self.diagonal = (indptr[self.position] + self.row_offset[diagonal_slot[order[unknown_node]]]
                          + unknown_offset)                # CSC index of A[i, i], natural order
 
+    def placed(self) -> None:
+        """Drop what only placing the blocks needs (``rank``, ``row_offset``, ``col_length``,
+        ``column_start``): at 10^4 maps 50 MB otherwise held through every factorisation."""
+        del self.rank, self.row_offset, self.col_length, self.column_start
+
     def mirrored(self, lower: np.ndarray) -> np.ndarray:
-        """The CSC data from data holding the lower triangle (and a spare last slot)."""
-        return lower[self.from_lower]
+        """The CSC data from data holding the lower triangle (and possibly a spare last slot), a chunk at a time
+        (numpy makes a 64-bit copy of 32-bit indices)."""
+        data = np.empty(self.nnz)
+        for a in range(0, self.nnz, _CHUNK):
+            data[a:a + _CHUNK] = lower[self.from_lower[a:a + _CHUNK]]
+        return data
 
     def matrix(self, data: np.ndarray) -> sp.csc_matrix:
         """The matrix of CSC ``data``: entry (position[i], position[j]) is (i, j)."""
@@ -139,39 +174,35 @@ class BlockPattern:
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
 
 
-def factorise(matrix: sp.csc_matrix):
-    """SuperLU factor ``L D L^T`` of a positive definite matrix in its given order (symmetric mode)."""
-    from scipy.sparse.linalg import splu
-
-    return splu(matrix, permc_spec="NATURAL", **_SUPERLU)
-
-
-def diagonal_blocks(factor, pattern: BlockPattern, closed: np.ndarray, blocks: list[np.ndarray]) -> list[np.ndarray]:
-    """Diagonal blocks of the inverse of the matrix ``factor`` (from :func:`factorise`, with
-    ``pattern``) factorises: for each (k, s) array of unknowns in ``blocks``, the (k, s, s)
+def diagonal_blocks(factor: Factor, pattern: BlockPattern, closed: np.ndarray, blocks: list[np.ndarray]
+                    ) -> list[np.ndarray]:
+    """Diagonal blocks of the inverse of the matrix ``factor`` (a :class:`.factor.Factor` of the
+    matrix of ``pattern``) factorises: for each (k, s) array of unknowns in ``blocks``, the (k, s, s)
     blocks of the inverse over each row's unknowns, by selected inversion on ``closed``, the
-    closed node pattern of :func:`fill_reducing_order` (or, when SuperLU reordered after
-    all, on the factor's own pattern closed)."""
+    closed node pattern of :func:`fill_reducing_order` (or, when the factor is in another order
+    after all, on the factor's own pattern closed). Uses the factor up (:meth:`.Factor.triangle`):
+    its storage is freed before the inversion's, and the triangle's once it is in the supernodal
+    blocks."""
     nv = pattern.n
-    if not (np.array_equal(factor.perm_r, factor.perm_c)):
-        raise np.linalg.LinAlgError("SuperLU pivoted: not a symmetric factorisation")
-    L = factor.L.tocoo()
-    lower = L.row > L.col
-    Lrow, Lcol, Lval = L.row[lower].astype(np.int64), L.col[lower].astype(np.int64), L.data[lower]
-    D = factor.U.diagonal()
-    natural = np.array_equal(factor.perm_c, np.arange(nv))
-    where = pattern.position if natural else np.asarray(factor.perm_c)[pattern.position]
+    perm = np.asarray(factor.perm)
+    natural = np.array_equal(perm, np.arange(nv))
+    where = pattern.position if natural else perm[pattern.position]
     placed = [(where[b], b.shape[1]) for b in blocks]
     rows = np.concatenate([np.repeat(b, size, axis=1).ravel() for b, size in placed])
     cols = np.concatenate([np.tile(b, (1, size)).ravel() for b, size in placed])
     wanted = (np.maximum(rows, cols), np.minimum(rows, cols))
+    L, D = factor.triangle()            # the factor's own storage freed
     values = None
     if natural:   # the factor is in node order: use the symbolic node pattern
-        values = selected_inverse(Supernodes(closed, pattern.size), Lrow, Lcol, Lval, D, *wanted)
+        structure = Supernodes(closed, pattern.size)
+        flat = _scatter(structure, L)
+        if flat is not None:
+            del L
+            values = _invert(structure, flat, D, *wanted)
     if values is None:   # general: close the factor's own pattern (with that of the matrix)
+        Lrow, Lcol, Lval = _strictly_lower(L)
         A = pattern.matrix(np.ones(pattern.nnz)).tocoo()
-        q = np.asarray(factor.perm_c)
-        ar, ac = q[A.row], q[A.col]
+        ar, ac = perm[A.row], perm[A.col]
         keep = ar > ac
         keys = closed_pattern(np.concatenate([Lcol, ac[keep]]) * nv + np.concatenate([Lrow, ar[keep]]), nv)
         values = selected_inverse(Supernodes(keys, np.ones(nv, dtype=np.int64)), Lrow, Lcol, Lval, D, *wanted)
@@ -179,6 +210,41 @@ def diagonal_blocks(factor, pattern: BlockPattern, closed: np.ndarray, blocks: l
             raise np.linalg.LinAlgError("the factor's pattern is not closed")
     ends = np.cumsum([b.size * b.shape[1] for b in blocks])[:-1]
     return [v.reshape(len(b), b.shape[1], b.shape[1]) for v, b in zip(np.split(values, ends), blocks)]
+
+
+def _strictly_lower(L: sp.csc_matrix, first: int = 0, last: int | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rows, columns, values)`` (int64, int64, float) of the non-zero entries of ``L`` below its diagonal, in
+    the columns ``first`` to ``last`` (default: all)."""
+    last = L.shape[1] if last is None else last
+    lo, hi = L.indptr[first], L.indptr[last]
+    col = np.repeat(np.arange(first, last, dtype=np.int64), np.diff(L.indptr[first:last + 1]))
+    row = L.indices[lo:hi].astype(np.int64)
+    value = L.data[lo:hi]
+    keep = (row > col) & (value != 0)   # an explicit zero needs no place
+    return row[keep], col[keep], value[keep]
+
+
+def _scatter(structure: Supernodes, L: sp.csc_matrix) -> np.ndarray | None:
+    """The strictly lower entries of the unit triangle ``L`` in the supernodal blocks of ``structure`` (see
+    :func:`_invert`), a chunk of columns at a time; None if an entry does not fit the structure."""
+    flat = np.zeros(structure.block_offset[-1])
+    for first, last in _chunks(L.indptr, _CHUNK):
+        if not _place(structure, flat, *_strictly_lower(L, first, last)):
+            return None
+    return flat
+
+
+def _place(structure: Supernodes, flat: np.ndarray, Lrow: np.ndarray, Lcol: np.ndarray, Lval: np.ndarray) -> bool:
+    """Put entries of L into ``flat``, per supernode J the b x (b + s) array whose row jc is column jc of
+    ``[L_JJ; L_SJ]``; False if one does not fit the structure."""
+    st = structure
+    J = st.super_of[Lcol]
+    at = st.locate(J, Lrow)
+    if at is None:
+        return False
+    flat[st.block_offset[J] + (Lcol - st.start[J]) * (st.size[J] + st.below[J]) + at] = Lval
+    return True
 
 
 def closed_pattern(keys: np.ndarray, n: int) -> np.ndarray:
@@ -341,22 +407,35 @@ def selected_inverse(structure: Supernodes, Lrow: np.ndarray, Lcol: np.ndarray, 
                       D: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray | None:
     """Entries ``(rows, cols)`` (rows >= cols, factor order) of ``A^-1`` for ``A = L D L^T``
     (unit lower L given by its strictly lower entries), by supernodal selected inversion
-    (Takahashi's recursion); None if L does not fit the structure.
+    (Takahashi's recursion, :func:`_invert`); None if L does not fit the structure."""
+    flat = np.zeros(structure.block_offset[-1])
+    if not _place(structure, flat, Lrow, Lcol, Lval):
+        return None
+    return _invert(structure, flat, D, rows, cols)
+
+
+def _invert(structure: Supernodes, flat: np.ndarray, D: np.ndarray, rows: np.ndarray, cols: np.ndarray
+            ) -> np.ndarray:
+    """Entries ``(rows, cols)`` (rows >= cols, factor order) of ``A^-1`` for ``A = L D L^T``, the
+    strictly lower entries of the unit L in ``flat``: per supernode J (from ``block_offset[J]``)
+    the b x (b + s) array whose row jc is column jc of ``[L_JJ; L_SJ]``.
 
     Supernodes are visited from the last to the first. Supernode J needs ``Z[S, S]`` (S: the
     rows below it), a submatrix of the block ``Z[P+S_P, P+S_P]`` of its parent P, which is
     kept until P's last child is done. Per supernode: ``U = L_SJ L_JJ^-1``,
     ``Z_SJ = -Z_SS U``, ``Z_JJ = (L_JJ D_J L_JJ^T)^-1 - U^T Z_SJ``. Only these blocks of
-    the inverse are formed, never the whole inverse.
+    the inverse are formed, never the whole inverse, and of them only the wanted entries
+    are kept, as each supernode is done.
     """
     st = structure
-    J = st.super_of[Lcol]
-    at = st.locate(J, Lrow)
+    J = st.super_of[cols]
+    at = st.locate(J, rows)
     if at is None:
-        return None
-    flat = np.zeros(st.block_offset[-1])          # per supernode, row jc = column jc of [L_JJ; L_SJ]
-    flat[st.block_offset[J] + (Lcol - st.start[J]) * (st.size[J] + st.below[J]) + at] = Lval
-    result = np.empty(st.block_offset[-1])        # the same layout for [Z_JJ; Z_SJ]
+        raise np.linalg.LinAlgError("a wanted entry of the inverse is outside the factor's pattern")
+    by = np.argsort(J, kind="stable")            # the wanted entries supernode by supernode
+    local = ((cols - st.start[J]) * (st.size[J] + st.below[J]) + at)[by]
+    bounds = np.searchsorted(J[by], np.arange(st.count + 1)).tolist()
+    values = np.empty(len(rows))
     frontal: dict[int, np.ndarray] = {}
     children = st.children.copy()
     import scipy.linalg
@@ -370,7 +449,7 @@ def selected_inverse(structure: Supernodes, Lrow: np.ndarray, Lcol: np.ndarray, 
         if info:
             raise np.linalg.LinAlgError("singular diagonal block in the factor")
         Zjj = Linv.T @ (Linv / D[j0:j0 + b, None])
-        out = result[o0:o1].reshape(b, b + s)
+        out = np.empty((b, b + s))
         if s:
             U = block[:, b:].T @ Linv                     # (s, b)
             P = st.parent[J]
@@ -383,6 +462,9 @@ def selected_inverse(structure: Supernodes, Lrow: np.ndarray, Lcol: np.ndarray, 
             Zjj -= U.T @ Zsj
             out[:, b:] = Zsj.T
         out[:, :b] = Zjj
+        lo, hi = bounds[J], bounds[J + 1]
+        if hi > lo:
+            values[by[lo:hi]] = out.ravel()[local[lo:hi]]
         if children[J]:
             F = np.empty((b + s, b + s))
             F[:b, :b] = Zjj
@@ -391,10 +473,4 @@ def selected_inverse(structure: Supernodes, Lrow: np.ndarray, Lcol: np.ndarray, 
                 F[:b, b:] = Zsj.T
                 F[b:, b:] = Zss
             frontal[J] = F
-    J = st.super_of[cols]
-    at = st.locate(J, rows)
-    if at is None:
-        raise np.linalg.LinAlgError("a wanted entry of the inverse is outside the factor's pattern")
-    return result[st.block_offset[J] + (cols - st.start[J]) * (st.size[J] + st.below[J]) + at]
-
-
+    return values
