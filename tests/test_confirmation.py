@@ -250,3 +250,20 @@ def test_a_streamed_join_whose_input_changed_is_not_confirmed():
     confirmed, why = confirm_streamed(result, lambda: maps, 1e-10)
     assert why is None and not any(r.flag for r in confirmed.report)
     assert confirm_streamed(result, None, 1e-10)[0] is result
+
+
+def test_a_join_whose_exact_problems_exceed_the_cap_keeps_the_fast_flag(data_dir, monkeypatch):
+    """A loop closure late in a long chain would need solves of the whole chain: past
+    ``MAX_SOLVED`` maps in all it is left to the fast test, and smaller joins are still confirmed."""
+    import mapjoin.confirmation as confirmation
+
+    maps = mapio.read_maps(str(data_dir / "DLR_200_local_maps"))
+    fast = join(maps)
+    flagged = [r.join for r in fast.report if r.flag]
+    whole = confirm(maps, fast, "sequential", 1e-10)
+    assert all(r.exact_p is not None for r in whole.report if r.join in flagged)
+    monkeypatch.setattr(confirmation, "MAX_SOLVED", flagged[0] + 1)   # the first join's union: maps 0..k
+    capped = confirm(maps, fast, "sequential", 1e-10)
+    confirmed = [r.join for r in capped.report if r.exact_p is not None]
+    assert confirmed == flagged[:1]
+    assert all(r.flag for r in capped.report if r.join in flagged[1:])

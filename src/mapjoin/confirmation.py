@@ -38,11 +38,15 @@ from .streaming import CompactReport
 if TYPE_CHECKING:
     from .refine.problem import ExactProblem
 
-__all__ = ["BUDGET", "REREAD_LIMIT", "Estimate", "Increment", "Optimum", "Pieces", "confirm", "confirm_streamed",
+__all__ = ["BUDGET", "MAX_SOLVED", "REREAD_LIMIT", "Estimate", "Increment", "Optimum", "Pieces", "confirm", "confirm_streamed",
            "increment", "piece_bounds", "variance_factor"]
 
 #: the exact solves of a run's confirmations stop once they have solved this many times the chain's maps
 BUDGET = 20.0
+#: ... and a join is confirmed only while its exact problems fit in this many maps solved in all: a sequential
+#: loop closure after 25 000 maps would need three solves of the whole chain (minutes, where its join took
+#: seconds; benchmarks/README.md, "Confirmation")
+MAX_SOLVED = 20_000
 #: a streamed join's maps are read again for its confirmation only up to this many maps (a longer stream
 #: keeps its memory bound, and its fast flags)
 REREAD_LIMIT = 100_000
@@ -212,8 +216,9 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
     under chi-square(dof). It stays flagged only if ``exact_p < gate`` with the union solved from both
     starts (its pieces' optima, then the fast join's map; the lower optimum counts), or if a solve did not
     converge (nothing is then confirmed either way). In report order (chain order; the tree's level by
-    level), while the exact problems solved so far hold fewer than ``budget`` times the chain's maps;
-    joins past the budget keep the fast test's flag (``exact_p`` None).
+    level), while the exact problems solved so far hold fewer than ``budget`` times the chain's maps, and
+    only joins whose union fits, with them, in :data:`MAX_SOLVED` maps; the others keep the fast test's
+    flag (``exact_p`` None).
     """
     chosen = [r for r in result.report if r.p < gate and r.minima == 1 and r.action == "joined" and r.dof > 0]
     if not chosen:
@@ -225,6 +230,8 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
         if pieces.solved >= limit:
             break
         first, middle, stop = piece_bounds(maps, record, strategy)
+        if pieces.solved + stop - first > MAX_SOLVED:
+            continue
         exact = increment(pieces, first, middle, stop)
         s = variance_factor(exact, record.variance_factor)
         p = float(p_values(np.array([exact.chi2 / s]), np.array([exact.dof]))[0])
@@ -247,8 +254,12 @@ def confirm_streamed(result: JoinResult, read: Callable[[], Sequence[LocalMap]] 
     count = int(report.flagged.sum()) if isinstance(report, CompactReport) else sum(r.flag for r in report)
     if not count:
         return result, None
+    first = (int(np.flatnonzero(report.flagged)[0]) + 1 if isinstance(report, CompactReport)
+             else min(r.join for r in report if r.flag))   # a sequential join k's union: maps 1..k+1
     why = ("its maps came from stdin" if read is None else
-           f"it has more than {REREAD_LIMIT} maps" if len(report) + 1 > REREAD_LIMIT else None)
+           f"it has more than {REREAD_LIMIT} maps" if len(report) + 1 > REREAD_LIMIT else
+           f"the first one's exact problem would hold more than {MAX_SOLVED} maps" if first + 1 > MAX_SOLVED
+           else None)
     if why is None:
         maps = read()
         if [m.name for m in maps[1:]] == [r.map for r in report]:
