@@ -11,6 +11,7 @@ import scipy.optimize
 import scipy.stats
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_consistency import _corrupt as _corrupted  # the one recipe of the corrupted maps
 
 from mapjoin import io as mapio
 from mapjoin.confirmation import Pieces, confirm, increment, piece_bounds
@@ -140,25 +141,6 @@ def test_the_union_is_solved_from_its_pieces_not_from_the_distorted_fast_map():
     assert exact.left.cost == pytest.approx(refine(maps[:199], covariances=False).cost, rel=1e-9)
     record = confirm(maps, result, "sequential", 1e-10).report[198]
     assert record.exact_p is not None and not record.flag
-
-
-def _corrupted(maps: list[LocalMap], k: int, how: str) -> tuple[list[LocalMap], int]:
-    """Map k corrupted (end heading +0.6 rad; a feature the maps before saw moved 5 m; two ids swapped), and
-    the sequential join whose problem holds the corrupted value."""
-    local_map = maps[k]
-    j = int(np.flatnonzero(np.isin(local_map.feature_ids, np.concatenate([m.feature_ids for m in maps[:k]])))[0])
-    if how == "heading":
-        changed, joined = dataclasses.replace(local_map, end_pose=local_map.end_pose + [0.0, 0.0, 0.6]), k + 1
-    elif how == "feature":
-        features = local_map.features.copy()
-        features[j, 0] += 5.0
-        changed, joined = dataclasses.replace(local_map, features=features), k
-    else:
-        ids = local_map.feature_ids.copy()
-        other = (j + 1) % len(ids)
-        ids[[j, other]] = ids[[other, j]]
-        changed, joined = dataclasses.replace(local_map, feature_ids=ids), k
-    return [*maps[:k], changed, *maps[k + 1:]], joined
 
 
 @pytest.mark.parametrize("name", SMALL_SETS)
