@@ -131,6 +131,31 @@ def test_ctrl_c_while_writing_a_folder_leaves_nothing(maps, tmp_path, monkeypatc
     assert listing(tmp_path) == before
 
 
+def test_ctrl_c_while_the_outputs_are_renamed_into_place_waits_for_the_last_one(tmp_path, monkeypatch):
+    """A commit of several files is all or nothing against Ctrl-C too: a SIGINT arriving during the renames is
+    delivered after the last one (pytest runs tests in the main thread, where Python receives signals)."""
+    import signal
+
+    replace = os.replace
+    renamed = []
+
+    def interrupted(source, target):
+        if not renamed:
+            os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C to this process, between the two renames
+        replace(source, target)
+        renamed.append(os.path.basename(target))
+
+    monkeypatch.setattr(outputs_module.os, "replace", interrupted)
+    (tmp_path / "a.csv").write_text("old a\n")
+    with pytest.raises(KeyboardInterrupt):
+        with mapio.Outputs(files={"-o": str(tmp_path / "a.csv"), "--report": str(tmp_path / "b.csv")}):
+            mapio.write_output("new a\n", tmp_path / "a.csv")
+            mapio.write_output("new b\n", tmp_path / "b.csv")
+    assert sorted(renamed) == ["a.csv", "b.csv"]
+    assert listing(tmp_path) == ["a.csv", "b.csv"]
+    assert (tmp_path / "a.csv").read_text() == "new a\n" and (tmp_path / "b.csv").read_text() == "new b\n"
+
+
 def test_a_folder_is_made_with_its_parents_only_when_committed(maps, tmp_path):
     local_maps = mapio.read_maps([str(maps)])
     target = tmp_path / "a" / "b"

@@ -4,7 +4,8 @@ Everything a user can do to a running process ends in one line on stderr and a
 documented exit code, never a traceback or an "Exception ignored" at exit:
 
 - Ctrl-C at any moment, start-up included: ``mapjoin: interrupted``, exit 130 (the
-  writers clean up their temporary files on the way out);
+  writers clean up their temporary files on the way out), unless the command had finished: a
+  Ctrl-C after its outputs are committed is ignored, and its own exit code stands;
 - stdout closed, full or failing when the data is flushed: one line, exit 1;
 - a reader that stops early (``mapjoin join ... | head``): quiet, exit 0;
 - a usage error (an unknown option, a value out of range): one line, exit 2.
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import errno
 import os
+import signal
 import sys
 from typing import NoReturn
 
@@ -64,6 +66,9 @@ def run(argv: list[str] | None = None) -> NoReturn:
         from .cli import main
 
         code = main.main(args=argv, prog_name="mapjoin", standalone_mode=False)
+        # the command is done, its outputs committed and its summary said: a Ctrl-C from now on changes
+        # nothing, so it must not turn a finished command's exit code into 130 (or kill the interpreter's exit)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     except KeyboardInterrupt:
         code = _interrupted()
     except BaseException as error:  # click's own exits and errors in non-standalone mode

@@ -17,8 +17,9 @@ error the writes are committed: the staged files are flushed to the disk (``fsyn
 ``sync`` for many files), the streams and special files are written through (opened and
 written, never renamed over, so a device stays a device; stdout is flushed, so a closed pipe or
 a full disk is noticed before the command's summary), then the temporaries are renamed onto
-their targets and every folder touched is ``fsync``-ed. Any error, Ctrl-C included, removes
-every temporary: nothing new remains and nothing old is changed. A write outside a ``with``
+their targets, with Ctrl-C held back until the last rename is done, and every folder touched is
+``fsync``-ed. Any error, Ctrl-C included, removes every temporary: nothing new remains and nothing
+old is changed. A write outside a ``with``
 block is a transaction of its own.
 
 Symbolic links are written through: the link stays, and the file it points to is replaced
@@ -35,6 +36,7 @@ import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass, field
+from types import FrameType
 from typing import TextIO
 
 from ..errors import InputError
@@ -344,16 +346,17 @@ class Outputs:
                 _write_through(through)
             touched: dict[str, None] = {}
             staging.renames.reverse()  # renamed from the end: what is left on an error is what is not renamed
-            while staging.renames:
-                temporary, target, name = staging.renames[-1]
-                _write_error(name, os.replace, temporary, target)
-                staging.renames.pop()
-                touched[os.path.dirname(target)] = None
-            while staging.folders:
-                folder, temporary = next(iter(staging.folders.items()))
-                _write_error(folder, os.rename, temporary, folder)
-                del staging.folders[folder]
-                touched[folder] = touched[os.path.dirname(folder)] = None
+            with _interrupt_held():
+                while staging.renames:
+                    temporary, target, name = staging.renames[-1]
+                    _write_error(name, os.replace, temporary, target)
+                    staging.renames.pop()
+                    touched[os.path.dirname(target)] = None
+                while staging.folders:
+                    folder, temporary = next(iter(staging.folders.items()))
+                    _write_error(folder, os.rename, temporary, folder)
+                    del staging.folders[folder]
+                    touched[folder] = touched[os.path.dirname(folder)] = None
             for folder in touched:
                 _sync_folder(folder)
         finally:
@@ -368,6 +371,31 @@ class Outputs:
         for temporary in self._staging.folders.values():
             shutil.rmtree(temporary, ignore_errors=True)
         self._staging = _Staging()
+
+
+@contextlib.contextmanager
+def _interrupt_held() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) back while the staged files are renamed into place, so that the renames of one commit
+    happen all or none: a Ctrl-C pressed meanwhile is noted and handed to the previous handler (Python's raises
+    KeyboardInterrupt) when they are done. A handler, not a signal mask: the kernel delivers a signal masked in
+    the main thread to any other thread (numpy's), and Python runs its handlers in the main thread regardless.
+    Only the main thread can set handlers, and only it receives Python's signals, so elsewhere nothing is held."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pressed: list[FrameType | None] = []
+    previous = signal.signal(signal.SIGINT, lambda _number, frame: pressed.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if pressed and callable(previous):
+            previous(signal.SIGINT, pressed[0])
+        elif pressed and previous == signal.SIG_DFL:
+            os.kill(os.getpid(), signal.SIGINT)
 
 
 def write_output(content: Content, target: Source) -> list[str]:
