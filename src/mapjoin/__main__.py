@@ -10,7 +10,8 @@ documented exit code, never a traceback or an "Exception ignored" at exit:
 - a reader that stops early (``mapjoin join ... | head``): quiet, exit 0;
 - a usage error (an unknown option, a value out of range): one line, exit 2.
 
-This module imports only the standard library before the guard is in place.
+This module imports only the standard library and :mod:`mapjoin.errors` (which imports nothing) before
+the guard is in place.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import signal
 import sys
 from typing import NoReturn
 
-EXIT_INTERRUPTED = 130
+from .errors import EXIT_INTERRUPTED
 
 
 class _ClosedStdout:

@@ -1,9 +1,18 @@
-"""The exceptions mapjoin raises; the CLI turns each into one line on stderr and exit code 1."""
+"""The exceptions mapjoin raises, and the command line's exit codes: the CLI turns each exception into one line on
+stderr and exit code 1. This module imports nothing, so that ``python -m mapjoin``'s outermost guard can take
+its exit code from here before anything else is loaded."""
 
 from __future__ import annotations
 
-__all__ = ["ECHO_LIMIT", "NAME_LIMIT", "MapjoinError", "InputError", "JoinError", "counted", "one_line", "shown",
+__all__ = ["ECHO_LIMIT", "EXIT_INTERRUPTED", "EXIT_NOT_CONVERGED", "EXIT_TWO_MINIMA", "NAME_LIMIT", "MapjoinError", "InputError", "JoinError", "counted", "one_line", "shown",
            "shown_name"]
+
+#: exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports a process the signal ended)
+EXIT_INTERRUPTED = 130
+#: exit code of ``check-minima`` finding a join with two minima: a result written, but one to look at
+EXIT_TWO_MINIMA = 3
+#: exit code of ``refine`` / ``join --refine`` stopping without converging: the same code, for the same reason
+EXIT_NOT_CONVERGED = 3
 
 #: the most characters of an input value an error message shows (:func:`shown`)
 ECHO_LIMIT = 40

@@ -18,11 +18,7 @@ from collections.abc import Iterator, MutableMapping
 
 import click
 
-from ..__main__ import EXIT_INTERRUPTED
-from ..errors import InputError, MapjoinError, one_line, shown, shown_name
-
-EXIT_TWO_MINIMA = 3
-EXIT_NOT_CONVERGED = 3  # the same code: a result written, but one to look at
+from ..errors import EXIT_INTERRUPTED, InputError, MapjoinError, one_line, shown, shown_name
 
 #: what a command without an option for a library argument (InputError.argument) tells instead
 _REMEDIES = {"format": "save it under a name with its format's extension"}

@@ -9,11 +9,12 @@ import math
 import click
 
 from .. import io as mapio
+from ..errors import EXIT_TWO_MINIMA
 from ..io.registry import TABLE
 from ..joining import certify_pair
 from ..maps import ANGLE, MINIMA_A
 from ..onestep import analyse_minima, summarise_minima
-from . import EXIT_TWO_MINIMA, common, main
+from . import common, main
 from .common import TABLE_EXTENSIONS, covariance_option, input_format_option, output_option, solver_option
 
 

@@ -342,7 +342,7 @@ def exit_if_not_converged(ctx: click.Context, result: RefineResult, output: str)
     too) and exit code 3; the output written holds the last iterate."""
     if result.converged:
         return
-    from . import EXIT_NOT_CONVERGED
+    from ..errors import EXIT_NOT_CONVERGED
 
     where = "stdout" if output == "-" else output
     click.echo(f"mapjoin: error: the exact join did not converge ({result.reason} after {result.iterations} "
