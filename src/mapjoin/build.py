@@ -48,9 +48,9 @@ import numpy as np
 import scipy.linalg
 
 from .errors import InputError, counted
-from .covariance import marginal_variances, spherical_summary
+from .covariance import spherical_summary
 from .joining import join_sequential
-from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, size_groups, unstack
+from .maps import GlobalMap, LocalMap, Provenance, StackedMaps, first_invalid_map, marginal_variances, size_groups, unstack
 from .raw import RawData
 from .se2 import compose, relative
 from .refine import TOLERANCE, RefineResult

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from .maps import size_groups
+from .maps import marginal_variances, size_groups, spherical_diagonal
 
 if TYPE_CHECKING:
     from .maps import LocalMap
@@ -35,7 +35,6 @@ __all__ = [
     "CovarianceMode",
     "batch_spherical_variances",
     "fuse",
-    "marginal_variances",
     "placed_variances",
     "spherical_variances",
     "squared_norm",
@@ -49,20 +48,6 @@ COVARIANCE_MODES: tuple[str, ...] = ("identity", "marginal", "information")
 # Measured against the exact least-squares joins (docs/joining.md, "Covariance modes"): closest on
 # VicPark 200 and both simulations; "marginal" is closer on DLR 200 only.
 DEFAULT_COVARIANCE: CovarianceMode = "information"
-
-
-def _summary(diagonal: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of each x/y pair of ``diagonal`` (the last axis: pose x, y, phi, then features), the phi entry as is; ``**power``."""
-    features = (diagonal[..., 3::2] + diagonal[..., 4::2]) / 2
-    poses = diagonal[..., 1:3].copy()
-    poses[..., 0] = (diagonal[..., 0] + diagonal[..., 1]) / 2
-    return features**power, poses**power
-
-
-def marginal_variances(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The ``marginal`` spherical variances of a stack of full covariances of one size (k x n x n): the
-    feature variances (k x m) and pose variances (k x 2) that ``LocalMap.from_covariance`` gives each."""
-    return _summary(np.diagonal(covariances, axis1=-2, axis2=-1), 1.0)
 
 
 def spherical_variances(local_map: LocalMap, mode: CovarianceMode) -> tuple[np.ndarray, np.ndarray]:
@@ -104,7 +89,7 @@ def batch_spherical_variances(maps: Sequence[LocalMap], mode: CovarianceMode) ->
         size = 3 + 2 * int(sizes[members[0]])
         stacked = np.concatenate([maps[i].covariance for i in members.tolist()]).reshape(-1, size, size)
         if mode == "information":  # sigma^2 = 2 / trace of each block of P^-1 = 1 / its mean
-            feature_part, pose_part = _summary(np.diagonal(np.linalg.inv(stacked), axis1=1, axis2=2), -1.0)
+            feature_part, pose_part = spherical_diagonal(np.diagonal(np.linalg.inv(stacked), axis1=1, axis2=2), -1.0)
         else:
             feature_part, pose_part = marginal_variances(stacked)
         features[(offsets[members][:, None] + np.arange(feature_part.shape[1])).ravel()] = feature_part.ravel()

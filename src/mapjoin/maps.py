@@ -166,6 +166,21 @@ def size_groups(sizes: np.ndarray) -> list[np.ndarray]:
     return np.split(order, np.flatnonzero(np.diff(sizes[order])) + 1)
 
 
+def spherical_diagonal(diagonal: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
+    """Spherical variances from the diagonal of full covariances (or, with ``power`` -1, of information matrices):
+    the mean of each x/y pair of ``diagonal`` (the last axis: pose x, y, phi, then features), the phi entry as is; ``**power``."""
+    features = (diagonal[..., 3::2] + diagonal[..., 4::2]) / 2
+    poses = diagonal[..., 1:3].copy()
+    poses[..., 0] = (diagonal[..., 0] + diagonal[..., 1]) / 2
+    return features**power, poses**power
+
+
+def marginal_variances(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``marginal`` spherical variances of a stack of full covariances of one size (k x n x n): the
+    feature variances (k x m) and pose variances (k x 2) that ``LocalMap.from_covariance`` gives each."""
+    return spherical_diagonal(np.diagonal(covariances, axis1=-2, axis2=-1), 1.0)
+
+
 def first_flagged(bad: np.ndarray, offsets: np.ndarray) -> int:
     """The item holding the first flagged row of ``bad``, a mask over the rows of items' arrays concatenated
     (item i's rows from ``offsets[i]`` to ``offsets[i + 1]``); the number of items if none is flagged."""
@@ -241,8 +256,6 @@ class LocalMap:
     def from_covariance(cls, name: str, start_id: int, end_id: int, end_pose, feature_ids,
                         features, covariance) -> "LocalMap":
         """A map whose spherical variances are the ``marginal`` summary of its full covariance."""
-        from .covariance import marginal_variances  # the covariance module builds on this one
-
         covariance = np.asarray(covariance, dtype=float)
         feature_variances, pose_variances = marginal_variances(covariance[np.newaxis])
         return cls(name, start_id, end_id, end_pose, feature_ids, features,

@@ -65,13 +65,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .covariance import marginal_variances
 from .maps import (
     GroundTruth,
     LocalMap,
     StackedMaps,
     first_invalid_map,
     locate,
+    marginal_variances,
     size_groups,
     unstack,
 )

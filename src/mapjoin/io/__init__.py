@@ -46,9 +46,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from ..covariance import marginal_variances
 from ..errors import InputError, counted
-from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate
+from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate, marginal_variances
 from . import registry
 from .g2o import g2o_feature_offset
 from .inputs import resolve_inputs

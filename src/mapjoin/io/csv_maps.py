@@ -46,9 +46,8 @@ from typing import Any
 
 import numpy as np
 
-from ..covariance import marginal_variances
 from ..errors import InputError, shown
-from ..maps import LocalMap, StackedMaps, first_duplicate, first_invalid_map, size_groups, unstack
+from ..maps import LocalMap, StackedMaps, first_duplicate, first_invalid_map, marginal_variances, size_groups, unstack
 from . import csvtable
 from .fields import filled_variances, ignored_fields, warn_ignored
 from .paths import map_name

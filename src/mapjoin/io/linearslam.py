@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..covariance import marginal_variances, state_variances
+from ..covariance import state_variances
 from ..errors import InputError, shown
 from ..maps import (
     COVARIANCE_ENTRY,
@@ -32,6 +32,7 @@ from ..maps import (
     asymmetry,
     first_duplicate,
     first_invalid_map,
+    marginal_variances,
     outside,
     size_groups,
     unstack,

@@ -22,9 +22,9 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from ..covariance import marginal_variances, state_covariance
+from ..covariance import state_covariance
 from ..errors import InputError
-from ..maps import LocalMap, StackedMaps, first_flagged, first_invalid_map, size_groups, unstack
+from ..maps import LocalMap, StackedMaps, first_flagged, first_invalid_map, marginal_variances, size_groups, unstack
 from . import matfile
 from .paths import read_file
 

@@ -35,9 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from ..covariance import marginal_variances
 from ..errors import InputError
-from ..maps import LocalMap
+from ..maps import LocalMap, marginal_variances
 from . import yamldoc
 from .fields import filled_variances, warn_ignored
 from .numbers import lower_matrix, mirrored_lower
