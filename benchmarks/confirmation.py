@@ -22,11 +22,11 @@ import time
 
 import numpy as np
 from common import dataset_arguments, write_section
-from consistency import corrupted
 
 from mapjoin import io as mapio
 from mapjoin.confirmation import Pieces, confirm, increment, piece_bounds, variance_factor
 from mapjoin.consistency import DEFAULT_GATE, p_values
+from mapjoin.faults import corrupted
 from mapjoin.joining import join
 from mapjoin.simulation import simulate
 

@@ -18,14 +18,13 @@ the ``consistency`` markers of benchmarks/README.md.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 from common import dataset_arguments, write_section
 
 from mapjoin import io as mapio
 from mapjoin.consistency import DEFAULT_GATE, p_values
 from mapjoin.evaluation import compare
+from mapjoin.faults import corrupted
 from mapjoin.joining import join
 from mapjoin.refine import join_and_refine
 from mapjoin.simulation import simulate
@@ -34,27 +33,6 @@ DATASETS = ("535_data_5_local_maps", "8240_data_50_local_maps", "DLR_200_local_m
             "VicPark_6898_local_maps")
 LEVELS = (1e-2, 1e-3, 1e-6, 1e-10)
 SEEDS = range(5)
-
-
-def corrupted(maps: list, k: int, how: str) -> tuple[list, int]:
-    """``maps`` with map k corrupted, and the number of the sequential join whose problem holds the value."""
-    local_map = maps[k]
-    seen = np.isin(local_map.feature_ids, np.concatenate([m.feature_ids for m in maps[:k]]))
-    j = int(np.flatnonzero(seen)[0])  # a feature the maps before k saw: it is common in join k
-    if how == "heading":
-        pose = local_map.end_pose.copy()
-        pose[2] += 0.6
-        changed, joined = dataclasses.replace(local_map, end_pose=pose), k + 1  # the odometry of join k+1
-    elif how == "feature":
-        features = local_map.features.copy()
-        features[j, 0] += 5.0
-        changed, joined = dataclasses.replace(local_map, features=features), k
-    else:
-        ids = local_map.feature_ids.copy()
-        other = (j + 1) % len(ids)
-        ids[[j, other]] = ids[[other, j]]
-        changed, joined = dataclasses.replace(local_map, feature_ids=ids), k
-    return [*maps[:k], changed, *maps[k + 1:]], joined
 
 
 def flagged(report: tuple) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:

@@ -11,10 +11,10 @@ import scipy.optimize
 import scipy.stats
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_consistency import _corrupt as _corrupted  # the one recipe of the corrupted maps
 
 from mapjoin import io as mapio
 from mapjoin.confirmation import Pieces, confirm, increment, piece_bounds
+from mapjoin.faults import corrupted
 from mapjoin.joining import join
 from mapjoin.maps import LocalMap
 from mapjoin.simulation import simulate
@@ -147,7 +147,7 @@ def test_the_union_is_solved_from_its_pieces_not_from_the_distorted_fast_map():
 @pytest.mark.parametrize("how", ["heading", "feature", "swap"])
 def test_the_join_holding_a_corrupted_value_is_confirmed(data_dir, name, how):
     maps = mapio.read_maps(str(data_dir / name))
-    chain, number = _corrupted(maps, len(maps) // 2, how)
+    chain, number = corrupted(maps, len(maps) // 2, how)
     record = join(chain, confirm=confirm).report[number - 1]
     assert record.flag and record.exact_p is not None and record.exact_p < 1e-10
 
@@ -157,7 +157,7 @@ def test_the_join_holding_a_corrupted_value_is_confirmed(data_dir, name, how):
 def test_a_tree_join_whose_pieces_hold_a_corrupted_value_stays_flagged(data_dir, name, how):
     maps = mapio.read_maps(str(data_dir / name))
     k = len(maps) // 2
-    chain, _ = _corrupted(maps, k, how)
+    chain, _ = corrupted(maps, k, how)
     report = join(chain, strategy="tree", confirm=confirm).report
     holding = [r for r in report if r.flag and k in range(*piece_bounds(chain, r, "tree")[::2])]
     assert holding and (holding[0].minima == 2 or holding[0].exact_p < 1e-10)
@@ -190,7 +190,7 @@ def test_skip_acts_on_the_confirmed_flags(data_dir):
     """With the skip policy the re-joined chains are confirmed too: the corrupted heading's map is joined by its
     features alone, and the clean loop closures the fast statistic flags are left as they are."""
     maps = mapio.read_maps(str(data_dir / "DLR_200_local_maps"))
-    chain, number = _corrupted(maps, 100, "heading")
+    chain, number = corrupted(maps, 100, "heading")
     report = join(chain, on_inconsistent="skip", confirm=confirm).report
     assert [(r.join, r.action) for r in report if r.action != "joined"] == [(number, "features only")]
     assert not any(r.flag for r in report)

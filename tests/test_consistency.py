@@ -19,6 +19,7 @@ from mapjoin import io as mapio
 from mapjoin.consistency import degrees_of_freedom, flags, p_values
 from mapjoin.errors import JoinError
 from mapjoin.evaluation import compare
+from mapjoin.faults import corrupted as corrupt
 from mapjoin.joining import join, join_sequential
 from mapjoin.maps import LocalMap
 from mapjoin.refine import join_and_refine
@@ -141,24 +142,6 @@ def test_two_minima_are_always_flagged():
     assert record.minima == 2 and record.flag
 
 
-def _corrupt(maps: list[LocalMap], k: int, how: str) -> tuple[list[LocalMap], int]:
-    """Map k corrupted; the number of the sequential join whose problem holds the corrupted value."""
-    local_map = maps[k]
-    seen = np.isin(local_map.feature_ids, np.concatenate([m.feature_ids for m in maps[:k]]))
-    j = int(np.flatnonzero(seen)[0])
-    if how == "heading":
-        pose = local_map.end_pose + [0.0, 0.0, 0.6]
-        return [*maps[:k], dataclasses.replace(local_map, end_pose=pose), *maps[k + 1:]], k + 1
-    if how == "feature":
-        features = local_map.features.copy()
-        features[j] += [5.0, 0.0]
-        return [*maps[:k], dataclasses.replace(local_map, features=features), *maps[k + 1:]], k
-    ids = local_map.feature_ids.copy()
-    other = (j + 1) % len(ids)
-    ids[[j, other]] = ids[[other, j]]
-    return [*maps[:k], dataclasses.replace(local_map, feature_ids=ids), *maps[k + 1:]], k
-
-
 @pytest.fixture(scope="module")
 def chains(data_dir):
     return {name: mapio.read_maps(str(data_dir / name)) for name in MAP_SETS}
@@ -169,7 +152,7 @@ def chains(data_dir):
 def test_the_join_holding_a_corrupted_value_is_flagged(chains, name, how):
     maps = chains[name]
     k = len(maps) // 2
-    corrupted, number = _corrupt(maps, k, how)
+    corrupted, number = corrupt(maps, k, how)
     assert not join(maps).report[number - 1].flag  # clean, the same join passes
     assert join(corrupted).report[number - 1].flag
     if how == "heading":  # the tree joins the piece ending with map k to the one starting after it once
@@ -201,13 +184,13 @@ def test_the_tree_policy_acts_on_the_levels_solved(chains):
     report = join(maps, strategy="tree", on_inconsistent="stop").report
     assert {r.variance_factor for r in report if r.level == 1} == {report[0].variance_factor} and \
         report[0].variance_factor > 1.0
-    corrupted, _ = _corrupt(maps, 100, "heading")
+    corrupted, _ = corrupt(maps, 100, "heading")
     with pytest.raises(JoinError, match=r"localmap_102\.mat: join 51 is inconsistent"):
         join(corrupted, strategy="tree", on_inconsistent="stop")
 
 
 def test_stop_names_the_map(chains):
-    corrupted, number = _corrupt(chains["VicPark_200_local_maps"], 100, "heading")
+    corrupted, number = corrupt(chains["VicPark_200_local_maps"], 100, "heading")
     with pytest.raises(JoinError, match=r"localmap_102\.mat: join 101 is inconsistent"):
         join(corrupted, on_inconsistent="stop")
 
@@ -238,7 +221,7 @@ def test_skip_joins_a_map_by_its_features_when_the_heading_link_is_wrong(chains)
     distance to the exact join."""
     maps = chains["VicPark_200_local_maps"]
     exact = join_and_refine(maps, covariances=False).global_map
-    corrupted, number = _corrupt(maps, 100, "heading")
+    corrupted, number = corrupt(maps, 100, "heading")
     skipped = join(corrupted, on_inconsistent="skip")
     assert [(r.join, r.action) for r in skipped.report if r.action != "joined"] == [(number, "features only")]
     assert not any(r.flag for r in skipped.report)
@@ -249,7 +232,7 @@ def test_skip_joins_a_map_by_its_features_when_the_heading_link_is_wrong(chains)
 
 def test_skip_leaves_out_a_map_whose_features_disagree_and_continues_the_chain(chains):
     maps = chains["VicPark_200_local_maps"]
-    corrupted, number = _corrupt(maps, 100, "swap")
+    corrupted, number = corrupt(maps, 100, "swap")
     skipped = join(corrupted, on_inconsistent="skip")
     assert [(r.join, r.action) for r in skipped.report if r.action != "joined"] == [(number, "left out")]
     g = skipped.global_map
@@ -280,7 +263,7 @@ def test_cli_report_columns_and_summary(data_dir, tmp_path):
 
 def _swapped_folder(data_dir, tmp_path):
     """The 535-step maps as YAML files, map 3 with two feature ids swapped (an inconsistent map)."""
-    corrupted, _ = _corrupt(mapio.read_maps(str(data_dir / "535_data_5_local_maps")), 2, "swap")
+    corrupted, _ = corrupt(mapio.read_maps(str(data_dir / "535_data_5_local_maps")), 2, "swap")
     folder = tmp_path / "bad"
     mapio.write_maps(corrupted, f"{folder}/", format="yaml")
     return folder
