@@ -28,11 +28,13 @@ Backend = Literal["auto", "dense", "sparse"]
 BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse")
 
 #: problems with at most this many unknowns are solved densely under ``auto``: on whole refines of the first
-#: maps of VicPark 200 and DLR 200 (benchmarks/startup.py --crossover) the dense backend took 0.33-0.76 of the
-#: sparse one's time up to 148 unknowns, and from 184 to 464 about as long or longer (0.77-1.63: OpenBLAS's
-#: threads on a loaded machine); the real datasets' 1198-1698 unknowns are far beyond (benchmarks/README.md,
-#: "Start-up")
-DENSE_UNKNOWNS = 150
+#: maps of VicPark 200 and DLR 200 (benchmarks/startup.py --crossover, OpenBLAS on one thread as the command
+#: runs it) the dense backend took 0.36-0.65 of the sparse one's wall time up to 762 unknowns, about as long at
+#: 958-988 and longer from 1128 (1.32 at VicPark 200's 1198, 3.1 at DLR 200's 1698): below that, importing
+#: scipy costs more than the dense arithmetic. (The first measurement, 150, had OpenBLAS's two threads
+#: contending with a loaded machine.) A confirmation's solves take the whole chain's backend
+#: (:func:`mapjoin.confirmation.chain_backend`).
+DENSE_UNKNOWNS = 800
 
 
 def backend_for(backend: Backend, unknowns: int) -> Literal["dense", "sparse"]:
