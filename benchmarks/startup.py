@@ -167,8 +167,8 @@ def crossover(args: argparse.Namespace) -> str:
     compile_tree(ROOT / "src")
     scratch = tempfile.mkdtemp(prefix="mapjoin-crossover-")
     cases, unknowns = {}, {}
-    for name, counts in (("535_data_5_local_maps", (5,)), ("VicPark_200_local_maps", (2, 4, 8, 16, 25, 40, 80, 200)),
-                         ("DLR_200_local_maps", (5, 10, 20, 30, 60, 200))):
+    for name, counts in (("535_data_5_local_maps", (5,)), ("VicPark_200_local_maps", (2, 4, 8, 16, 25, 40, 80, 100, 120, 150, 200)),
+                         ("DLR_200_local_maps", (5, 10, 20, 30, 60, 80, 100, 120, 200))):
         for count in counts:
             for backend in ("dense", "sparse"):
                 cases[f"{name} {count} {backend}"] = ([sys.executable, "-c", _CROSSOVER_CHILD, str(args.data / name),
