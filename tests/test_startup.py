@@ -83,6 +83,16 @@ def test_dense_backend_equals_the_sparse_one_on_a_singular_problem():
             problem.solve(problem.factorise(data), np.ones(problem.n_unknowns))
 
 
+@pytest.mark.parametrize("name, count", [("VicPark_200_local_maps", 120), ("DLR_200_local_maps", 80)])
+def test_auto_takes_the_dense_backend_for_real_prefixes_below_the_crossover_and_it_solves_them_as_sparse(
+        name, count, data_dir):
+    """The first maps of the real datasets below DENSE_UNKNOWNS (732 and 762 unknowns): ``auto`` is dense, and
+    the dense solve equals the sparse one (every chi^2 to 1e-9, the optimum, the marginal covariances)."""
+    maps = mapio.read_maps([str(data_dir / name)])[:count]
+    assert ExactProblem(maps).backend == "dense"
+    assert_same_solve(solve_both(maps, join(maps, strategy="tree").global_map), rtol=1e-7)
+
+
 def test_auto_backend_is_dense_up_to_the_measured_crossover():
     assert backend_for("auto", DENSE_UNKNOWNS) == "dense"
     assert backend_for("auto", DENSE_UNKNOWNS + 1) == "sparse"
