@@ -67,7 +67,8 @@ print(problem.n_unknowns)
 def timed(command: list[str], src: Path | None, cwd: str) -> tuple[float, float, str]:
     """Wall and CPU seconds of one run of ``command`` with ``src`` first on the path; its stdout."""
     env = dict(os.environ)
-    for name in ("PYTHONDONTWRITEBYTECODE", *BLAS_THREAD_VARIABLES):   # OpenBLAS's threads: its default, or the command's
+    # OpenBLAS's threads: its own default (before) or what the command sets (after), not this shell's
+    for name in ("PYTHONDONTWRITEBYTECODE", *BLAS_THREAD_VARIABLES):
         env.pop(name, None)
     if src is not None:
         env["PYTHONPATH"] = str(src)
@@ -167,7 +168,8 @@ def crossover(args: argparse.Namespace) -> str:
     compile_tree(ROOT / "src")
     scratch = tempfile.mkdtemp(prefix="mapjoin-crossover-")
     cases, unknowns = {}, {}
-    for name, counts in (("535_data_5_local_maps", (5,)), ("VicPark_200_local_maps", (2, 4, 8, 16, 25, 40, 80, 100, 120, 150, 200)),
+    for name, counts in (("535_data_5_local_maps", (5,)),
+                         ("VicPark_200_local_maps", (2, 4, 8, 16, 25, 40, 80, 100, 120, 150, 200)),
                          ("DLR_200_local_maps", (5, 10, 20, 30, 60, 80, 100, 120, 200))):
         for count in counts:
             for backend in ("dense", "sparse"):
@@ -180,7 +182,8 @@ def crossover(args: argparse.Namespace) -> str:
     lines = [(f"Medians of {args.rounds} interleaved rounds (load average {load[0]:.2f} at the start, "
               f"{load_end[0]:.2f} at the end), wall seconds "
               "(CPU seconds in brackets) of a fresh interpreter reading the maps, joining them (tree), solving and "
-              "computing the marginal covariances with the backend forced, OpenBLAS on one thread as in the command:"), "",
+              "computing the marginal covariances with the backend forced, OpenBLAS on one thread as in the "
+              "command:"), "",
              "| maps | unknowns | dense | sparse | dense / sparse (wall) |", "|---|---:|---:|---:|---:|"]
     for (name, count), n in sorted(unknowns.items(), key=lambda item: item[1]):
         dense, sparse = medians[f"{name} {count} dense"], medians[f"{name} {count} sparse"]

@@ -39,8 +39,8 @@ if TYPE_CHECKING:
     from .refine.dense import Backend
     from .refine.problem import ExactProblem
 
-__all__ = ["BUDGET", "MAX_SOLVED", "REREAD_LIMIT", "Estimate", "Increment", "Optimum", "Pieces", "chain_backend", "confirm",
-           "confirm_streamed", "increment", "piece_bounds", "variance_factor"]
+__all__ = ["BUDGET", "MAX_SOLVED", "REREAD_LIMIT", "Estimate", "Increment", "Optimum", "Pieces", "chain_backend",
+           "confirm", "confirm_streamed", "increment", "piece_bounds", "variance_factor"]
 
 #: the exact solves of a run's confirmations stop once they have solved this many times the chain's maps
 BUDGET = 20.0
