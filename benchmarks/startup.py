@@ -16,8 +16,9 @@ relative to that one (here / there, for the scipy import and for ``--help``).
 
 ``--crossover``: where the dense backend of the exact solve (refine/dense.py) stops paying
 for itself: the first K maps of VicPark 200 (and of DLR 200) refined in a fresh interpreter
-(reading, fast join, solve, marginal covariances) with each backend forced; median wall
-times by the problem's unknowns.
+(reading, fast join, solve, marginal covariances) with each backend forced, OpenBLAS's threads
+as the command sets them (``mapjoin.__main__.one_blas_thread``); median wall times by the
+problem's unknowns.
 """
 
 from __future__ import annotations
@@ -35,6 +36,8 @@ from pathlib import Path
 
 from common import DATA, ROOT, write_section
 
+from mapjoin.__main__ import BLAS_THREAD_VARIABLES
+
 DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps", "VicPark_6898_local_maps")
 TINY = "535_data_5_local_maps"  # not in the issue's table: a refine small enough for the dense backend
 #: the issue's table (same run there): Linear SLAM C++, mapjoin join, mapjoin refine; whole commands, seconds
@@ -46,6 +49,8 @@ ISSUE_SCIPY, ISSUE_HELP = 0.70, 0.33
 
 _CROSSOVER_CHILD = """
 import sys
+from mapjoin.__main__ import one_blas_thread
+one_blas_thread()   # as the command: OpenBLAS on one thread unless the environment says otherwise
 from mapjoin import io
 from mapjoin.joining import join
 from mapjoin.refine.problem import ExactProblem
@@ -62,7 +67,9 @@ print(problem.n_unknowns)
 def timed(command: list[str], src: Path | None, cwd: str) -> tuple[float, float, str]:
     """Wall and CPU seconds of one run of ``command`` with ``src`` first on the path; its stdout."""
     env = dict(os.environ)
-    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    # OpenBLAS's threads: its own default (before) or what the command sets (after), not this shell's
+    for name in ("PYTHONDONTWRITEBYTECODE", *BLAS_THREAD_VARIABLES):
+        env.pop(name, None)
     if src is not None:
         env["PYTHONPATH"] = str(src)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -105,7 +112,11 @@ def commands(args: argparse.Namespace) -> str:
     cases: dict[str, tuple[list[str], Path | None]] = {
         "python -c pass": ([python, "-c", "pass"], None),
         "import numpy": ([python, "-c", "import numpy"], None),
-        "import numpy, scipy.sparse.linalg": ([python, "-c", "import numpy, scipy.sparse.linalg"], None)}
+        "import numpy, scipy.sparse.linalg": ([python, "-c", "import numpy, scipy.sparse.linalg"], None),
+        "import numpy, scipy.sparse.linalg, scipy.special": (
+            [python, "-c", "import numpy, scipy.sparse.linalg, scipy.special"], None),
+        "import numpy (one BLAS thread)": (
+            [python, "-c", "import os; os.environ['OPENBLAS_NUM_THREADS'] = '1'; import numpy"], None)}
     for tree, src in trees.items():
         cases[f"--help ({tree})"] = ([python, "-m", "mapjoin", "--help"], src)
         runs = [(name, command) for name in DATASETS for command in ("join", "refine")] + [(TINY, "refine")]
@@ -129,8 +140,12 @@ def commands(args: argparse.Namespace) -> str:
              "| reference | here | issue's machine | here / there |", "|---|---:|---:|---:|",
              f"| `python -c pass` | {cell('python -c pass')} | | |",
              f"| `python -c \"import numpy\"` | {cell('import numpy')} | | |",
+             f"| the same, `OPENBLAS_NUM_THREADS=1` (as `mapjoin` sets it) | {cell('import numpy (one BLAS thread)')} "
+             "| | |",
              (f"| `python -c \"import numpy, scipy.sparse.linalg\"` | {cell('import numpy, scipy.sparse.linalg')} | "
-              f"0.63-0.77 | {scipy_ratio:.2f} |")]
+              f"0.63-0.77 | {scipy_ratio:.2f} |"),
+             ("| `python -c \"import numpy, scipy.sparse.linalg, scipy.special\"` (the chi^2 warning's quantiles) | "
+              f"{cell('import numpy, scipy.sparse.linalg, scipy.special')} | | |")]
     lines += [f"| `mapjoin --help` ({tree}) | {cell(f'--help ({tree})')} | 0.33 | "
               f"{medians[f'--help ({tree})'][0] / ISSUE_HELP:.2f} |" for tree in trees]
     columns = [tree for tree in ("before", "after") if tree in trees]
@@ -153,8 +168,9 @@ def crossover(args: argparse.Namespace) -> str:
     compile_tree(ROOT / "src")
     scratch = tempfile.mkdtemp(prefix="mapjoin-crossover-")
     cases, unknowns = {}, {}
-    for name, counts in (("535_data_5_local_maps", (5,)), ("VicPark_200_local_maps", (2, 4, 8, 12, 16, 25, 40)),
-                         ("DLR_200_local_maps", (5, 10, 20, 30))):
+    for name, counts in (("535_data_5_local_maps", (5,)),
+                         ("VicPark_200_local_maps", (2, 4, 8, 16, 25, 40, 80, 100, 120, 150, 200)),
+                         ("DLR_200_local_maps", (5, 10, 20, 30, 60, 80, 100, 120, 200))):
         for count in counts:
             for backend in ("dense", "sparse"):
                 cases[f"{name} {count} {backend}"] = ([sys.executable, "-c", _CROSSOVER_CHILD, str(args.data / name),
@@ -162,9 +178,12 @@ def crossover(args: argparse.Namespace) -> str:
             unknowns[(name, count)] = int(timed(*cases[f"{name} {count} dense"], scratch)[2])
     load = os.getloadavg()
     medians = run_rounds(cases, args.rounds, scratch)
-    lines = [(f"Medians of {args.rounds} interleaved rounds (load average {load[0]:.2f} at the start), wall seconds "
+    load_end = os.getloadavg()
+    lines = [(f"Medians of {args.rounds} interleaved rounds (load average {load[0]:.2f} at the start, "
+              f"{load_end[0]:.2f} at the end), wall seconds "
               "(CPU seconds in brackets) of a fresh interpreter reading the maps, joining them (tree), solving and "
-              "computing the marginal covariances with the backend forced:"), "",
+              "computing the marginal covariances with the backend forced, OpenBLAS on one thread as in the "
+              "command:"), "",
              "| maps | unknowns | dense | sparse | dense / sparse (wall) |", "|---|---:|---:|---:|---:|"]
     for (name, count), n in sorted(unknowns.items(), key=lambda item: item[1]):
         dense, sparse = medians[f"{name} {count} dense"], medians[f"{name} {count} sparse"]

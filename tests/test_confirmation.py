@@ -249,3 +249,40 @@ def test_a_join_whose_exact_problems_exceed_the_cap_keeps_the_fast_flag(data_dir
     confirmed = [r.join for r in capped.report if r.exact_p is not None]
     assert confirmed == flagged[:1]
     assert all(r.flag for r in capped.report if r.join in flagged[1:])
+
+
+@pytest.mark.parametrize("name", ["535_data_5_local_maps", "8240_data_50_local_maps", "DLR_200_local_maps"])
+def test_a_confirmation_solves_with_the_whole_chains_backend(data_dir, name):
+    """chain_backend counts the whole chain's unknowns as its exact problem does, and chooses as that problem's
+    own ``auto`` would."""
+    from mapjoin.confirmation import chain_backend
+    from mapjoin.refine.problem import ExactProblem
+
+    maps = mapio.read_maps([str(data_dir / name)])
+    for count in (2, len(maps) // 3, len(maps)):
+        assert chain_backend(maps[:count]) == ExactProblem(maps[:count]).backend
+
+
+def test_the_confirmation_of_dlrs_first_loop_closures_is_the_same_with_either_backend(data_dir, monkeypatch):
+    """The first 75 maps of DLR 200 (a dense chain: 701 unknowns) flag joins 71 and 72 at the fast stage; the
+    exact statistics the dense backend gives them are the sparse backend's (1e-9 relative), and so are the
+    verdicts (both cleared)."""
+    from mapjoin import confirmation
+    from mapjoin.confirmation import chain_backend
+
+    maps = mapio.read_maps([str(data_dir / "DLR_200_local_maps")])[:75]
+    fast = join(maps)
+    assert chain_backend(maps) == "dense" and [r.join for r in fast.report if r.flag] == [71, 72]
+    results = {}
+    for backend in ("dense", "sparse"):
+        monkeypatch.setattr(confirmation, "chain_backend", lambda _maps, chosen=backend: chosen)
+        results[backend] = confirm(maps, fast, "sequential", 1e-10).report
+    for dense, sparse in zip(results["dense"], results["sparse"]):
+        assert dense.flag == sparse.flag
+        if sparse.exact_chi2 is None:
+            assert dense.exact_chi2 is None
+        else:
+            assert dense.exact_chi2 == pytest.approx(sparse.exact_chi2, rel=1e-9)
+            assert dense.exact_p == pytest.approx(sparse.exact_p, rel=1e-6)
+    assert [r.join for r in results["dense"] if r.exact_chi2 is not None] == [71, 72]
+    assert not any(r.flag for r in results["dense"])

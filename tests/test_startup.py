@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 
@@ -14,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
+from mapjoin.__main__ import BLAS_THREAD_VARIABLES, one_blas_thread
 from mapjoin.cli import COMMAND_MODULES, main
 from mapjoin.evaluation import CHI2_LEVEL, chi2_interval, chi2_surely_inside
 from mapjoin.joining import join
@@ -79,6 +81,16 @@ def test_dense_backend_equals_the_sparse_one_on_a_singular_problem():
         data = problem.linearise(problem.pack(join(maps).global_map))[0] * 0.0
         with pytest.raises(RuntimeError):
             problem.solve(problem.factorise(data), np.ones(problem.n_unknowns))
+
+
+@pytest.mark.parametrize("name, count", [("VicPark_200_local_maps", 120), ("DLR_200_local_maps", 80)])
+def test_auto_takes_the_dense_backend_for_real_prefixes_below_the_crossover_and_it_solves_them_as_sparse(
+        name, count, data_dir):
+    """The first maps of the real datasets below DENSE_UNKNOWNS (732 and 762 unknowns): ``auto`` is dense, and
+    the dense solve equals the sparse one (every chi^2 to 1e-9, the optimum, the marginal covariances)."""
+    maps = mapio.read_maps([str(data_dir / name)])[:count]
+    assert ExactProblem(maps).backend == "dense"
+    assert_same_solve(solve_both(maps, join(maps, strategy="tree").global_map), rtol=1e-7)
 
 
 def test_auto_backend_is_dense_up_to_the_measured_crossover():
@@ -194,3 +206,46 @@ def test_dense_module_needs_no_scipy():
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() \
         == "False"
     assert dense.backend_for("auto", 1) == "dense"
+
+
+# ---- OpenBLAS's threads in the command ---------------------------------------------------------------
+
+_THREADS = """
+import json, os, runpy, sys
+sys.argv = ["mapjoin", *sys.argv[1:]]
+try:
+    runpy.run_module("mapjoin", run_name="__main__", alter_sys=True)
+except SystemExit:
+    pass
+print(json.dumps([os.environ.get("OPENBLAS_NUM_THREADS"), len(os.listdir("/proc/self/task"))]), file=sys.stderr)
+"""
+
+
+def blas_threads(data_dir, tmp_path, **environment: str) -> tuple[str | None, int]:
+    """``(OPENBLAS_NUM_THREADS, threads of the process)`` after ``mapjoin refine`` of a small dataset in a fresh
+    interpreter whose environment has no BLAS thread variable but ``environment``."""
+    env = {k: v for k, v in os.environ.items() if k not in BLAS_THREAD_VARIABLES} | environment
+    process = subprocess.run([sys.executable, "-c", _THREADS, "refine", str(data_dir / "535_data_5_local_maps"),
+                              "-o", str(tmp_path / "exact.csv")], capture_output=True, text=True, env=env, check=False)
+    variable, threads = json.loads(process.stderr.splitlines()[-1])
+    return variable, threads
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="counts the process's threads in /proc")
+def test_the_command_runs_openblas_on_one_thread_unless_told(data_dir, tmp_path):
+    """OpenBLAS starts its worker threads when numpy loads it: the command's process has none of them, unless
+    the environment asked for a count (then OpenBLAS's own threads are there: the count is what OpenBLAS read)."""
+    assert blas_threads(data_dir, tmp_path) == ("1", 1)
+    variable, threads = blas_threads(data_dir, tmp_path, OPENBLAS_NUM_THREADS="2")
+    assert variable == "2" and threads >= 2
+    variable, threads = blas_threads(data_dir, tmp_path, OMP_NUM_THREADS="2")
+    assert variable is None and threads >= 2
+
+
+def test_a_program_running_the_command_keeps_its_blas_threads(monkeypatch):
+    """numpy loaded already (this test process): the environment is left alone, as it would change nothing here
+    but only what this process starts."""
+    for name in BLAS_THREAD_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    one_blas_thread()
+    assert not any(name in os.environ for name in BLAS_THREAD_VARIABLES)

@@ -59,8 +59,25 @@ def _flush_stdout(code: int) -> int:
     return code
 
 
+#: the variables OpenBLAS takes its thread count from (the first set one), when it is loaded with numpy
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "OMP_NUM_THREADS")
+
+
+def one_blas_thread() -> None:
+    """Let numpy's and scipy's OpenBLAS run on one thread in this process (and those it starts), unless the
+    environment chose a count or numpy is loaded already (a program calling :func:`run`: its BLAS is its own).
+
+    Measured on whole commands (benchmarks/README.md, "Start-up"): this project's BLAS calls are small (a
+    map's blocks, SuperLU's supernodes, the selected inversion's), and on the shared 2-core machine OpenBLAS's
+    default second thread made ``refine`` of VicPark 200 take 1.08 s instead of 0.73 s (load 3) and larger
+    refines no faster (3000 simulated maps). OpenBLAS reads the variable when it is loaded: this runs first."""
+    if "numpy" not in sys.modules and not any(name in os.environ for name in BLAS_THREAD_VARIABLES):
+        os.environ["OPENBLAS_NUM_THREADS"] = "1"
+
+
 def run(argv: list[str] | None = None) -> NoReturn:
     """Run the command line with ``argv`` (default: the process's arguments) and exit."""
+    one_blas_thread()
     if sys.stdout is None:
         sys.stdout = _ClosedStdout()  # type: ignore[assignment]
     try:

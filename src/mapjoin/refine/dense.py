@@ -10,7 +10,10 @@ The normal matrix is assembled once, as the CSC data of :class:`.sparse.BlockPat
 dense matrix. The Gauss-Newton, Levenberg-Marquardt and Newton steps of
 docs/method.md#solver solve it by LU with partial pivoting (``numpy.linalg.solve``: the
 matrix of a Newton step may be indefinite), and the marginal covariances
-(docs/method.md#marginal-covariances) are the diagonal blocks of its inverse.
+(docs/method.md#marginal-covariances) are the diagonal blocks of its inverse. Cholesky would not
+save time here: numpy has no triangular solve, so a Cholesky solve or inverse needs general LU
+solves with the factor on top of the factorisation (measured slower at 300-1198 unknowns,
+benchmarks/README.md, "Start-up").
 """
 
 from __future__ import annotations
@@ -28,11 +31,13 @@ Backend = Literal["auto", "dense", "sparse"]
 BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse")
 
 #: problems with at most this many unknowns are solved densely under ``auto``: on whole refines of the first
-#: maps of VicPark 200 and DLR 200 (benchmarks/startup.py --crossover) the dense backend took 0.33-0.76 of the
-#: sparse one's time up to 148 unknowns, and from 184 to 464 about as long or longer (0.77-1.63: OpenBLAS's
-#: threads on a loaded machine); the real datasets' 1198-1698 unknowns are far beyond (benchmarks/README.md,
-#: "Start-up")
-DENSE_UNKNOWNS = 150
+#: maps of VicPark 200 and DLR 200 (benchmarks/startup.py --crossover, OpenBLAS on one thread as the command
+#: runs it) the dense backend took 0.43-0.65 of the sparse one's wall time up to 592 unknowns, 0.72-0.91 from
+#: 652 to 762, as long at 958-988 and longer from 1128 (1.16 at VicPark 200's 1198, 2.8 at DLR 200's 1698):
+#: below that, importing scipy costs more than the dense arithmetic. (The first measurement, 150, had
+#: OpenBLAS's two threads contending with a loaded machine.) A confirmation's solves take the whole chain's
+#: backend (:func:`mapjoin.confirmation.chain_backend`).
+DENSE_UNKNOWNS = 800
 
 
 def backend_for(backend: Backend, unknowns: int) -> Literal["dense", "sparse"]:
