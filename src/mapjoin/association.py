@@ -46,6 +46,13 @@ join (sequential and tree) which features of the right piece are features of the
    the one rigid correction of the link that the drift made (:mod:`mapjoin.association_loops`); a join whose
    best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other
    correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link.
+7. **A strained map so far** (sequential joins; :mod:`mapjoin.association_strain`). Before step 6, a pair of
+   steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
+   feature seen in one map with it lies within its drift (:data:`mapjoin.association_strain.DRIFT_MARGIN`): its
+   small offset is no evidence then. ``D`` is taken the shorter way through the chain's ties (a join that matched
+   :data:`LOOP_SUPPORT` drifted features ties its map to theirs) plus the strain of the joins that fused
+   features partway between two estimates (a quarter of each pair's squared residual, per feature and per tie;
+   :meth:`mapjoin.association_drift.SightingDrift.settled`).
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -73,6 +80,7 @@ import numpy as np
 
 from .association_drift import SightingDrift
 from .association_loops import rigid_votes
+from .association_strain import drift_rivals
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
 from .joining import JoinRecord, Strategy, join
 from .maps import GlobalMap, LocalMap, locate
@@ -529,18 +537,46 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
                      right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...] | None,
                      gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
-                     left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None) -> Matches:
-    """:func:`match_features`, then the loop closures among the features it left unpaired (:func:`_closed_loops`,
-    module docstring, step 6): ``drift`` = (left ``D``, left heading variance, right ``D``, right heading
-    variance), one per feature (:mod:`mapjoin.association_drift`), or None for none."""
+                     left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
+                     pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Matches:
+    """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
+    right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7; the sequential join's, through
+    the chain's ties), then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
+    ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
+    (:mod:`mapjoin.association_drift`), or None for none."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
     found = match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, gate, margin, left_sightings, right_sightings)
     if drift is None:
         return found
+    if pair_drift is not None:
+        found = _unstrained(found, left, left_covariances, left_join, link_xy, link_phi, right, right_covariances,
+                            right_join, pair_drift(found.left, found.right), left_sightings)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
     return found if closed is None else closed
+
+
+def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
+                link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_covariances: np.ndarray,
+                right_join: np.ndarray, drift: np.ndarray, left_sightings: np.ndarray | None) -> Matches:
+    """``found`` less the pairs :func:`mapjoin.association_strain.drift_rivals` names (``drift``: each pair's), whose
+    right features are left new and counted ambiguous; the right features are predicted through each join's link
+    as ``found`` corrected it."""
+    joins = len(link_xy)
+    pair_join = right_join[found.right]
+    correction = found.correction
+    turn = np.exp(1j * (link_phi + correction[:, 2]))
+    predicted = link_xy[pair_join] + correction[pair_join, 0] + 1j * correction[pair_join, 1] + \
+        turn[pair_join] * right[found.right]
+    noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
+             + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
+    drop = drift_rivals(left, left_join, found.left, predicted, noise, drift, left_sightings)
+    if not drop.any():
+        return found
+    undecided = np.union1d(found.undecided, found.right[drop])
+    return Matches(found.left[~drop], found.right[~drop], np.bincount(right_join[undecided], minlength=joins),
+                   found.rejected, undecided, correction)
 
 
 def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
@@ -725,8 +761,14 @@ class _Associator:
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
                                  right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
-                                 self.sightings[:used], self.row_sightings[rows])
+                                 self.sightings[:used], self.row_sightings[rows],
+                                 lambda i, j: self.drift.settled(i, k - 1))
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
+        dx, dy, dphi = found.correction[0]  # each pair's disagreement around the link the join's pairs corrected
+        residuals = np.abs(positions[found.left] - (link_xy + dx + 1j * dy + np.exp(1j * (link_phi + dphi))
+                                                    * z[found.right])) ** 2
+        residuals = residuals / 4  # a fused feature sits about halfway: a quarter of the squared disagreement
+        self._tie(k, found.left, right_covariances[found.right], residuals)
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
         order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
@@ -736,9 +778,24 @@ class _Associator:
         self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], np.arange(len(z)) < len(found.right))
         self.row_ids[self.offsets[k] + order] = ids
         points, maps, matched_count = self.row_points[rows][order], np.full(len(z), k), len(found.right)
-        self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count])
+        self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count], residuals)
         self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
         return order, ids, len(found.right)
+
+    def _tie(self, k: int, matched: np.ndarray, right_covariances: np.ndarray, residuals: np.ndarray) -> None:
+        """Join ``k`` matched features ``matched`` (compact ids, before their new sighting; ``residuals``: each one's
+        squared distance to its partner's prediction through the corrected link): when at least :data:`LOOP_SUPPORT` of them had
+        drifted (``D`` since the chain's last tie at least their noise), the join measured its link relative to the
+        map that last saw them (the median), a tie of the chain, strained by their residuals' median
+        (:meth:`mapjoin.association_drift.SightingDrift.tie`)."""
+        if len(matched) < LOOP_SUPPORT:
+            return
+        noise = (self.covariances[matched, 0] + self.covariances[matched, 2]
+                 + right_covariances[:, 0] + right_covariances[:, 2]) / 2
+        drifted = self.drift.settled(matched, k - 1) >= noise
+        if drifted.sum() >= LOOP_SUPPORT:
+            self.drift.tie(int(np.median(self.drift.last_map[matched[drifted]])), k,
+                           float(np.median(residuals[drifted])))
 
     # tree strategy -----------------------------------------------------------------------
     def level(self, pieces: _Pieces, level: int) -> _Pieces:
