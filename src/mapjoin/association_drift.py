@@ -144,13 +144,15 @@ class SightingDrift:
         best = drift_variance(self.sums[link_map + 1] - self.sums[seen + 1], point)
         ties = np.array(self.ties, dtype=float).reshape(-1, 3)
         ties = ties[ties[:, 1] <= link_map]
-        if len(ties) and len(ids):  # every (feature, tie) at once
+        drifted = np.flatnonzero(best > 0)  # a feature seen by the link's map has no shorter way
+        if len(ties) and len(drifted):  # every (drifted feature, tie) at once
             old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+            seen, point = seen[drifted], point[drifted]
             low, high = np.minimum(seen[:, None], old_map), np.maximum(seen[:, None], old_map)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
-                                   np.repeat(point, len(ties))).reshape(len(ids), len(ties))
+                                   np.repeat(point, len(ties))).reshape(len(seen), len(ties))
             moved = point[:, None] - self.chain.poses[old_map] + self.chain.poses[junction]
-            since = np.broadcast_to(self.sums[link_map + 1] - self.sums[junction + 1], (len(ids), len(ties), 5))
-            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(ids), len(ties))
-            best = np.minimum(best, through.min(axis=1))
+            since = np.broadcast_to(self.sums[link_map + 1] - self.sums[junction + 1], (len(seen), len(ties), 5))
+            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(ties))
+            best[drifted] = np.minimum(best[drifted], through.min(axis=1))
         return best + self.strain[ids]
