@@ -61,6 +61,57 @@ def test_settled_drift_is_the_shortest_way_through_the_ties(seed, n, tie_count):
         assert math.isclose(got[feature], strain[feature] + min(ways), rel_tol=1e-9, abs_tol=1e-12)
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(5, 14), tie_count=st.integers(0, 3))
+def test_settled_drift_of_a_right_piece_is_the_shortest_way_through_its_ties(seed, n, tie_count):
+    """A tree join's right feature, first seen at map c of the right piece (maps link + 1 .. end): settled_after =
+    its strain + min(the junctions link + 2 .. c at its point, over each tie (m, j, s) inside the piece: s + the
+    junctions link + 2 .. m at the point moved by pose m - pose j + the junctions between j and c), dense sums; and
+    settled restricted to the ties inside the left piece (maps start .. link)."""
+    rng = np.random.default_rng(seed)
+    end_poses = np.column_stack([rng.uniform(1, 5, n), rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n)])
+    v, p = rng.uniform(0.001, 0.1, n + 1), rng.uniform(1e-5, 1e-3, n + 1)
+    drift = SightingDrift.of(end_poses, 2)
+    drift.placed(np.arange(1, n), v[1:n], p[1:n])
+    poses = dead_reckoned(end_poses)
+    link = int(rng.integers(0, n - 2))
+    start, end = int(rng.integers(0, link + 1)), int(rng.integers(link + 1, n))
+    first = int(rng.integers(link + 1, end + 1))
+    seen = int(rng.integers(start, link + 1))
+    point = complex(rng.normal(), rng.normal())
+    drift.seen(np.array([0, 1]), np.array([first, seen]), np.array([point, point]))
+    ties = []
+    for _ in range(tie_count):
+        old, junction = sorted(int(x) for x in rng.integers(0, n, 2))
+        ties.append((old, junction, float(rng.uniform(0, 0.05))))
+        drift.tie(*ties[-1])
+
+    def dense(junctions, f):
+        return sum(v[i] + p[i] * abs(f - complex(*poses[i, :2])) ** 2 / 2 for i in junctions)
+
+    def reckoned(m):
+        return complex(*compose(poses[m], np.array([point.real, point.imag, 0.0]))[:2])
+
+    f = reckoned(first)
+    ways = [dense(range(link + 2, first + 1), f)]
+    for old, junction, tie_strain in ties:
+        if old >= link + 1 and junction <= end:
+            low, high = sorted((first, junction))
+            moved = f - complex(*poses[junction, :2]) + complex(*poses[old, :2])
+            ways.append(tie_strain + dense(range(link + 2, old + 1), moved) + dense(range(low + 1, high + 1), f))
+    got = drift.settled_after(np.array([0]), np.array([link]), np.array([end]))
+    assert math.isclose(got[0], min(ways), rel_tol=1e-9, abs_tol=1e-12)
+    f = reckoned(seen)
+    ways = [dense(range(seen + 1, link + 1), f)]
+    for old, junction, tie_strain in ties:
+        if start <= old and start <= junction <= link:
+            low, high = sorted((seen, old))
+            moved = f - complex(*poses[old, :2]) + complex(*poses[junction, :2])
+            ways.append(tie_strain + dense(range(low + 1, high + 1), f) + dense(range(junction + 1, link + 1), moved))
+    got = drift.settled(np.array([1]), np.array([link]), np.array([start]))
+    assert math.isclose(got[0], min(ways), rel_tol=1e-9, abs_tol=1e-12)
+
+
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 10_000), with_sightings=st.booleans())
 def test_drift_rivals_equal_a_brute_force_loop(seed, with_sightings):

@@ -132,27 +132,52 @@ class SightingDrift:
         from then on, the link is also known through that map, up to the strain (in place)."""
         self.ties.append((int(old_map), int(junction), float(strain)))
 
-    def settled(self, ids: np.ndarray, link_map: int) -> np.ndarray:
-        """``D`` of left features ``ids`` relative to the end of map ``link_map`` over the shorter way: the junctions
-        since their last sighting (:meth:`before`), or, through a tie ``(m, c)`` made before the link, the
-        junctions between their last sighting and map ``m`` (either way along the chain) and those from ``c`` up to
-        the link (the feature moved with map ``m``'s place to map ``c``'s, a translation) plus the tie's strain; and,
-        either way, the feature's own :attr:`strain`. O(ties) per feature: the callers ask it for a join's pairs
-        only."""
+    def settled(self, ids: np.ndarray, link_map: np.ndarray | int, start: np.ndarray | int = 0) -> np.ndarray:
+        """``D`` of left features ``ids`` relative to the end of map ``link_map`` (one, or one per feature) over the
+        shorter way: the junctions since their last sighting (:meth:`before`), or, through a tie ``(m, c)`` made
+        between map ``start`` and the link (the left piece's maps: the sequential join's start at 0), the junctions
+        between their last sighting and map ``m`` (either way along the chain) and those from ``c`` up to the link
+        (the feature moved with map ``m``'s place to map ``c``'s, a translation) plus the tie's strain; and, either
+        way, the feature's own :attr:`strain`. O(ties) per feature: the callers ask it for a join's pairs only."""
         ids = np.asarray(ids, dtype=np.intp)
+        link_map = np.broadcast_to(np.asarray(link_map, dtype=np.intp), ids.shape)
+        start = np.broadcast_to(np.asarray(start, dtype=np.intp), ids.shape)
         seen, point = self.last_map[ids], self.last_point[ids]
         best = drift_variance(self.sums[link_map + 1] - self.sums[seen + 1], point)
         ties = np.array(self.ties, dtype=float).reshape(-1, 3)
-        ties = ties[ties[:, 1] <= link_map]
         drifted = np.flatnonzero(best > 0)  # a feature seen by the link's map has no shorter way
         if len(ties) and len(drifted):  # every (drifted feature, tie) at once
             old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
-            seen, point = seen[drifted], point[drifted]
+            seen, point, link, first = seen[drifted], point[drifted], link_map[drifted], start[drifted]
             low, high = np.minimum(seen[:, None], old_map), np.maximum(seen[:, None], old_map)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
                                    np.repeat(point, len(ties))).reshape(len(seen), len(ties))
             moved = point[:, None] - self.chain.poses[old_map] + self.chain.poses[junction]
-            since = np.broadcast_to(self.sums[link_map + 1] - self.sums[junction + 1], (len(seen), len(ties), 5))
+            since = self.sums[link + 1][:, None, :] - self.sums[junction + 1][None, :, :]
             through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(ties))
-            best[drifted] = np.minimum(best[drifted], through.min(axis=1))
+            inside = (junction <= link[:, None]) & (junction >= first[:, None]) & (old_map >= first[:, None])
+            best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
+        return best + self.strain[ids]
+
+    def settled_after(self, ids: np.ndarray, link_map: np.ndarray, end: np.ndarray) -> np.ndarray:
+        """``D`` of right features ``ids`` of a tree join (:meth:`after`) over the shorter way: directly, or through a
+        tie ``(m, c)`` inside the right piece (maps ``link_map + 1`` to ``end``), the junctions from the piece's start
+        to map ``m`` (at the feature moved by map ``c``'s place to map ``m``'s), the tie's strain, and the junctions
+        between map ``c`` and the feature's first sighting (either way); plus the feature's own :attr:`strain`."""
+        ids = np.asarray(ids, dtype=np.intp)
+        first, point = self.first_map[ids], self.first_point[ids]
+        best = drift_variance(self.sums[first + 1] - self.sums[link_map + 2], point)
+        ties = np.array(self.ties, dtype=float).reshape(-1, 3)
+        drifted = np.flatnonzero(best > 0)
+        if len(ties) and len(drifted):
+            old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+            first, point, link, last = first[drifted], point[drifted], link_map[drifted], end[drifted]
+            low, high = np.minimum(first[:, None], junction), np.maximum(first[:, None], junction)
+            there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
+                                   np.repeat(point, len(ties))).reshape(len(first), len(ties))
+            moved = point[:, None] - self.chain.poses[junction] + self.chain.poses[old_map]
+            since = self.sums[old_map + 1][None, :, :] - self.sums[link + 2][:, None, :]  # masked below unless inside
+            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(first), len(ties))
+            inside = (old_map >= link[:, None] + 1) & (junction <= last[:, None])
+            best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
         return best + self.strain[ids]
