@@ -20,7 +20,8 @@ __all__ = ["DRIFT_MARGIN", "drift_rivals"]
 
 #: a drifted pair keeps its left feature when every rival is at least this much farther, in squared distance
 #: over the pair's drift and noise (chosen between DLR's false pairs, whose rivals are 0.02-0.2 farther, and
-#: VicPark's true drifted pairs, 2.7 and more: benchmarks/README.md, "Data association")
+#: VicPark's true drifted pairs, 2.7 and more; 0.3 already lets a false link through on DLR: benchmarks/README.md,
+#: "Data association")
 DRIFT_MARGIN = 1.0
 #: flagged pairs are compared with the left features this many (pairs x left features) at a time
 _CHUNK = 1 << 18
