@@ -541,7 +541,7 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
                      pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Matches:
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
-    right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7; the sequential join's, through
+    right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the associator's, through
     the chain's ties), then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
     (:mod:`mapjoin.association_drift`), or None for none."""
@@ -564,20 +564,24 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
     """``found`` less the pairs :func:`mapjoin.association_strain.drift_rivals` names (``drift``: each pair's), whose
     right features are left new and counted ambiguous; the right features are predicted through each join's link
     as ``found`` corrected it."""
-    joins = len(link_xy)
-    pair_join = right_join[found.right]
-    correction = found.correction
-    turn = np.exp(1j * (link_phi + correction[:, 2]))
-    predicted = link_xy[pair_join] + correction[pair_join, 0] + 1j * correction[pair_join, 1] + \
-        turn[pair_join] * right[found.right]
     noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
              + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
-    drop = drift_rivals(left, left_join, found.left, predicted, noise, drift, left_sightings)
+    drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
+                        drift, left_sightings)
     if not drop.any():
         return found
     undecided = np.union1d(found.undecided, found.right[drop])
-    return Matches(found.left[~drop], found.right[~drop], np.bincount(right_join[undecided], minlength=joins),
-                   found.rejected, undecided, correction)
+    return Matches(found.left[~drop], found.right[~drop], np.bincount(right_join[undecided], minlength=len(link_xy)),
+                   found.rejected, undecided, found.correction)
+
+
+def _corrected(found: Matches, link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_join: np.ndarray
+               ) -> np.ndarray:
+    """Each of ``found``'s right features predicted through its join's link as ``found`` corrected it."""
+    pair_join = right_join[found.right]
+    correction = found.correction[pair_join]
+    return link_xy[pair_join] + correction[:, 0] + 1j * correction[:, 1] + \
+        np.exp(1j * (link_phi[pair_join] + correction[:, 2])) * right[found.right]
 
 
 def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
@@ -766,9 +770,9 @@ class _Associator:
                                  lambda i, j: self.drift.settled(i, k - 1))
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         left_ids = found.left
-        strain = self._tie(found, positions[:used], left_ids, np.zeros(1, np.intp), np.array([link_xy]),
-                           np.array([link_phi]), z, np.zeros(len(z), np.intp), right_covariances,
-                           self.drift.settled(left_ids, k - 1), np.array([k]))
+        strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
+                           np.zeros(len(z), np.intp), right_covariances, self.drift.settled(left_ids, k - 1),
+                           np.array([k]))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
         order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
@@ -782,19 +786,16 @@ class _Associator:
         self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
         return order, ids, len(found.right)
 
-    def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
-             link_phi: np.ndarray, right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray,
-             drift: np.ndarray, junctions: np.ndarray) -> np.ndarray:
+    def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
+             right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray, drift: np.ndarray,
+             junctions: np.ndarray) -> np.ndarray:
         """The strain of each of ``found``'s pairs (a quarter of its squared residual around the link as the join's
         pairs corrected it: a fused feature sits about halfway), and the chain's ties: a join whose pairs include
         :data:`LOOP_SUPPORT` drifted ones (``drift``, each pair's before the join, at least its noise) measured its
         link, at ``junctions[join]``, relative to the map that last saw their left features (``left_ids``, compact;
         the median), strained by their strains' median (:meth:`mapjoin.association_drift.SightingDrift.tie`)."""
         pair_join = right_join[found.right]
-        correction = found.correction[pair_join]
-        predicted = link_xy[pair_join] + correction[:, 0] + 1j * correction[:, 1] + \
-            np.exp(1j * (link_phi[pair_join] + correction[:, 2])) * right[found.right]
-        strain = np.abs(left[found.left] - predicted) ** 2 / 4
+        strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
         noise = (self.covariances[left_ids, 0] + self.covariances[left_ids, 2]
                  + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
         drifted = drift >= noise
@@ -829,7 +830,6 @@ class _Associator:
         left_ids = pieces.feature_ids[left]
         drift = (*self.drift.before(left_ids, link_map[left_join]),
                  *self.drift.after(pieces.feature_ids[right], link_map[right_join]))
-
         end = pieces.last[1:2 * count:2]  # each join's right piece's last map
         right_ids = pieces.feature_ids[right]
 
@@ -842,7 +842,7 @@ class _Associator:
                                  pieces.features[right], right_covariances, right_join, drift, self.gate, self.margin,
                                  self.sightings[left_ids], self.sightings[pieces.feature_ids[right]], pair_drift)
         self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
-        strain = self._tie(found, pieces.features[left], left_ids[found.left], left_join, pieces.pose_xy[link],
+        strain = self._tie(found, pieces.features[left], left_ids[found.left], pieces.pose_xy[link],
                            pieces.pose_phi[link], pieces.features[right], right_join, right_covariances,
                            pair_drift(found.left, found.right), link_map + 1)
         ids = pieces.feature_ids.copy()
