@@ -296,13 +296,14 @@ def unmet(name, strategy, measured):
 
 @pytest.mark.parametrize("name, strategy", [
     ("VicPark_200_local_maps", "sequential"),
-    unmet("VicPark_200_local_maps", "tree", "recall 99.0 % (37 missed), 1 false link (a new feature 2.5 m from another, no rival)"),
-    unmet("DLR_200_local_maps", "sequential", "recall 90.8 %, 5 false links (after loop closures)"),
-    unmet("DLR_200_local_maps", "tree", "recall 76.2 %, 2 false links"),
+    unmet("VicPark_200_local_maps", "tree", "recall 98.9 % (41 missed), 1 false link (a new feature 2.5 m from another, no rival)"),
+    unmet("DLR_200_local_maps", "sequential", "recall 91.9 %, 2 false links (joins 195-196, a drifted marker's "
+          "neighbours never seen with it or within too small a drift)"),
+    unmet("DLR_200_local_maps", "tree", "recall 76.2 %, 1 false link (a marker's rival never seen with it)"),
     unmet("8240_data_50_local_maps", "sequential", "recall 97.4 % (one drifted loop closure), no false link"),
     unmet("8240_data_50_local_maps", "tree", "recall 90.8 %, no false link"),
-    unmet("simulation", "sequential", "recall 48 %, 29 false links (features closer than the noise)"),
-    unmet("simulation", "tree", "recall 60 %, 6 false links")])
+    unmet("simulation", "sequential", "recall 75.6 %, 10 false links (features closer than the noise)"),
+    unmet("simulation", "tree", "recall 59.9 %, 6 false links")])
 def test_target_recall_99_percent_without_false_links(data_dir, name, strategy, caplog):
     """Issue 13's target: at least 99 % of the true links recovered, no false one; then the global map equals
     the known-id join (compared numerically)."""

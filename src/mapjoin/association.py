@@ -46,6 +46,14 @@ join (sequential and tree) which features of the right piece are features of the
    the one rigid correction of the link that the drift made (:mod:`mapjoin.association_loops`); a join whose
    best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other
    correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link.
+7. **A strained map so far** (:mod:`mapjoin.association_strain`). Before step 6, a pair of
+   steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
+   feature seen in one map with it lies within its drift (:data:`mapjoin.association_strain.DRIFT_MARGIN`): its
+   small offset is no evidence then. ``D`` is taken the shorter way through the chain's ties (a join that matched
+   :data:`LOOP_SUPPORT` drifted features ties its map to theirs; a tree join's ties are those inside its pieces)
+   plus the strain of the joins that fused features partway between two estimates (a quarter of each pair's
+   squared residual, per feature and per tie; :meth:`mapjoin.association_drift.SightingDrift.settled`,
+   :meth:`~mapjoin.association_drift.SightingDrift.settled_after`).
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -73,6 +81,7 @@ import numpy as np
 
 from .association_drift import SightingDrift
 from .association_loops import rigid_votes
+from .association_strain import drift_rivals
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
 from .joining import JoinRecord, Strategy, join
 from .maps import GlobalMap, LocalMap, locate
@@ -529,18 +538,50 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
                      right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...] | None,
                      gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
-                     left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None) -> Matches:
-    """:func:`match_features`, then the loop closures among the features it left unpaired (:func:`_closed_loops`,
-    module docstring, step 6): ``drift`` = (left ``D``, left heading variance, right ``D``, right heading
-    variance), one per feature (:mod:`mapjoin.association_drift`), or None for none."""
+                     left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
+                     pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Matches:
+    """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
+    right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the associator's, through
+    the chain's ties), then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
+    ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
+    (:mod:`mapjoin.association_drift`), or None for none."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
     found = match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, gate, margin, left_sightings, right_sightings)
     if drift is None:
         return found
+    if pair_drift is not None:
+        found = _unstrained(found, left, left_covariances, left_join, link_xy, link_phi, right, right_covariances,
+                            right_join, pair_drift(found.left, found.right), left_sightings)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
     return found if closed is None else closed
+
+
+def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
+                link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_covariances: np.ndarray,
+                right_join: np.ndarray, drift: np.ndarray, left_sightings: np.ndarray | None) -> Matches:
+    """``found`` less the pairs :func:`mapjoin.association_strain.drift_rivals` names (``drift``: each pair's), whose
+    right features are left new and counted ambiguous; the right features are predicted through each join's link
+    as ``found`` corrected it."""
+    noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
+             + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
+    drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
+                        drift, left_sightings)
+    if not drop.any():
+        return found
+    undecided = np.union1d(found.undecided, found.right[drop])
+    return Matches(found.left[~drop], found.right[~drop], np.bincount(right_join[undecided], minlength=len(link_xy)),
+                   found.rejected, undecided, found.correction)
+
+
+def _corrected(found: Matches, link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_join: np.ndarray
+               ) -> np.ndarray:
+    """Each of ``found``'s right features predicted through its join's link as ``found`` corrected it."""
+    pair_join = right_join[found.right]
+    correction = found.correction[pair_join]
+    return link_xy[pair_join] + correction[:, 0] + 1j * correction[:, 1] + \
+        np.exp(1j * (link_phi[pair_join] + correction[:, 2])) * right[found.right]
 
 
 def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
@@ -725,8 +766,13 @@ class _Associator:
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
                                  right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
-                                 self.sightings[:used], self.row_sightings[rows])
+                                 self.sightings[:used], self.row_sightings[rows],
+                                 lambda i, j: self.drift.settled(i, k - 1))
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
+        left_ids = found.left
+        strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
+                           np.zeros(len(z), np.intp), right_covariances, self.drift.settled(left_ids, k - 1),
+                           np.array([k]))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
         order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
@@ -736,9 +782,28 @@ class _Associator:
         self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], np.arange(len(z)) < len(found.right))
         self.row_ids[self.offsets[k] + order] = ids
         points, maps, matched_count = self.row_points[rows][order], np.full(len(z), k), len(found.right)
-        self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count])
+        self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count], strain)
         self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
         return order, ids, len(found.right)
+
+    def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
+             right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray, drift: np.ndarray,
+             junctions: np.ndarray) -> np.ndarray:
+        """The strain of each of ``found``'s pairs (a quarter of its squared residual around the link as the join's
+        pairs corrected it: a fused feature sits about halfway), and the chain's ties: a join whose pairs include
+        :data:`LOOP_SUPPORT` drifted ones (``drift``, each pair's before the join, at least its noise) measured its
+        link, at ``junctions[join]``, relative to the map that last saw their left features (``left_ids``, compact;
+        the median), strained by their strains' median (:meth:`mapjoin.association_drift.SightingDrift.tie`)."""
+        pair_join = right_join[found.right]
+        strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
+        noise = (self.covariances[left_ids, 0] + self.covariances[left_ids, 2]
+                 + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
+        drifted = drift >= noise
+        for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= LOOP_SUPPORT).tolist():
+            pairs = drifted & (pair_join == tying)
+            self.drift.tie(int(np.median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),
+                           float(np.median(strain[pairs])))
+        return strain
 
     # tree strategy -----------------------------------------------------------------------
     def level(self, pieces: _Pieces, level: int) -> _Pieces:
@@ -761,13 +826,25 @@ class _Associator:
         right_covariances = rotated(self.covariances[pieces.feature_ids[right]], pieces.pose_phi[link][right_join])
         left_join = pieces.feature_piece[left] // 2
         link_map = pieces.last[0:2 * count:2]  # each join's left piece's last map
-        drift = (*self.drift.before(pieces.feature_ids[left], link_map[left_join]),
+        start = pieces.first[0:2 * count:2]  # ... and its first: the ties inside it
+        left_ids = pieces.feature_ids[left]
+        drift = (*self.drift.before(left_ids, link_map[left_join]),
                  *self.drift.after(pieces.feature_ids[right], link_map[right_join]))
-        found = match_with_drift(pieces.features[left], self.covariances[pieces.feature_ids[left]], left_join,
+        end = pieces.last[1:2 * count:2]  # each join's right piece's last map
+        right_ids = pieces.feature_ids[right]
+
+        def pair_drift(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+            return (self.drift.settled(left_ids[i], link_map[left_join[i]], start[left_join[i]])
+                    + self.drift.settled_after(right_ids[j], link_map[right_join[j]], end[right_join[j]]))
+
+        found = match_with_drift(pieces.features[left], self.covariances[left_ids], left_join,
                                  pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
                                  pieces.features[right], right_covariances, right_join, drift, self.gate, self.margin,
-                                 self.sightings[pieces.feature_ids[left]], self.sightings[pieces.feature_ids[right]])
+                                 self.sightings[left_ids], self.sightings[pieces.feature_ids[right]], pair_drift)
         self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
+        strain = self._tie(found, pieces.features[left], left_ids[found.left], pieces.pose_xy[link],
+                           pieces.pose_phi[link], pieces.features[right], right_join, right_covariances,
+                           pair_drift(found.left, found.right), link_map + 1)
         ids = pieces.feature_ids.copy()
         renamed = self._fresh(len(right))
         renamed[found.right] = ids[left[found.left]]
@@ -777,6 +854,7 @@ class _Associator:
         self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched)
         # a match's last sighting is its right feature's; a new id has its old one's sightings
         self.drift.merged(renamed[matched], pieces.feature_ids[right][matched])
+        self.drift.strain[renamed[found.right]] = strain
         self.drift.copied(renamed[~matched], pieces.feature_ids[right][~matched])
         # every input row of a right piece follows its feature's new id
         shift = level - 1

@@ -13,11 +13,16 @@ It is filled as the joins are made, O(1) per feature and per junction: the chain
 (:class:`mapjoin.drift.ChainDrift`: only its local shape matters, for lever arms), the prefix sums of the
 junctions' posteriors ``v, p, p Re x, p Im x, p |x|^2`` as each join is made, and per feature (by the
 associator's compact id) the map and dead-reckoned position of its first and last sighting.
+
+A loop closure ties the chain: once a join has matched drifted features last seen around map ``m``, the link is
+known relative to map ``m`` as well as to its predecessor. :meth:`SightingDrift.tie` records such a tie and
+:meth:`SightingDrift.settled` gives a feature's drift over the shorter way, directly or through one tie
+(docs/method.md#data-association, step 7).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,6 +46,11 @@ class SightingDrift:
     first_point: np.ndarray
     last_map: np.ndarray
     last_point: np.ndarray
+    #: per feature: how far its last sighting disagreed with its estimate when they were fused (a variance; 0 if
+    #: new): after a loop closure the fused features sit partway between two estimates metres apart
+    strain: np.ndarray
+    #: the chain's ties (old map, junction, strain), in the order they were made (:meth:`tie`)
+    ties: list[tuple[int, int, float]] = field(default_factory=list)
 
     @classmethod
     def of(cls, end_poses: np.ndarray, capacity: int) -> SightingDrift:
@@ -49,7 +59,7 @@ class SightingDrift:
         chain = ChainDrift.of(end_poses, np.zeros(0, np.intp), np.zeros(0), np.zeros(0))
         size = max(capacity, 1)
         return cls(chain, np.zeros((len(chain.poses) + 1, 5)), np.zeros(size, np.intp), np.zeros(size, complex),
-                   np.zeros(size, np.intp), np.zeros(size, complex))
+                   np.zeros(size, np.intp), np.zeros(size, complex), np.zeros(size))
 
     def grown(self, capacity: int) -> SightingDrift:
         """The same with room for at least ``capacity`` feature ids (the tree hands out new ids at every level)."""
@@ -59,7 +69,7 @@ class SightingDrift:
         extra = max(extra, len(self.first_map))
         return SightingDrift(self.chain, self.sums, *(np.concatenate([a, np.zeros(extra, a.dtype)]) for a in
                                                        (self.first_map, self.first_point, self.last_map,
-                                                        self.last_point)))
+                                                        self.last_point, self.strain)), self.ties)
 
     def placed(self, junctions: np.ndarray, t_variance: np.ndarray, phi_variance: np.ndarray) -> None:
         """Joins placed these ``junctions`` (pose indices, each once) with these posterior variances: the prefix
@@ -83,10 +93,14 @@ class SightingDrift:
         reckoned = self.chain.dead_reckoned(maps, points)
         self.first_map[ids], self.first_point[ids] = maps, reckoned
         self.last_map[ids], self.last_point[ids] = maps, reckoned
+        self.strain[ids] = 0.0
 
-    def seen_again(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray) -> None:
-        """Features ``ids`` seen again by later ``maps`` at ``points``: their last sighting."""
+    def seen_again(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray, strain: np.ndarray | float = 0.0
+                   ) -> None:
+        """Features ``ids`` seen again by later ``maps`` at ``points``, ``strain`` from their estimates (squared
+        distances): their last sighting."""
         self.last_map[ids], self.last_point[ids] = maps, self.chain.dead_reckoned(maps, points)
+        self.strain[ids] = strain
 
     def merged(self, ids: np.ndarray, others: np.ndarray) -> None:
         """Features ``ids`` found to be features ``others`` seen by later maps (a tree's right piece): the
@@ -95,7 +109,7 @@ class SightingDrift:
 
     def copied(self, ids: np.ndarray, others: np.ndarray) -> None:
         """Features ``ids`` are features ``others`` renamed: their sightings."""
-        for array in (self.first_map, self.first_point, self.last_map, self.last_point):
+        for array in (self.first_map, self.first_point, self.last_map, self.last_point, self.strain):
             array[ids] = array[others]
 
     def before(self, ids: np.ndarray, link_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,3 +125,59 @@ class SightingDrift:
         variance."""
         sums = self.sums[self.first_map[ids] + 1] - self.sums[link_map + 2]
         return drift_variance(sums, self.first_point[ids]), sums[:, 1]
+
+    def tie(self, old_map: int, junction: int, strain: float) -> None:
+        """A join placed map ``junction`` (its start) by matching features last seen around map ``old_map``, whose
+        estimates disagreed by ``strain`` (a variance: the join fused them partway and placed the map between):
+        from then on, the link is also known through that map, up to the strain (in place)."""
+        self.ties.append((int(old_map), int(junction), float(strain)))
+
+    def settled(self, ids: np.ndarray, link_map: np.ndarray | int, start: np.ndarray | int = 0) -> np.ndarray:
+        """``D`` of left features ``ids`` relative to the end of map ``link_map`` (one, or one per feature) over the
+        shorter way: the junctions since their last sighting (:meth:`before`), or, through a tie ``(m, c)`` made
+        between map ``start`` and the link (the left piece's maps: the sequential join's start at 0), the junctions
+        between their last sighting and map ``m`` (either way along the chain) and those from ``c`` up to the link
+        (the feature moved with map ``m``'s place to map ``c``'s, a translation) plus the tie's strain; and, either
+        way, the feature's own :attr:`strain`. O(ties) per feature: the callers ask it for a join's pairs only."""
+        ids = np.asarray(ids, dtype=np.intp)
+        link_map = np.broadcast_to(np.asarray(link_map, dtype=np.intp), ids.shape)
+        start = np.broadcast_to(np.asarray(start, dtype=np.intp), ids.shape)
+        seen, point = self.last_map[ids], self.last_point[ids]
+        best = drift_variance(self.sums[link_map + 1] - self.sums[seen + 1], point)
+        ties = np.array(self.ties, dtype=float).reshape(-1, 3)
+        drifted = np.flatnonzero(best > 0)  # a feature seen by the link's map has no shorter way
+        if len(ties) and len(drifted):  # every (drifted feature, tie) at once
+            old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+            seen, point, link, first = seen[drifted], point[drifted], link_map[drifted], start[drifted]
+            low, high = np.minimum(seen[:, None], old_map), np.maximum(seen[:, None], old_map)
+            there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
+                                   np.repeat(point, len(ties))).reshape(len(seen), len(ties))
+            moved = point[:, None] - self.chain.poses[old_map] + self.chain.poses[junction]
+            since = self.sums[link + 1][:, None, :] - self.sums[junction + 1][None, :, :]
+            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(ties))
+            inside = (junction <= link[:, None]) & (junction >= first[:, None]) & (old_map >= first[:, None])
+            best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
+        return best + self.strain[ids]
+
+    def settled_after(self, ids: np.ndarray, link_map: np.ndarray, end: np.ndarray) -> np.ndarray:
+        """``D`` of right features ``ids`` of a tree join (:meth:`after`) over the shorter way: directly, or through a
+        tie ``(m, c)`` inside the right piece (maps ``link_map + 1`` to ``end``), the junctions from the piece's start
+        to map ``m`` (at the feature moved by map ``c``'s place to map ``m``'s), the tie's strain, and the junctions
+        between map ``c`` and the feature's first sighting (either way); plus the feature's own :attr:`strain`."""
+        ids = np.asarray(ids, dtype=np.intp)
+        first, point = self.first_map[ids], self.first_point[ids]
+        best = drift_variance(self.sums[first + 1] - self.sums[link_map + 2], point)
+        ties = np.array(self.ties, dtype=float).reshape(-1, 3)
+        drifted = np.flatnonzero(best > 0)
+        if len(ties) and len(drifted):
+            old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+            first, point, link, last = first[drifted], point[drifted], link_map[drifted], end[drifted]
+            low, high = np.minimum(first[:, None], junction), np.maximum(first[:, None], junction)
+            there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
+                                   np.repeat(point, len(ties))).reshape(len(first), len(ties))
+            moved = point[:, None] - self.chain.poses[junction] + self.chain.poses[old_map]
+            since = self.sums[old_map + 1][None, :, :] - self.sums[link + 2][:, None, :]  # masked below unless inside
+            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(first), len(ties))
+            inside = (old_map >= link[:, None] + 1) & (junction <= last[:, None])
+            best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
+        return best + self.strain[ids]
