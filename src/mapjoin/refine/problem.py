@@ -306,7 +306,13 @@ class ExactProblem:
         N, n = self.n_maps, self.n_features
         n_nodes = N + n
         keys = self._node_pairs(n_nodes)
-        natural, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+        pairs = np.concatenate(keys)
+        # the distinct pairs and where each pair is among them: a sort and a search (np.unique's inverse takes an
+        # argsort and a scatter: 0.65 s against 0.46 s for the 4.7 million pairs of 10^4 maps)
+        natural = np.sort(pairs)
+        natural = natural[np.concatenate([[True], natural[1:] != natural[:-1]])]
+        inverse = np.searchsorted(natural, pairs)
+        del pairs
         col, row = natural // n_nodes, natural % n_nodes
         if self.backend == "dense":
             order, self._closed = np.arange(n_nodes), None
