@@ -123,7 +123,6 @@ class ExactProblem:
         self.groups: list[Group] = [self._group(ks, chain, measurement, covariances, bool(independent[ks[0]]))
                                     for ks in grouping.size_classes(sizes, independent)]
         self._pattern: BlockPattern | None = None
-        self._whole: np.ndarray | None = None     # the buffer each factorisation mirrors J^T J into
         self._evaluated: tuple[np.ndarray, list] | None = None
 
     # ---- set-up -------------------------------------------------------------------------
@@ -426,19 +425,13 @@ class ExactProblem:
 
     def factorise(self, data: np.ndarray, damping: float = 0.0) -> Factor | dense.DenseFactor:
         """The factor of ``J^T J + damping diag(J^T J)``: SuperLU's (:mod:`.factor`, in the fill-reducing
-        order), or the dense backend's (:func:`.dense.factorise`); raises RuntimeError if singular.
-
-        The whole matrix is mirrored from ``data`` into one buffer that every factorisation reuses (neither
-        factor keeps it): made afresh each time, its 84 MB at 10^4 maps were page faults every iteration.
-        :meth:`marginals` frees it."""
-        if self._whole is None:
-            self._whole = np.empty(self._pattern.nnz)
-        whole = self._pattern.mirrored(data, out=self._whole)
+        order), or the dense backend's (:func:`.dense.factorise`); raises RuntimeError if singular."""
         if damping:
-            whole[self._pattern.diagonal] *= 1.0 + damping
+            data = data.copy()
+            data[self._pattern.diagonal] *= 1.0 + damping
         if self.backend == "dense":
-            return dense.factorise(self._pattern, whole)
-        return factorise(self._pattern.matrix(whole))
+            return dense.factorise(self._pattern, self._pattern.mirrored(data))
+        return factorise(self.normal_matrix(data))
 
     def solve(self, factor: Factor, rhs: np.ndarray) -> np.ndarray:
         """``(J^T J)^-1 rhs`` (natural order; ``rhs`` a vector or a matrix of columns) with a
@@ -456,7 +449,6 @@ class ExactProblem:
         """Marginal covariances ``(poses (N, 3, 3), features (n, 2, 2))``, the diagonal blocks
         of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise`,
         which it uses up (:func:`.sparse.diagonal_blocks`; the dense backend: from the whole inverse)."""
-        self._whole = None      # the factorisations' buffer is not held through the inversion
         N, n = self.n_maps, self.n_features
         poses = np.arange(3 * N).reshape(N, 3)
         features = 3 * N + np.arange(2 * n).reshape(n, 2)

@@ -159,10 +159,10 @@ class BlockPattern:
         ``column_start``): at 10^4 maps 50 MB otherwise held through every factorisation."""
         del self.rank, self.row_offset, self.col_length, self.column_start
 
-    def mirrored(self, lower: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def mirrored(self, lower: np.ndarray) -> np.ndarray:
         """The CSC data from data holding the lower triangle (and possibly a spare last slot), a chunk at a time
-        (numpy makes a 64-bit copy of 32-bit indices), in ``out`` if given (not ``lower`` itself)."""
-        data = np.empty(self.nnz) if out is None else out
+        (numpy makes a 64-bit copy of 32-bit indices)."""
+        data = np.empty(self.nnz)
         for a in range(0, self.nnz, _CHUNK):
             data[a:a + _CHUNK] = lower[self.from_lower[a:a + _CHUNK]]
         return data
