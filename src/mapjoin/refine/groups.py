@@ -88,8 +88,8 @@ def independent_points(covariances: np.ndarray) -> np.ndarray:
     d = covariances.shape[1]
     point = np.concatenate([[0, 0, 0], np.repeat(np.arange(1, (d - 3) // 2 + 1), 2)])
     across = point[:, None] != point[None, :]
-    # a first look at the end pose's x with the features settles most full covariances (all of 10^4 simulated
-    # maps: 0.4 s of set-up for the whole look); only the others are looked at whole
+    # a first look at the end pose's x with the features settles most full covariances (all of the 10^4 simulated
+    # maps', where looking at all of every covariance took 0.4 s of set-up); only the others are looked at whole
     independent = ~np.any(covariances[:, 0, 3:] != 0, axis=1)
     candidates = np.flatnonzero(independent)
     if candidates.size:
@@ -137,9 +137,9 @@ def _inverse_cholesky(covariance: np.ndarray) -> np.ndarray:
 def _triangular_inverse(L: np.ndarray) -> np.ndarray:
     """Inverses of a stack of lower triangular matrices (G, d, d). Large ones (d >= 24) by
     halves: ``[[A, 0], [B, C]]^-1 = [[A^-1, 0], [-C^-1 B A^-1, C^-1]]``, the halves inverted
-    the same way (a third to a half of the time of LAPACK's general inverse, which does a
-    full LU and its inverse, at 10^4 maps of about 40 unknowns; benchmarks/README.md, "Exact
-    refinement at scale"). Few small ones by LAPACK's solve (numpy's batched inverse) of the
+    the same way (0.3-0.6 of the time of LAPACK's general inverse, which does a full LU and
+    its inverse, on stacks of 1000 to 10^4 matrices of 45-61 rows; benchmarks/README.md, "Time
+    of refine at 10^4 maps"). Few small ones by LAPACK's solve (numpy's batched inverse) of the
     upper triangular transposes: partial pivoting finds nothing below the diagonal there, so
     no row moves and the factorisation leaves the matrix as it is. Many small ones row by
     row, the forward substitution vectorised over the stack. Each way keeps every zero block
