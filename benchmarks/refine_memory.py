@@ -8,8 +8,10 @@ start), the problem's set-up (groups and whitening), the normal equations' patte
 CSC pattern, where each block goes), the iterations (linearisations, factorisations, solves,
 costs), the marginal covariances (selected inversion) and writing the global map (to
 /dev/null). A thread samples the resident set (``/proc/self/statm``) every 10 ms; each phase
-gets its resident set at the start and its peak (largest sample, or the end). The phases of
-the iterations interleave: their peaks are over all their calls. Prints a Markdown table.
+gets its resident set at the start and its peak (largest sample, or the end), its wall time and
+its CPU time (user + system of the process, the sampler's share included: the figure to compare
+on a loaded machine). The phases of the iterations interleave: their peaks are over all their
+calls. Prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import argparse
 import contextlib
 import json
 import os
+import resource
 import threading
 import time
 
@@ -30,6 +33,12 @@ from mapjoin.refine import DEFAULT_START, problem as problem_module, refine  # n
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
+def cpu() -> float:
+    """User + system CPU seconds of this process so far."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 def resident() -> int:
     """The resident set of this process, bytes."""
     with open("/proc/self/statm") as statm:
@@ -37,7 +46,7 @@ def resident() -> int:
 
 
 class Phases:
-    """Per phase: resident set at its (first) start, peak while in it, calls, seconds."""
+    """Per phase: resident set at its (first) start, peak while in it, calls, seconds, CPU seconds."""
 
     def __init__(self) -> None:
         self.rows: dict[str, dict[str, float]] = {}
@@ -58,13 +67,14 @@ class Phases:
     @contextlib.contextmanager
     def phase(self, name: str):
         now = resident()
-        row = self.rows.setdefault(name, {"start": now, "peak": now, "calls": 0, "seconds": 0.0})
+        row = self.rows.setdefault(name, {"start": now, "peak": now, "calls": 0, "seconds": 0.0, "cpu": 0.0})
         self.current.append(name)
-        began = time.perf_counter()
+        began, used = time.perf_counter(), cpu()
         try:
             yield
         finally:
             row["seconds"] += time.perf_counter() - began
+            row["cpu"] += cpu() - used
             row["calls"] += 1
             row["peak"] = max(row["peak"], resident())
             self.current.remove(name)
@@ -102,7 +112,7 @@ def main() -> None:
                          ("solve", "iterations: solve"), ("cost", "iterations: cost"),
                          ("marginals", "marginal covariances")):
         phases.wrap(Problem, method, name)
-    began = time.perf_counter()
+    began, used = time.perf_counter(), cpu()
     with phases.phase("read"):
         maps = mapio.read_maps(args.maps)
     with phases.phase(f"fast join ({DEFAULT_START})"):
@@ -111,20 +121,20 @@ def main() -> None:
         result = refine(maps, fast.global_map, covariances=not args.no_covariances)
     with phases.phase("write (CSV to /dev/null)"):
         mapio.write_global_map(result.global_map, "/dev/null", "csv")
-    total = time.perf_counter() - began
+    total, total_cpu = time.perf_counter() - began, cpu() - used
     phases.close()
     print(f"{len(maps)} maps, {result.unknowns} unknowns, {result.iterations} iterations, chi^2 {result.cost:.6f} "
           f"({result.reason}), {total:.1f} s; load average {os.getloadavg()[0]:.2f}")
-    print("| phase | calls | seconds | resident at start (MB) | peak (MB) | peak above start (MB) |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| phase | calls | seconds | CPU seconds | resident at start (MB) | peak (MB) | peak above start (MB) |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for name, row in phases.rows.items():
-        print(f"| {name} | {row['calls']} | {row['seconds']:.2f} | {row['start'] / 2**20:.0f} | "
+        print(f"| {name} | {row['calls']} | {row['seconds']:.2f} | {row['cpu']:.2f} | {row['start'] / 2**20:.0f} | "
               f"{row['peak'] / 2**20:.0f} | {(row['peak'] - row['start']) / 2**20:.0f} |")
-    print(f"| whole run | | {total:.2f} | | {phases.peak / 2**20:.0f} | |")
+    print(f"| whole run | | {total:.2f} | {total_cpu:.2f} | | {phases.peak / 2**20:.0f} | |")
     if args.json:
         with open(args.json, "w") as out:
-            json.dump({"rows": phases.rows, "peak": phases.peak, "seconds": total, "chi2": result.cost,
-                       "iterations": result.iterations, "maps": len(maps)}, out)
+            json.dump({"rows": phases.rows, "peak": phases.peak, "seconds": total, "cpu": total_cpu,
+                       "chi2": result.cost, "iterations": result.iterations, "maps": len(maps)}, out)
 
 
 if __name__ == "__main__":

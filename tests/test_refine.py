@@ -40,6 +40,7 @@ from mapjoin.refine.groups import (
     _GROUP_OVERHEAD,
     _block_whitening,
     _triangular_inverse,
+    independent_points,
     size_classes,
 )
 from mapjoin.refine.problem import ExactProblem
@@ -217,15 +218,49 @@ def test_cost_is_chi2_of_each_maps_full_covariance_and_spherical_without():
     assert exact_cost(spherical(maps), guess) == pytest.approx(expected[False], rel=1e-12)
 
 
-@settings(max_examples=25, deadline=None)
-@given(count=st.integers(1, 40), d=st.integers(1, 40), seed=st.integers(0, 2**32 - 1))
-def test_triangular_inverse_equals_the_dense_inverse(count, d, seed):
-    """Both ways (one by one for few or large matrices, row by row for many small ones)."""
+@settings(max_examples=40, deadline=None)
+@given(count=st.integers(1, 40), d=st.integers(1, 100), seed=st.integers(0, 2**32 - 1), split=st.integers(0, 100))
+def test_triangular_inverse_equals_the_dense_inverse(count, d, seed, split):
+    """Every way (one by one for few small matrices, row by row for many small ones, large ones by halves,
+    down to either) against numpy's LU inverse of L itself; the off-diagonal entries are scaled so that L is
+    well conditioned (a random unit-scaled triangle's condition grows exponentially with d: the two ways'
+    roundings then differ by more than 1e-12). A zero block of L below the diagonal (``split``) gives an
+    exactly zero block of the inverse."""
     rng = np.random.default_rng(seed)
-    L = np.tril(rng.normal(size=(count, d, d))) + 3 * np.eye(d) * np.sign(rng.normal(size=(count, 1, 1)))
+    L = (np.tril(rng.normal(size=(count, d, d)), -1) / np.sqrt(d)
+         + np.eye(d) * (1 + rng.random((count, 1, d))) * np.sign(rng.normal(size=(count, 1, 1))))
     W, expected = _triangular_inverse(L), np.linalg.inv(L)
     np.testing.assert_allclose(W, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
     assert not np.triu(W, 1).any()
+    h = split % d
+    L[:, h:, :h] = 0.0
+    W = _triangular_inverse(L)
+    assert not W[:, h:, :h].any() and not np.triu(W, 1).any()
+    np.testing.assert_allclose(W, np.linalg.inv(L), rtol=1e-12, atol=1e-12 * np.abs(W).max())
+
+
+@settings(max_examples=40, deadline=None)
+@given(count=st.integers(1, 12), m=st.integers(0, 5), seed=st.integers(0, 2**32 - 1))
+def test_independent_points_are_found_as_looking_at_every_entry_finds_them(count, m, seed):
+    """Which blocks' covariances correlate no two of their points, against a look at every entry across two
+    points, map by map (brute force): block-diagonal ones, and ones with a single non-zero entry across
+    two points anywhere (the end pose's x with a feature, which the first look takes, or elsewhere)."""
+    rng = np.random.default_rng(seed)
+    d = 3 + 2 * m
+    owner = [0, 0, 0] + [1 + i // 2 for i in range(2 * m)]
+    covariances = np.zeros((count, d, d))
+    for k in range(count):
+        for point in range(m + 1):
+            where = [i for i in range(d) if owner[i] == point]
+            block = rng.normal(size=(len(where), len(where)))
+            covariances[k][np.ix_(where, where)] = block @ block.T + np.eye(len(where))
+        if m and rng.random() < 0.6:
+            i, j = rng.integers(0, d, 2)
+            if owner[i] != owner[j]:
+                covariances[k, i, j] = covariances[k, j, i] = rng.choice([1e-300, 0.5])
+    expected = [not any(covariances[k, i, j] != 0 for i in range(d) for j in range(d) if owner[i] != owner[j])
+                for k in range(count)]
+    assert independent_points(covariances).tolist() == expected
 
 
 @settings(max_examples=25, deadline=None)

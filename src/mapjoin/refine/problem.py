@@ -305,7 +305,13 @@ class ExactProblem:
         N, n = self.n_maps, self.n_features
         n_nodes = N + n
         keys = self._node_pairs(n_nodes)
-        natural, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+        pairs = np.concatenate(keys)
+        # the distinct pairs and where each pair is among them: a sort and a search (np.unique's inverse takes an
+        # argsort and a scatter: 0.65 s against 0.46 s for the 4.7 million pairs of 10^4 maps)
+        natural = np.sort(pairs)
+        natural = natural[np.concatenate([[True], natural[1:] != natural[:-1]])]
+        inverse = np.searchsorted(natural, pairs)
+        del pairs
         col, row = natural // n_nodes, natural % n_nodes
         if self.backend == "dense":
             order, self._closed = np.arange(n_nodes), None
@@ -338,8 +344,9 @@ class ExactProblem:
         block_offset = gradient_offset = 0
         # where each block entry goes, filled group by group (a list of the pieces and its concatenation
         # would hold them twice: 2 x 88 MB at 10^4 maps)
-        self._targets = np.empty(sum(len(g.maps) * len(g.layout.rows) for g in self.groups),
-                                 dtype=np.int32 if pattern.nnz < 2 ** 31 - 1 else np.int64)   # 32 bits: half of 88 MB
+        # in numpy's index integer: np.bincount copies any other into a new array at every linearisation (at 10^4
+        # maps 92 MB: 0.035 s of page faults each time, 0.5 s a solve, against the 46 MB that 32 bits would save)
+        self._targets = np.empty(sum(len(g.maps) * len(g.layout.rows) for g in self.groups), dtype=np.intp)
         for group, slot in zip(self.groups, slots):
             G, m2 = group.nodes.shape
             m = m2 - 2
