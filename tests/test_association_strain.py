@@ -24,6 +24,16 @@ def dead_reckoned(end_poses):
     return np.array(poses)
 
 
+def _random_chain(rng: np.random.Generator, n: int, features: int):
+    """A chain of n random end poses with its junctions' posterior variances (v translation, p heading) placed, and
+    the drift of ``features`` features over it; (v, p, drift, the dead-reckoned poses)."""
+    end_poses = np.column_stack([rng.uniform(1, 5, n), rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n)])
+    v, p = rng.uniform(0.001, 0.1, n + 1), rng.uniform(1e-5, 1e-3, n + 1)
+    drift = SightingDrift.of(end_poses, features)
+    drift.placed(np.arange(1, n), v[1:n], p[1:n])
+    return v, p, drift, dead_reckoned(end_poses)
+
+
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(4, 14), tie_count=st.integers(0, 3))
 def test_settled_drift_is_the_shortest_way_through_the_ties(seed, n, tie_count):
@@ -31,11 +41,7 @@ def test_settled_drift_is_the_shortest_way_through_the_ties(seed, n, tie_count):
     sighting and map m + D from junction c to the link at the point moved by pose c - pose m), each D the dense sum
     v_i + p_i |f - x_i|^2 / 2 over its junctions."""
     rng = np.random.default_rng(seed)
-    end_poses = np.column_stack([rng.uniform(1, 5, n), rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n)])
-    v, p = rng.uniform(0.001, 0.1, n + 1), rng.uniform(1e-5, 1e-3, n + 1)
-    drift = SightingDrift.of(end_poses, 3)
-    drift.placed(np.arange(1, n), v[1:n], p[1:n])
-    poses = dead_reckoned(end_poses)
+    v, p, drift, poses = _random_chain(rng, n, 3)
     seen = rng.integers(0, n - 1, 3)
     points = rng.normal(size=3) + 1j * rng.normal(size=3)
     drift.seen(np.arange(3), seen, points)
@@ -69,11 +75,7 @@ def test_settled_drift_of_a_right_piece_is_the_shortest_way_through_its_ties(see
     junctions link + 2 .. m at the point moved by pose m - pose j + the junctions between j and c), dense sums; and
     settled restricted to the ties inside the left piece (maps start .. link)."""
     rng = np.random.default_rng(seed)
-    end_poses = np.column_stack([rng.uniform(1, 5, n), rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n)])
-    v, p = rng.uniform(0.001, 0.1, n + 1), rng.uniform(1e-5, 1e-3, n + 1)
-    drift = SightingDrift.of(end_poses, 2)
-    drift.placed(np.arange(1, n), v[1:n], p[1:n])
-    poses = dead_reckoned(end_poses)
+    v, p, drift, poses = _random_chain(rng, n, 2)
     link = int(rng.integers(0, n - 2))
     start, end = int(rng.integers(0, link + 1)), int(rng.integers(link + 1, n))
     first = int(rng.integers(link + 1, end + 1))

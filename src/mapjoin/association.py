@@ -83,12 +83,13 @@ from .association_drift import SightingDrift
 from .association_loops import rigid_votes
 from .association_strain import drift_rivals
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
-from .joining import JoinRecord, Strategy, join
+from .joining import join
+from .joins import JoinRecord, Strategy
 from .maps import GlobalMap, LocalMap, locate
 from .onestep import as_complex
 
 if TYPE_CHECKING:
-    from .joining import _Pieces
+    from .joins import _Pieces
     from .onestep import Solver
 
 __all__ = [

@@ -46,7 +46,7 @@ import numpy as np
 from .errors import JoinError
 
 if TYPE_CHECKING:
-    from .joining import JoinRecord, JoinResult
+    from .joins import JoinRecord, JoinResult
 
 log = logging.getLogger("mapjoin")
 

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from .joining import _Pieces
+    from .joins import _Pieces
 
 __all__ = ["ChainDrift", "Retest", "SequentialRecord", "TreeRecord", "SolveWidened", "drift_variance"]
 

@@ -26,7 +26,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from functools import partial
-from typing import TYPE_CHECKING, Literal
+from typing import Protocol
 
 import numpy as np
 
@@ -36,86 +36,47 @@ from .errors import JoinError
 from .covariance import (DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_variances, fuse, placed_variances,
                          squared_norm, translation_variance)
 from .drift import Retest, SequentialRecord, TreeRecord
+from .joins import STRATEGIES, JoinRecord, JoinResult, Strategy, _Pieces
 from .maps import GlobalMap, LocalMap, Provenance, first_duplicate, locate
 from .onestep import Solver, as_complex, global_orientation, linked_cost, point_constants
 from .se2 import wrap
-
-if TYPE_CHECKING:
-    from .association import _Associator
 
 __all__ = ["STRATEGIES", "JoinRecord", "JoinResult", "Strategy", "certify_pair",
            "check_chain", "join", "join_sequential", "join_tree", "without_features"]
 
 log = logging.getLogger("mapjoin")
 
-Strategy = Literal["sequential", "tree"]
-STRATEGIES: tuple[str, ...] = ("sequential", "tree")
 #: stage 2 of the consistency test, passed in by the callers above (:func:`mapjoin.confirmation.confirm`):
 #: ``(maps, result, strategy, gate)`` -> ``result`` with its failing joins confirmed on the exact problem
 Confirm = Callable[[Sequence[LocalMap], "JoinResult", Strategy, float], "JoinResult"]
 
 
-@dataclass(frozen=True)
-class JoinRecord:
-    """One join of the report: what came in, Theorem 2's certificate, and the optimum found.
+class Associate(Protocol):
+    """The hooks a join calls when the maps' feature ids are local to each map (the associator of
+    :mod:`mapjoin.association`, docs/method.md#data-association): which rows are features joined already.
+    ``count``: the compact ids handed out so far; ``row_ids``: each input row's (-1 before it is seen)."""
 
-    ``map`` names the right piece ("first to last" local map when it is a run of them),
-    ``start_id``/``end_id`` its first and last pose; ``level`` is the join's depth (the
-    join number for the sequential strategy). ``phi`` is phi*, the orientation of right's
-    start pose in left's frame, ``cost`` f_1(phi*); ``phi2``/``cost2`` the other local
-    minimum when ``minima`` is 2.
+    count: int
+    row_ids: np.ndarray
 
-    The consistency check (:mod:`mapjoin.consistency`, docs/method.md#calibration): ``dof`` the
-    degrees of freedom, ``variance_factor`` the a-posteriori variance factor ``s`` from the joins
-    before it (a tree join: from the joins of its own level and the levels below); ``chi2`` the statistic: the join's own minimum (``cost``, or ``c0 - 2 a0`` for a map
-    joined by its features alone) when that passes the gate (``p`` of ``chi2 / s`` at least
-    ``gate``), else the same minimum with the chain's drift added to the common features'
-    variances (docs/method.md#drift), which is never larger; ``features_cost`` the minimum without
-    the heading link (c0 - 2 a0) of the same problem; ``p`` the upper tail probability of
-    ``chi2 / s``, ``flag`` whether the join failed the gate (or has two minima). ``action``:
-    ``joined``, ``features only`` (joined without the heading link) or ``left out`` (its features
-    dropped, its end pose kept), as the policy decided. ``exact_chi2``, ``exact_p``: the exact statistic
-    of a join that failed the gate, when it was confirmed (:mod:`mapjoin.confirmation`,
-    docs/method.md#confirmation; then ``flag`` is its verdict), else None.
-    """
+    def first(self, size: int) -> np.ndarray:
+        """Compact ids of the first map's rows."""
 
-    join: int
-    map: str
-    start_id: int
-    end_id: int
-    common: int
-    new: int
-    a: float
-    c_phi: float
-    minima: int
-    phi: float
-    cost: float
-    phi2: float | None
-    cost2: float | None
-    iterations: int
-    level: int
-    features_cost: float = math.nan
-    chi2: float = math.nan
-    dof: int = 0
-    variance_factor: float = 1.0
-    p: float = 1.0
-    flag: bool = False
-    action: str = "joined"
-    exact_chi2: float | None = None
-    exact_p: float | None = None
+    def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
+             link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Map ``k`` against the map so far: its rows' order (matched first), their compact ids, how many match."""
+
+    def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
+        """Join ``k`` placed map ``k``'s start with these posterior variances."""
+
+    def level(self, pieces: _Pieces, level: int) -> _Pieces:
+        """The right pieces of a tree level's joins with their features renamed to their matches' ids."""
 
 
 _ROW = [field.name for field in dataclasses.fields(JoinRecord)][1:]  # a report row: the fields after ``join``
 _COMMON, _MINIMA, _COST, _LEVEL, _FEATURES = (_ROW.index(name) for name in
                                               ("common", "minima", "cost", "level", "features_cost"))
-
-
-@dataclass(frozen=True)
-class JoinResult:
-    """A joined global map and its per-join report."""
-
-    global_map: GlobalMap
-    report: tuple[JoinRecord, ...]
 
 
 def check_chain(maps: Sequence[LocalMap]) -> None:
@@ -139,41 +100,6 @@ def pose_twice(local_map: LocalMap) -> JoinError:
     """The error for ``local_map``, whose end pose is already in the chain before it."""
     return JoinError(f"pose {local_map.end_id} appears twice in the chain (again as the end of "
                      f"{local_map.name}); each map must end at a new pose")
-
-
-@dataclass
-class _Pieces:
-    """Consecutive pieces of the chain as flat arrays, each in the frame of its own start pose.
-
-    Points are complex numbers ``x + iy`` (a rotation is one product). Feature rows are
-    grouped by piece (``feature_piece`` non-decreasing) and sorted by compact id within a
-    piece; pose rows are the end poses of the piece's maps, in chain order, so a piece's
-    last pose row is its end pose. ``first``/``last`` are the indices of each piece's first
-    and last local map.
-    """
-
-    feature_piece: np.ndarray
-    feature_ids: np.ndarray
-    features: np.ndarray
-    feature_variances: np.ndarray
-    pose_piece: np.ndarray
-    pose_xy: np.ndarray
-    pose_phi: np.ndarray
-    pose_variances: np.ndarray
-    first: np.ndarray
-    last: np.ndarray
-
-    @property
-    def count(self) -> int:
-        return len(self.first)
-
-    def block(self, start: int, stop: int) -> _Pieces:
-        """Pieces ``start .. stop-1``, renumbered from 0."""
-        f = slice(*np.searchsorted(self.feature_piece, [start, stop]))
-        p = slice(*np.searchsorted(self.pose_piece, [start, stop]))
-        return _Pieces(self.feature_piece[f] - start, self.feature_ids[f], self.features[f],
-                       self.feature_variances[f], self.pose_piece[p] - start, self.pose_xy[p], self.pose_phi[p],
-                       self.pose_variances[p], self.first[start:stop], self.last[start:stop])
 
 
 @dataclass(frozen=True)
@@ -362,7 +288,7 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
                     solver: Solver = "bisection",
                     progress: Callable[[int], None] | None = None, *, warn: bool = True,
                     gate: float = DEFAULT_GATE, unlinked: frozenset[int] = frozenset(),
-                    associate: _Associator | None = None) -> JoinResult:
+                    associate: Associate | None = None) -> JoinResult:
     """Join ``maps`` (a connected chain) one after the other; the global frame is the first map's start.
 
     The global map lives in arrays indexed by compact feature id, so join k reads and writes
@@ -444,7 +370,7 @@ class _Segment:
 
 def _join_segment(segment: _Segment, maps: Sequence[LocalMap], positions: np.ndarray, position_variances: np.ndarray,
                   solver: Solver, number: int, progress: Callable[[int], None] | None = None, *, warn: bool = True,
-                  unlinked: frozenset[int] = frozenset(), associate: _Associator | None = None,
+                  unlinked: frozenset[int] = frozenset(), associate: Associate | None = None,
                   record: SequentialRecord | None = None) -> list[tuple]:
     """Join maps 1 .. n-1 of ``segment`` (``maps`` are its maps) onto the global map so far, in place: its
     ``positions`` and ``position_variances`` (by compact id) and the segment's poses; map 0's own feature
@@ -493,7 +419,7 @@ def _join_segment(segment: _Segment, maps: Sequence[LocalMap], positions: np.nda
     return report
 
 
-def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, associate: _Associator | None = None,
+def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, associate: Associate | None = None,
                 record: TreeRecord | None = None) -> tuple[_Pieces, list[tuple]]:
     """Join pieces 2i and 2i+1 for every i (an odd last piece passes through): one level of the tree.
     ``associate`` first renames right pieces' features to the ids of their matches in the left ones;
@@ -547,7 +473,7 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, as
 
 
 def _join_levels(pieces: _Pieces, labels: _Labels, solver: Solver, level: int,
-                 progress: Callable[[int], None] | None = None, associate: _Associator | None = None,
+                 progress: Callable[[int], None] | None = None, associate: Associate | None = None,
                  record: TreeRecord | None = None) -> tuple[_Pieces, list[tuple]]:
     """Join levels from ``level`` on until one piece is left; the joins' report rows."""
     records: list[tuple] = []
@@ -572,7 +498,7 @@ def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[tuple]
 
 def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
               solver: Solver = "bisection", jobs: int = 1,
-              progress: Callable[[int], None] | None = None, associate: _Associator | None = None, *,
+              progress: Callable[[int], None] | None = None, associate: Associate | None = None, *,
               gate: float = DEFAULT_GATE) -> JoinResult:
     """Join ``maps`` pairwise, level by level (Remark 8); ``jobs`` processes share the lower levels.
 
@@ -632,7 +558,7 @@ def _concatenate(blocks: list[tuple[int, _Pieces]]) -> _Pieces:
 def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection",
          strategy: Strategy = "sequential", jobs: int = 1,
          progress: Callable[[int], None] | None = None, *, gate: float = DEFAULT_GATE,
-         on_inconsistent: Policy = "warn", associate: _Associator | None = None,
+         on_inconsistent: Policy = "warn", associate: Associate | None = None,
          confirm: Confirm | None = None) -> JoinResult:
     """Join ``maps`` with ``strategy`` (``jobs`` only matters for the tree; ``associate``: see
     :func:`join_sequential`, used by :func:`mapjoin.association.join_associated`).
