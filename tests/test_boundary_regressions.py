@@ -345,3 +345,55 @@ def test_a_label_the_font_cannot_draw_is_one_warning_line_not_python_warnings(tm
     lines = [line for line in result.stderr.splitlines() if "glyph" in line]
     assert lines == ["warning: the font has no glyph for U+0007, U+4E00 (drawn as a box)"]
     assert (tmp_path / "p.png").stat().st_size > 0
+
+
+# ---------------------------------------------------------------------------------------
+# Found by the re-check of the boundary after the features since issue 16 (harness in the report)
+
+
+def _flagged_maps(folder: Path) -> bytes:
+    """A valid stream of 4 maps whose third map has two features moved 3 m: its join is flagged inconsistent."""
+    import yaml
+
+    assert run(folder, "simulate", "--maps", "4", "--steps-per-map", "4", "--seed", "4", "-o", "maps.yaml")[0] == 0
+    documents = list(yaml.safe_load_all((folder / "maps.yaml").read_text()))
+    documents[2]["features"][0]["x"] += 3.0
+    documents[2]["features"][1]["y"] -= 3.0
+    return yaml.safe_dump_all(documents, explicit_start=True, sort_keys=False).encode()
+
+
+@pytest.mark.parametrize("source", ["fifo", "process substitution"])
+def test_a_flagged_streamed_join_does_not_read_a_fifo_or_pipe_again(tmp_path, source):
+    """The streamed join confirms its flags by reading its files again; only `-` was exempt. A FIFO read again
+    blocked for ever (no writer left); a process substitution's /dev/fd/N, read again empty, refused a valid
+    input ("expected at least one local map, found none"). Both join now, the flags left to the fast test."""
+    data = _flagged_maps(tmp_path)
+    (tmp_path / "bad.yaml").write_bytes(data)
+    env = dict(os.environ, PYTHONPATH=str(SRC))
+    command = [sys.executable, "-m", "mapjoin", "join", "--input-format", "yaml", "-o", "out.csv"]
+    if source == "fifo":
+        os.mkfifo(tmp_path / "maps.fifo")
+        writer = subprocess.Popen(["bash", "-c", "cat bad.yaml > maps.fifo"], cwd=tmp_path)
+        try:
+            result = subprocess.run(command + ["maps.fifo"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                                    timeout=60)
+        finally:
+            writer.kill()
+            writer.wait()
+    else:
+        line = " ".join(command) + " <(cat bad.yaml)"
+        result = subprocess.run(["bash", "-c", line], cwd=tmp_path, env=env, capture_output=True, text=True,
+                                timeout=60)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
+    assert "read once" in result.stderr and "inconsistent" in result.stderr, result.stderr
+    assert (tmp_path / "out.csv").stat().st_size > 0
+
+
+def test_read_once_tells_regular_files_from_streams(tmp_path):
+    from mapjoin.io import read_once
+
+    (tmp_path / "a.yaml").write_text("x")
+    os.mkfifo(tmp_path / "f")
+    os.symlink("a.yaml", tmp_path / "link.yaml")
+    assert [read_once(p) for p in (str(tmp_path / "a.yaml"), tmp_path / "link.yaml", str(tmp_path / "f"), "-",
+                                   "/dev/zero", str(tmp_path / "missing"))] == [False, False, True, True, True, True]

@@ -14,8 +14,8 @@ from typing import AnyStr, TextIO
 
 from ..errors import InputError
 
-__all__ = ["MAX_STREAM_BYTES", "STDIN", "Source", "is_path", "map_name", "not_utf8", "read_file", "read_text",
-           "source_name"]
+__all__ = ["MAX_STREAM_BYTES", "STDIN", "Source", "is_path", "map_name", "not_utf8", "read_file", "read_once",
+           "read_text", "source_name"]
 
 STDIN = "-"
 
@@ -25,6 +25,18 @@ Source = str | os.PathLike | TextIO  # os.PathLike: e.g. a pathlib.Path
 def is_path(source: Source) -> bool:
     """Whether ``source`` names a file (not ``-`` and not a stream)."""
     return isinstance(source, (str, os.PathLike)) and os.fspath(source) != STDIN
+
+
+def read_once(source: Source) -> bool:
+    """Whether ``source`` gives its data only once: ``-`` (stdin), an open stream, or a path that is not a
+    regular file (a FIFO, a process substitution's ``/dev/fd/N``, a device). Reading such a source again
+    blocks or gives other data, so a second reading (a streamed join's confirmation) is not tried."""
+    if not is_path(source):
+        return True
+    try:
+        return not stat.S_ISREG(os.stat(source).st_mode)
+    except (OSError, ValueError):
+        return True
 
 
 def source_name(source: Source, dash: str = "<stdin>") -> str:
