@@ -397,3 +397,46 @@ def test_read_once_tells_regular_files_from_streams(tmp_path):
     os.symlink("a.yaml", tmp_path / "link.yaml")
     assert [read_once(p) for p in (str(tmp_path / "a.yaml"), tmp_path / "link.yaml", str(tmp_path / "f"), "-",
                                    "/dev/zero", str(tmp_path / "missing"))] == [False, False, True, True, True, True]
+
+
+@pytest.mark.parametrize("how", ["file", "stdin"])
+@pytest.mark.parametrize("cut_character", [False, True])
+def test_bytes_that_are_not_utf8_past_the_first_block_are_named_by_their_line_and_byte(maps, how, cut_character):
+    """A stream is decoded a block (64 K characters) at a time; the error gave the offset in its block ("at
+    byte 61184" for a byte at 519936) and no line. Now the line, the bytes and their offset in the source, counted
+    here from the bytes themselves; ``cut_character``: a valid 2-byte character straddles the block boundary."""
+    from mapjoin.io import lines
+
+    data = (maps / "maps.yaml").read_bytes()
+    while len(data) < 3 * lines._BLOCK:
+        data += data[data.index(b"---", 3):]
+    if cut_character:  # a comment line whose "é" has its 2 bytes either side of the first block's end
+        before = data.rindex(b"\n", 0, lines._BLOCK - 10) + 1
+        comment = b"#" + b"x" * (lines._BLOCK - 2 - before) + "é".encode() + b"\n"
+        data = data[:before] + comment + data[before:]
+        assert data[lines._BLOCK - 1:lines._BLOCK + 1] == "é".encode()
+    start = data.index(b"\n", 2 * lines._BLOCK) + 1
+    data = data[:start] + b"\xe9\xff" + data[start:]
+    line_number = data[:start].count(b"\n") + 1
+    expected = f"line {line_number}: expected UTF-8 text, got b'\\xe9' at byte {start} "
+    (maps / "big.yaml").write_bytes(data)
+    if how == "file":
+        line = refused(maps, "join", "big.yaml", "-o", "big.csv", naming="big.yaml")
+    else:
+        result = CliRunner().invoke(main, ["-q", "join", "-", "--input-format", "yaml", "-o", str(maps / "big.csv")],
+                                    input=data)
+        assert result.exit_code == 1 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+        line = result.stderr.strip()
+    assert expected in line, (expected, line)
+    assert not (maps / "big.csv").exists()
+
+
+def test_bytes_that_are_not_utf8_in_a_file_read_whole_are_named_by_their_line(maps):
+    """The readers of whole files (a global map's JSON) gave the byte and no line."""
+    assert run(maps, "join", "maps.yaml", "-o", "g.json")[0] == 0
+    data = (maps / "g.json").read_bytes()
+    start = data.index(b"\n", len(data) // 2) + 1
+    (maps / "g.json").write_bytes(data[:start] + b"\xff" + data[start:])
+    line = refused(maps, "compare", "g.json", "g.json", naming="g.json")
+    line_number = data[:start].count(b"\n") + 1
+    assert f"g.json, line {line_number}: expected UTF-8 text, got b'\\xff' at byte {start} " in line, line

@@ -34,7 +34,7 @@ def text_lines(source: Source, name: str) -> Iterator[str]:
         yield from _lines(getattr(stream, "buffer", stream), name)
         return
     try:
-        file = open(os.fspath(source), encoding="utf-8-sig", newline="")  # noqa: SIM115 -- closed below
+        file = open(os.fspath(source), "rb")  # noqa: SIM115 -- closed below; decoded by _lines, which knows where
     except OSError as error:
         raise InputError(f"cannot read ({error.strerror or error})", name) from None
     with file:
@@ -48,16 +48,23 @@ def _lines(stream: IO, name: str) -> Iterator[str]:
     decoder = codecs.getincrementaldecoder("utf-8")()
     pending: list[str] = []  # the start of the line being read
     pending_size, first = 0, True
+    offset, line = 0, 1  # the bytes read and the line reached before this block: an error names its own line
     while True:
         try:
             raw = stream.read(_BLOCK)
-            block = decoder.decode(raw, final=not raw) if isinstance(raw, bytes) else raw
+            if isinstance(raw, bytes):
+                held = len(decoder.getstate()[0])  # the bytes of a character cut by the last block
+                offset += len(raw)
+                block = decoder.decode(raw, final=not raw)
+            else:
+                block = raw
         except UnicodeDecodeError as error:
-            raise not_utf8(error, name) from None
+            raise not_utf8(error, name, offset - len(raw) - held, line) from None
         except OSError as error:
             raise InputError(f"cannot read ({error.strerror or error})", name) from None
         if not raw:
             break
+        line += block.count("\n")
         if first and block:
             block, first = block.removeprefix("\ufeff"), False
         cut = block.rfind("\n") + 1

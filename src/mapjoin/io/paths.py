@@ -127,9 +127,13 @@ def _bounded(read: Callable[[int], AnyStr]) -> AnyStr:
     return chunks[0][:0].join(chunks)
 
 
-def not_utf8(error: UnicodeDecodeError, name: str) -> InputError:
-    """The error for text of ``name`` that is not UTF-8."""
-    return InputError(f"expected UTF-8 text ({error.reason} at byte {error.start})", name)
+def not_utf8(error: UnicodeDecodeError, name: str, offset: int = 0, line: int = 1) -> InputError:
+    """The error for text of ``name`` that is not UTF-8: the line, the bytes and their offset in the source.
+    ``offset``, ``line``: where ``error.object`` starts in the source (a block of a stream read a block at a time)."""
+    line += error.object.count(b"\n", 0, error.start)
+    found = bytes(error.object[error.start:error.end])
+    return InputError(f"expected UTF-8 text, got {found!r} at byte {offset + error.start} ({error.reason})", name,
+                      f"line {line}")
 
 
 def map_name(source: str, label: str | None, number: int | None) -> str:
