@@ -440,3 +440,27 @@ def test_bytes_that_are_not_utf8_in_a_file_read_whole_are_named_by_their_line(ma
     line = refused(maps, "compare", "g.json", "g.json", naming="g.json")
     line_number = data[:start].count(b"\n") + 1
     assert f"g.json, line {line_number}: expected UTF-8 text, got b'\\xff' at byte {start} " in line, line
+
+
+@pytest.mark.parametrize("args", [
+    ["plot", "global.csv", "--label", "$\\frac{$", "-o", "p.png"],  # mathtext that does not parse
+    ["plot", "global.csv", "--label", "$\\nosuchcommand$", "-o", "p.svg"],
+    ["plot", "global.csv", "--label", "\udcff", "-o", "p.pdf"],  # an argument byte that is not UTF-8
+    ["plot", "g\udcff.csv", "-o", "p.png"],  # ... in a file name, the default label
+    ["plot", "$\\frac{$.csv", "--truth", "$\\foo$.yaml", "-o", "p.png"],
+    ["plot-join", "$\\frac{$.yaml", "--join", "1", "-o", "p.png"],  # the title names the maps
+    ["plot-minima", "$\\frac{$ report.csv", "-o", "p.png"]])  # the title names the table
+def test_labels_and_file_names_are_drawn_as_they_are(tmp_path, args):
+    """A label or file name with $...$ was parsed as mathtext (ParseSyntaxException, a traceback) and one with a
+    lone surrogate (Python's stand-in for a byte that is not UTF-8) made the font engine raise a TypeError.
+    Both are drawn literally now (the surrogate as U+FFFD)."""
+    pytest.importorskip("matplotlib")
+    assert run(tmp_path, "simulate", "--maps", "3", "--seed", "2", "-o", ".", "--format", "yaml")[0] == 0
+    assert run(tmp_path, "join", ".", "-o", "global.csv", "--report", "$\\frac{$ report.csv")[0] == 0
+    for name in ("g\udcff.csv", "$\\frac{$.csv"):
+        (tmp_path / name).write_bytes((tmp_path / "global.csv").read_bytes())
+    (tmp_path / "$\\frac{$.yaml").write_bytes((tmp_path / "localmap_1.yaml").read_bytes()
+                                              + (tmp_path / "localmap_2.yaml").read_bytes())
+    (tmp_path / "$\\foo$.yaml").write_bytes((tmp_path / "truth.yaml").read_bytes())
+    code, lines = run(tmp_path, *args)
+    assert code == 0 and (tmp_path / args[-1]).stat().st_size > 0, lines
