@@ -464,3 +464,30 @@ def test_labels_and_file_names_are_drawn_as_they_are(tmp_path, args):
     (tmp_path / "$\\foo$.yaml").write_bytes((tmp_path / "truth.yaml").read_bytes())
     code, lines = run(tmp_path, *args)
     assert code == 0 and (tmp_path / args[-1]).stat().st_size > 0, lines
+
+
+@pytest.mark.parametrize("args", [[], ["--associate"], ["--refine"]])
+def test_a_covariance_with_variances_below_the_range_is_refused_naming_the_file(maps, args):
+    """A covariance scaled by 1e-300 passed (entries within +-1e30, positive definite): the join's weights
+    overflowed and the error named the "global map" (no file, no field), or numpy warned (divide by zero) on
+    the way with --associate. Its diagonal holds variances: now checked against the variances' range."""
+    import yaml
+
+    documents = list(yaml.safe_load_all((maps / "maps.yaml").read_text()))
+    documents[1]["covariance"] = [[value * 1e-300 for value in row] for row in documents[1]["covariance"]]
+    (maps / "tiny.yaml").write_text(yaml.safe_dump_all(documents, explicit_start=True, sort_keys=False))
+    line = refused(maps, "join", "tiny.yaml", *args, "-o", "tiny.csv", naming="tiny.yaml")
+    assert "field covariance: expected finite variances in [1e-30, 1e+30] on the diagonal" in line, line
+    assert not (maps / "tiny.csv").exists()
+
+
+@pytest.mark.parametrize("variance", [0.0, 1e-31, 1e31, float("nan")])
+def test_local_map_covariance_diagonal_range(variance):
+    from mapjoin.maps import LocalMap
+
+    covariance = np.diag([0.01, 0.01, 0.001, 0.02, 0.02])
+    LocalMap("ok", 0, 1, [1.0, 0.0, 0.1], [7], [[2.0, 1.0]], [0.02], [0.01, 0.001], covariance)
+    covariance[3, 3] = variance
+    with pytest.raises(InputError, match="covariance") as error:
+        LocalMap("m", 0, 1, [1.0, 0.0, 0.1], [7], [[2.0, 1.0]], [0.02], [0.01, 0.001], covariance)
+    assert "finite" in str(error.value)

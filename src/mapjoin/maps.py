@@ -110,6 +110,13 @@ def _value_error(array: np.ndarray, name: str, source: str, ranges: Ranges) -> I
     return InputError(f"expected {expected}, got {shown(array[index])} at index {index}", source, name)
 
 
+def _diagonal_error(diagonal: np.ndarray, source: str) -> InputError:
+    """The error for a covariance whose diagonal holds a variance outside :data:`VARIANCE`, at its (i, i)."""
+    i = int(np.argwhere(outside(diagonal, VARIANCE))[0][0])
+    return InputError(f"expected {VARIANCE.expected()} on the diagonal, got {shown(diagonal[i])} at index {(i, i)}",
+                      source, "covariance")
+
+
 def _checked(value, name: str, source: str, shape: tuple[int | None, ...], *,
              dtype=float, ranges: Ranges | None = None) -> np.ndarray:
     """A read-only :func:`_coerced` copy; floats must also be within ``ranges``."""
@@ -311,15 +318,18 @@ class StackedMaps(NamedTuple):
 
     def _covariance_failures(self, first: Callable[[np.ndarray], int]
                              ) -> list[tuple[int, Callable[[int], InputError]]]:
-        """The checks of the covariances: finite, symmetric up to rounding, positive definite (of the
-        symmetrised matrices, as the maps will hold them)."""
+        """The checks of the covariances: finite, variances (the diagonal) in :data:`VARIANCE` as the spherical
+        ones, symmetric up to rounding, positive definite (of the symmetrised matrices, as the maps will hold them)."""
         covariance, name = self.covariance, self.name
         finite = ~outside(covariance, COVARIANCE_ENTRY).any(axis=(1, 2))
+        diagonal = np.diagonal(covariance, axis1=1, axis2=2)
+        variances = finite & ~outside(diagonal, VARIANCE).any(axis=1)  # 1e-300: a join's weights would overflow
         rounded = finite & ~_exactly_symmetric(covariance)  # the rest pass, or fail first
         asymmetric = np.zeros(len(covariance), dtype=bool)
         if rounded.any():
             asymmetric[rounded] = (asymmetry(covariance[rounded]) > 0).any(axis=(1, 2))
         return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], COVARIANCE_ENTRY)),
+                (first(finite & ~variances), lambda r: _diagonal_error(diagonal[r], name[r])),
                 (first(asymmetric), lambda r: _asymmetry_error(covariance[r], name[r])),
                 (first(_indefinite(_symmetrised(covariance, rounded & ~asymmetric))),
                  lambda r: InputError("expected a positive definite matrix", name[r], "covariance"))]
