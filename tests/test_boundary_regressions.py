@@ -491,3 +491,23 @@ def test_local_map_covariance_diagonal_range(variance):
     with pytest.raises(InputError, match="covariance") as error:
         LocalMap("m", 0, 1, [1.0, 0.0, 0.1], [7], [[2.0, 1.0]], [0.02], [0.01, 0.001], covariance)
     assert "finite" in str(error.value)
+
+
+@pytest.mark.parametrize("value", ["１", "1_0", "٣"])
+@pytest.mark.parametrize("args,option", [
+    (["simulate", "-o", "s.yaml", "--maps"], "--maps"), (["simulate", "-o", "s.yaml", "--seed"], "--seed"),
+    (["simulate", "-o", "s.yaml", "--steps-per-map"], "--steps-per-map"),
+    (["simulate", "-o", "w/", "--robots"], "--robots"),
+    (["join", "maps.yaml", "--strategy", "tree", "-o", "j.csv", "--jobs"], "--jobs"),
+    (["refine", "maps.yaml", "-o", "j.csv", "--max-iterations"], "--max-iterations"),
+    (["plot-join", "maps.yaml", "-o", "p.png", "--join"], "--join"),
+    (["merge", "maps.yaml", "maps.yaml", "--associate", "--min-common"], "--min-common"),
+    (["build", "raw.isam", "-o", "b/", "--maps"], "--maps"), (["build", "raw.isam", "-o", "b/", "--poses-per-map"],
+                                                               "--poses-per-map"),
+    (["build", "raw.isam", "-o", "b/", "--jobs"], "--jobs")])
+def test_integer_options_take_ascii_digits_only(maps, args, option, value):
+    """click's int took fullwidth and other Unicode digits and underscores (`--maps １` was 1, `--seed 1_0` 10),
+    which the float options (FiniteFloat) and every text format refuse."""
+    code, lines = run(maps, *args, value)  # in-process: click's usage lines before it (`python -m mapjoin`: one line)
+    assert code == 2 and option in lines[-1] and f"ASCII digits, got '{value}'" in lines[-1], lines
+    assert not any((maps / name).exists() for name in ("s.yaml", "w", "j.csv", "p.png", "b"))
