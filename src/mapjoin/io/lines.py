@@ -48,18 +48,18 @@ def _lines(stream: IO, name: str) -> Iterator[str]:
     decoder = codecs.getincrementaldecoder("utf-8")()
     pending: list[str] = []  # the start of the line being read
     pending_size, first = 0, True
-    offset, line = 0, 1  # the bytes read and the line reached before this block: an error names its own line
+    offset, start, line = 0, 0, 1  # bytes read, where the bytes decoded next start, the line reached: for errors
     while True:
         try:
             raw = stream.read(_BLOCK)
             if isinstance(raw, bytes):
-                held = len(decoder.getstate()[0])  # the bytes of a character cut by the last block
+                start = offset - len(decoder.getstate()[0])  # a character cut by the last block comes first
                 offset += len(raw)
                 block = decoder.decode(raw, final=not raw)
             else:
                 block = raw
         except UnicodeDecodeError as error:
-            raise not_utf8(error, name, offset - len(raw) - held, line) from None
+            raise not_utf8(error, name, start, line) from None
         except OSError as error:
             raise InputError(f"cannot read ({error.strerror or error})", name) from None
         if not raw:
