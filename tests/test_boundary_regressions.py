@@ -481,16 +481,20 @@ def test_a_covariance_with_variances_below_the_range_is_refused_naming_the_file(
     assert not (maps / "tiny.csv").exists()
 
 
-@pytest.mark.parametrize("variance", [0.0, 1e-31, 1e31, float("nan")])
-def test_local_map_covariance_diagonal_range(variance):
+@pytest.mark.parametrize("variance,expected", [
+    (1e-31, "expected finite variances in [1e-30, 1e+30] on the diagonal, got 1e-31 at index (3, 3)"),
+    (1e-300, "on the diagonal, got 1e-300 at index (3, 3)"),
+    (0.0, "expected a positive definite matrix"),  # as before: not positive definite comes first
+    (1e31, "expected finite covariance entries in [-1e+30, 1e+30]"), (float("nan"), "expected finite numbers")])
+def test_local_map_covariance_diagonal_range(variance, expected):
     from mapjoin.maps import LocalMap
 
     covariance = np.diag([0.01, 0.01, 0.001, 0.02, 0.02])
     LocalMap("ok", 0, 1, [1.0, 0.0, 0.1], [7], [[2.0, 1.0]], [0.02], [0.01, 0.001], covariance)
     covariance[3, 3] = variance
-    with pytest.raises(InputError, match="covariance") as error:
+    with pytest.raises(InputError) as error:
         LocalMap("m", 0, 1, [1.0, 0.0, 0.1], [7], [[2.0, 1.0]], [0.02], [0.01, 0.001], covariance)
-    assert "finite" in str(error.value)
+    assert str(error.value).startswith("m, covariance: ") and expected in str(error.value), str(error.value)
 
 
 @pytest.mark.parametrize("value", ["１", "1_0", "٣"])

@@ -318,8 +318,8 @@ class StackedMaps(NamedTuple):
 
     def _covariance_failures(self, first: Callable[[np.ndarray], int]
                              ) -> list[tuple[int, Callable[[int], InputError]]]:
-        """The checks of the covariances: finite, variances (the diagonal) in :data:`VARIANCE` as the spherical
-        ones, symmetric up to rounding, positive definite (of the symmetrised matrices, as the maps will hold them)."""
+        """The checks of the covariances: finite, symmetric up to rounding, positive definite (of the symmetrised
+        matrices, as the maps will hold them), variances (the diagonal) in :data:`VARIANCE` as the spherical ones."""
         covariance, name = self.covariance, self.name
         finite = ~outside(covariance, COVARIANCE_ENTRY).any(axis=(1, 2))
         diagonal = np.diagonal(covariance, axis1=1, axis2=2)
@@ -329,10 +329,10 @@ class StackedMaps(NamedTuple):
         if rounded.any():
             asymmetric[rounded] = (asymmetry(covariance[rounded]) > 0).any(axis=(1, 2))
         return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], COVARIANCE_ENTRY)),
-                (first(finite & ~variances), lambda r: _diagonal_error(diagonal[r], name[r])),
                 (first(asymmetric), lambda r: _asymmetry_error(covariance[r], name[r])),
                 (first(_indefinite(_symmetrised(covariance, rounded & ~asymmetric))),
-                 lambda r: InputError("expected a positive definite matrix", name[r], "covariance"))]
+                 lambda r: InputError("expected a positive definite matrix", name[r], "covariance")),
+                (first(finite & ~variances), lambda r: _diagonal_error(diagonal[r], name[r]))]
 
     def local_maps(self, start_ids: Sequence[int], end_ids: Sequence[int]) -> list[LocalMap]:
         """The maps of the rows, NOT checked again: only once :meth:`first_invalid` found none invalid;
