@@ -345,3 +345,173 @@ def test_a_label_the_font_cannot_draw_is_one_warning_line_not_python_warnings(tm
     lines = [line for line in result.stderr.splitlines() if "glyph" in line]
     assert lines == ["warning: the font has no glyph for U+0007, U+4E00 (drawn as a box)"]
     assert (tmp_path / "p.png").stat().st_size > 0
+
+
+# ---------------------------------------------------------------------------------------
+# Found by the re-check of the boundary after the features since issue 16 (harness in the report)
+
+
+def _flagged_maps(folder: Path) -> bytes:
+    """A valid stream of 4 maps whose third map has two features moved 3 m: its join is flagged inconsistent."""
+    import yaml
+
+    assert run(folder, "simulate", "--maps", "4", "--steps-per-map", "4", "--seed", "4", "-o", "maps.yaml")[0] == 0
+    documents = list(yaml.safe_load_all((folder / "maps.yaml").read_text()))
+    documents[2]["features"][0]["x"] += 3.0
+    documents[2]["features"][1]["y"] -= 3.0
+    return yaml.safe_dump_all(documents, explicit_start=True, sort_keys=False).encode()
+
+
+@pytest.mark.parametrize("source", ["fifo", "process substitution"])
+def test_a_flagged_streamed_join_does_not_read_a_fifo_or_pipe_again(tmp_path, source):
+    """The streamed join confirms its flags by reading its files again; only `-` was exempt. A FIFO read again
+    blocked for ever (no writer left); a process substitution's /dev/fd/N, read again empty, refused a valid
+    input ("expected at least one local map, found none"). Both join now, the flags left to the fast test."""
+    data = _flagged_maps(tmp_path)
+    (tmp_path / "bad.yaml").write_bytes(data)
+    env = dict(os.environ, PYTHONPATH=str(SRC))
+    command = [sys.executable, "-m", "mapjoin", "join", "--input-format", "yaml", "-o", "out.csv"]
+    if source == "fifo":
+        os.mkfifo(tmp_path / "maps.fifo")
+        writer = subprocess.Popen(["bash", "-c", "cat bad.yaml > maps.fifo"], cwd=tmp_path)
+        try:
+            result = subprocess.run(command + ["maps.fifo"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                                    timeout=60)
+        finally:
+            writer.kill()
+            writer.wait()
+    else:
+        line = " ".join(command) + " <(cat bad.yaml)"
+        result = subprocess.run(["bash", "-c", line], cwd=tmp_path, env=env, capture_output=True, text=True,
+                                timeout=60)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
+    assert "read once" in result.stderr and "inconsistent" in result.stderr, result.stderr
+    assert (tmp_path / "out.csv").stat().st_size > 0
+
+
+def test_read_once_tells_regular_files_from_streams(tmp_path):
+    from mapjoin.io import read_once
+
+    (tmp_path / "a.yaml").write_text("x")
+    os.mkfifo(tmp_path / "f")
+    os.symlink("a.yaml", tmp_path / "link.yaml")
+    assert [read_once(p) for p in (str(tmp_path / "a.yaml"), tmp_path / "link.yaml", str(tmp_path / "f"), "-",
+                                   "/dev/zero", str(tmp_path / "missing"))] == [False, False, True, True, True, True]
+
+
+@pytest.mark.parametrize("how", ["file", "stdin"])
+@pytest.mark.parametrize("cut_character", [False, True])
+def test_bytes_that_are_not_utf8_past_the_first_block_are_named_by_their_line_and_byte(maps, how, cut_character):
+    """A stream is decoded a block (64 K characters) at a time; the error gave the offset in its block ("at
+    byte 61184" for a byte at 519936) and no line. Now the line, the bytes and their offset in the source, counted
+    here from the bytes themselves; ``cut_character``: a valid 2-byte character straddles the block boundary."""
+    from mapjoin.io import lines
+
+    data = (maps / "maps.yaml").read_bytes()
+    while len(data) < 3 * lines._BLOCK:
+        data += data[data.index(b"---", 3):]
+    if cut_character:  # a comment line whose "é" has its 2 bytes either side of the first block's end
+        before = data.rindex(b"\n", 0, lines._BLOCK - 10) + 1
+        comment = b"#" + b"x" * (lines._BLOCK - 2 - before) + "é".encode() + b"\n"
+        data = data[:before] + comment + data[before:]
+        assert data[lines._BLOCK - 1:lines._BLOCK + 1] == "é".encode()
+    start = data.index(b"\n", 2 * lines._BLOCK) + 1
+    data = data[:start] + b"\xe9\xff" + data[start:]
+    line_number = data[:start].count(b"\n") + 1
+    expected = f"line {line_number}: expected UTF-8 text, got b'\\xe9' at byte {start} "
+    (maps / "big.yaml").write_bytes(data)
+    if how == "file":
+        line = refused(maps, "join", "big.yaml", "-o", "big.csv", naming="big.yaml")
+    else:
+        result = CliRunner().invoke(main, ["-q", "join", "-", "--input-format", "yaml", "-o", str(maps / "big.csv")],
+                                    input=data)
+        assert result.exit_code == 1 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+        line = result.stderr.strip()
+    assert expected in line, (expected, line)
+    assert not (maps / "big.csv").exists()
+
+
+def test_bytes_that_are_not_utf8_in_a_file_read_whole_are_named_by_their_line(maps):
+    """The readers of whole files (a global map's JSON) gave the byte and no line."""
+    assert run(maps, "join", "maps.yaml", "-o", "g.json")[0] == 0
+    data = (maps / "g.json").read_bytes()
+    start = data.index(b"\n", len(data) // 2) + 1
+    (maps / "g.json").write_bytes(data[:start] + b"\xff" + data[start:])
+    line = refused(maps, "compare", "g.json", "g.json", naming="g.json")
+    line_number = data[:start].count(b"\n") + 1
+    assert f"g.json, line {line_number}: expected UTF-8 text, got b'\\xff' at byte {start} " in line, line
+
+
+@pytest.mark.parametrize("args", [
+    ["plot", "global.csv", "--label", "$\\frac{$", "-o", "p.png"],  # mathtext that does not parse
+    ["plot", "global.csv", "--label", "$\\nosuchcommand$", "-o", "p.svg"],
+    ["plot", "global.csv", "--label", "\udcff", "-o", "p.pdf"],  # an argument byte that is not UTF-8
+    ["plot", "g\udcff.csv", "-o", "p.png"],  # ... in a file name, the default label
+    ["plot", "$\\frac{$.csv", "--truth", "$\\foo$.yaml", "-o", "p.png"],
+    ["plot-join", "$\\frac{$.yaml", "--join", "1", "-o", "p.png"],  # the title names the maps
+    ["plot-minima", "$\\frac{$ report.csv", "-o", "p.png"]])  # the title names the table
+def test_labels_and_file_names_are_drawn_as_they_are(tmp_path, args):
+    """A label or file name with $...$ was parsed as mathtext (ParseSyntaxException, a traceback) and one with a
+    lone surrogate (Python's stand-in for a byte that is not UTF-8) made the font engine raise a TypeError.
+    Both are drawn literally now (the surrogate as U+FFFD)."""
+    pytest.importorskip("matplotlib")
+    assert run(tmp_path, "simulate", "--maps", "3", "--seed", "2", "-o", ".", "--format", "yaml")[0] == 0
+    assert run(tmp_path, "join", ".", "-o", "global.csv", "--report", "$\\frac{$ report.csv")[0] == 0
+    for name in ("g\udcff.csv", "$\\frac{$.csv"):
+        (tmp_path / name).write_bytes((tmp_path / "global.csv").read_bytes())
+    (tmp_path / "$\\frac{$.yaml").write_bytes((tmp_path / "localmap_1.yaml").read_bytes()
+                                              + (tmp_path / "localmap_2.yaml").read_bytes())
+    (tmp_path / "$\\foo$.yaml").write_bytes((tmp_path / "truth.yaml").read_bytes())
+    code, lines = run(tmp_path, *args)
+    assert code == 0 and (tmp_path / args[-1]).stat().st_size > 0, lines
+
+
+@pytest.mark.parametrize("args", [[], ["--associate"], ["--refine"]])
+def test_a_covariance_with_variances_below_the_range_is_refused_naming_the_file(maps, args):
+    """A covariance scaled by 1e-300 passed (entries within +-1e30, positive definite): the join's weights
+    overflowed and the error named the "global map" (no file, no field), or numpy warned (divide by zero) on
+    the way with --associate. Its diagonal holds variances: now checked against the variances' range."""
+    import yaml
+
+    documents = list(yaml.safe_load_all((maps / "maps.yaml").read_text()))
+    documents[1]["covariance"] = [[value * 1e-300 for value in row] for row in documents[1]["covariance"]]
+    (maps / "tiny.yaml").write_text(yaml.safe_dump_all(documents, explicit_start=True, sort_keys=False))
+    line = refused(maps, "join", "tiny.yaml", *args, "-o", "tiny.csv", naming="tiny.yaml")
+    assert "field covariance: expected finite variances in [1e-30, 1e+30] on the diagonal" in line, line
+    assert not (maps / "tiny.csv").exists()
+
+
+@pytest.mark.parametrize("variance,expected", [
+    (1e-31, "expected finite variances in [1e-30, 1e+30] on the diagonal, got 1e-31 at index (3, 3)"),
+    (1e-300, "on the diagonal, got 1e-300 at index (3, 3)"),
+    (0.0, "expected a positive definite matrix"),  # as before: not positive definite comes first
+    (1e31, "expected finite covariance entries in [-1e+30, 1e+30]"), (float("nan"), "expected finite numbers")])
+def test_local_map_covariance_diagonal_range(variance, expected):
+    from mapjoin.maps import LocalMap
+
+    covariance = np.diag([0.01, 0.01, 0.001, 0.02, 0.02])
+    LocalMap("ok", 0, 1, [1.0, 0.0, 0.1], [7], [[2.0, 1.0]], [0.02], [0.01, 0.001], covariance)
+    covariance[3, 3] = variance
+    with pytest.raises(InputError) as error:
+        LocalMap("m", 0, 1, [1.0, 0.0, 0.1], [7], [[2.0, 1.0]], [0.02], [0.01, 0.001], covariance)
+    assert str(error.value).startswith("m, covariance: ") and expected in str(error.value), str(error.value)
+
+
+@pytest.mark.parametrize("value", ["１", "1_0", "٣"])
+@pytest.mark.parametrize("args,option", [
+    (["simulate", "-o", "s.yaml", "--maps"], "--maps"), (["simulate", "-o", "s.yaml", "--seed"], "--seed"),
+    (["simulate", "-o", "s.yaml", "--steps-per-map"], "--steps-per-map"),
+    (["simulate", "-o", "w/", "--robots"], "--robots"),
+    (["join", "maps.yaml", "--strategy", "tree", "-o", "j.csv", "--jobs"], "--jobs"),
+    (["refine", "maps.yaml", "-o", "j.csv", "--max-iterations"], "--max-iterations"),
+    (["plot-join", "maps.yaml", "-o", "p.png", "--join"], "--join"),
+    (["merge", "maps.yaml", "maps.yaml", "--associate", "--min-common"], "--min-common"),
+    (["build", "raw.isam", "-o", "b/", "--maps"], "--maps"), (["build", "raw.isam", "-o", "b/", "--poses-per-map"],
+                                                               "--poses-per-map"),
+    (["build", "raw.isam", "-o", "b/", "--jobs"], "--jobs")])
+def test_integer_options_take_ascii_digits_only(maps, args, option, value):
+    """click's int took fullwidth and other Unicode digits and underscores (`--maps １` was 1, `--seed 1_0` 10),
+    which the float options (FiniteFloat) and every text format refuse."""
+    code, lines = run(maps, *args, value)  # in-process: click's usage lines before it (`python -m mapjoin`: one line)
+    assert code == 2 and option in lines[-1] and f"ASCII digits, got '{value}'" in lines[-1], lines
+    assert not any((maps / name).exists() for name in ("s.yaml", "w", "j.csv", "p.png", "b"))

@@ -261,18 +261,19 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
     return dataclasses.replace(result, report=report)
 
 
-def confirm_streamed(result: JoinResult, read: Callable[[], Sequence[LocalMap]] | None, gate: float
-                     ) -> tuple[JoinResult, str | None]:
+def confirm_streamed(result: JoinResult, read: Callable[[], Sequence[LocalMap]] | None, gate: float,
+                     source: str = "stdin") -> tuple[JoinResult, str | None]:
     """:func:`confirm` for a streamed sequential join, whose maps are gone: when it flags joins, ``read()``
-    reads them again (``None``: they cannot be, e.g. from stdin), unless the chain has more than
-    :data:`REREAD_LIMIT` maps. Returns the result and, when its flags stay unconfirmed, why (a sentence)."""
+    reads them again (``None``: they cannot be, as they came from ``source``, e.g. stdin or a FIFO), unless
+    the chain has more than :data:`REREAD_LIMIT` maps. Returns the result and, when its flags stay
+    unconfirmed, why (a sentence)."""
     report = result.report
     count = int(report.flagged.sum()) if isinstance(report, CompactReport) else sum(r.flag for r in report)
     if not count:
         return result, None
     first = (int(np.flatnonzero(report.flagged)[0]) + 1 if isinstance(report, CompactReport)
              else min(r.join for r in report if r.flag))   # a sequential join k's union: maps 1..k+1
-    why = ("its maps came from stdin" if read is None else
+    why = (f"its maps came from {source}" if read is None else
            f"it has more than {REREAD_LIMIT} maps" if len(report) + 1 > REREAD_LIMIT else
            f"the first one's exact problem would hold more than {MAX_SOLVED} maps" if first + 1 > MAX_SOLVED
            else None)

@@ -110,6 +110,13 @@ def _value_error(array: np.ndarray, name: str, source: str, ranges: Ranges) -> I
     return InputError(f"expected {expected}, got {shown(array[index])} at index {index}", source, name)
 
 
+def _diagonal_error(diagonal: np.ndarray, source: str) -> InputError:
+    """The error for a covariance whose diagonal holds a variance outside :data:`VARIANCE`, at its (i, i)."""
+    i = int(np.argwhere(outside(diagonal, VARIANCE))[0][0])
+    return InputError(f"expected {VARIANCE.expected()} on the diagonal, got {shown(diagonal[i])} at index {(i, i)}",
+                      source, "covariance")
+
+
 def _checked(value, name: str, source: str, shape: tuple[int | None, ...], *,
              dtype=float, ranges: Ranges | None = None) -> np.ndarray:
     """A read-only :func:`_coerced` copy; floats must also be within ``ranges``."""
@@ -324,10 +331,12 @@ class StackedMaps(NamedTuple):
 
     def _covariance_failures(self, first: Callable[[np.ndarray], int]
                              ) -> list[tuple[int, Callable[[int], InputError]]]:
-        """The checks of the covariances: finite, symmetric up to rounding, positive definite (of the
-        symmetrised matrices, as the maps will hold them)."""
+        """The checks of the covariances: finite, symmetric up to rounding, positive definite (of the symmetrised
+        matrices, as the maps will hold them), variances (the diagonal) in :data:`VARIANCE` as the spherical ones."""
         covariance, name = self.covariance, self.name
         finite = ~outside(covariance, COVARIANCE_ENTRY).any(axis=(1, 2))
+        diagonal = np.diagonal(covariance, axis1=1, axis2=2)
+        variances = finite & ~outside(diagonal, VARIANCE).any(axis=1)  # 1e-300: a join's weights would overflow
         rounded = finite & ~_exactly_symmetric(covariance)  # the rest pass, or fail first
         asymmetric = np.zeros(len(covariance), dtype=bool)
         if rounded.any():
@@ -335,7 +344,8 @@ class StackedMaps(NamedTuple):
         return [(first(~finite), lambda r: _value_error(covariance[r], "covariance", name[r], COVARIANCE_ENTRY)),
                 (first(asymmetric), lambda r: _asymmetry_error(covariance[r], name[r])),
                 (first(_indefinite(_symmetrised(covariance, rounded & ~asymmetric))),
-                 lambda r: InputError("expected a positive definite matrix", name[r], "covariance"))]
+                 lambda r: InputError("expected a positive definite matrix", name[r], "covariance")),
+                (first(finite & ~variances), lambda r: _diagonal_error(diagonal[r], name[r]))]
 
     def local_maps(self, start_ids: Sequence[int], end_ids: Sequence[int]) -> list[LocalMap]:
         """The maps of the rows, NOT checked again: only once :meth:`first_invalid` found none invalid;

@@ -60,6 +60,7 @@ ELLIPSE_PROBABILITY = 0.95
 _WEIGHTS = "spherical weights"  # what a map without covariances holds (GlobalMap.has_covariances)
 #: matplotlib's warning for a character its font cannot draw ("Glyph 7 (\\x07) missing from font(s) ...")
 _MISSING_GLYPH = re.compile(r"Glyph (\d+) ")
+_SURROGATE = re.compile("[\ud800-\udfff]")
 DPI = 150
 #: |C_phi| below which one minimum is certain for every a (docs/method.md#the-arcsin-bound): atan(pi), 72.3 degrees
 ONE_MINIMUM_C_PHI = math.atan(math.pi)
@@ -96,6 +97,14 @@ def figure_format(path: str) -> str:
         raise InputError(f"cannot tell the figure format from {got}; expected "
                          f"{', '.join('.' + f for f in FIGURE_FORMATS)}", path)
     return suffix
+
+
+def _literal(text: str) -> str:
+    """Text from the user or a file (a label, a map's or file's name) drawn as it is: its ``$`` not read as
+    mathtext (an unbalanced ``$`` or an unknown TeX command stops the drawing with a parse error), and a lone
+    surrogate (a byte of a file name that is not UTF-8, as Python passes it on) drawn as U+FFFD, since the font
+    engine refuses it."""
+    return _SURROGATE.sub("\ufffd", text).replace("$", r"\$")
 
 
 def save(figure: Figure, path: str) -> str:
@@ -144,7 +153,7 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
                    gid="truth-features")
         ax.plot(*truth.poses[:, :2].T, color=_TRUTH_COLOUR, linestyle=(0, (4, 2)), linewidth=1.0, gid="truth-poses")
         handles.append(mpl.lines.Line2D([], [], color=_TRUTH_COLOUR, marker="+", linestyle=(0, (4, 2)),
-                                        label=f"ground truth ({os.path.basename(truth.name) or truth.name}): "
+                                        label=f"ground truth ({_literal(os.path.basename(truth.name) or truth.name)}): "
                                               f"the {mapped.sum()} mapped of {counted(len(mapped), 'feature')}, "
                                               f"{counted(len(truth.pose_ids), 'pose')}"))
     size = float(np.clip(4000 / max(1, max(len(m.feature_ids) for m in maps)), 3, 18))
@@ -154,7 +163,7 @@ def map_figure(maps: Sequence[GlobalMap], labels: Sequence[str], truth: GroundTr
                    **({"facecolors": "none", "edgecolors": colour} if hollow else {"color": colour}))
         trajectory = np.vstack([np.zeros(2), global_map.poses[:, :2]])
         ax.plot(*trajectory.T, color=colour, linestyle=line, linewidth=1.1, gid="poses")
-        text = (f"{label}: {counted(len(global_map.feature_ids), 'feature')}, "
+        text = (f"{_literal(label)}: {counted(len(global_map.feature_ids), 'feature')}, "
                 f"{counted(len(global_map.pose_ids), 'pose')}")
         if ellipses:
             text += _draw_ellipses(ax, global_map, colour)
@@ -292,7 +301,7 @@ def minima_figure(points: mapio.MinimaTable) -> Figure:
     ax.xaxis.set_major_formatter(mpl.ticker.FixedFormatter(["$-\\pi$", "$-\\pi/2$", "0", "$\\pi/2$", "$\\pi$"]))
     ax.set_xlabel("$C_\\varphi = \\mathrm{wrap}(z_\\varphi - \\varphi_0)$ (rad)")
     ax.set_ylabel("$a = a_0\\, p_\\varphi$ (dimensionless, log scale)")
-    ax.set_title(f"{points.source}: {counted(len(counts), what)}, {int((counts == 2).sum())} with two "
+    ax.set_title(f"{_literal(points.source)}: {counted(len(counts), what)}, {int((counts == 2).sum())} with two "
                  "minima", fontsize="medium")
     ax.grid(True, which="major", linewidth=0.4, alpha=0.5)
     figure.legend(loc="outside lower center", fontsize="small", frameon=False, ncols=3)
@@ -377,7 +386,7 @@ def join_figure(curve: JoinCurve, title: str) -> Figure:
     axes = figure.subplots(2 if zoom else 1, 1, squeeze=False)[:, 0]
     count = len(curve.minima)
     certificate = "2 minima" if count == 2 else "1 minimum (certified unique)"
-    figure.suptitle(f"{title}\na = {curve.a:.6g}, C$_\\varphi$ = {curve.c_phi:+.4g} rad: {certificate}",
+    figure.suptitle(f"{_literal(title)}\na = {curve.a:.6g}, C$_\\varphi$ = {curve.c_phi:+.4g} rad: {certificate}",
                     fontsize="medium")
     for panel, ax in enumerate(axes):
         inside = slice(None) if panel == 0 else (curve.phi >= star - half) & (curve.phi <= star + half)

@@ -28,10 +28,10 @@ DEFAULT_MAPS = 200
 @click.option("-o", "--output", required=True, metavar="DIR",
               help="Folder for the maps, one localmap_<k> file each (map k from pose k-1 to pose k); a file name "
                    "with an extension, or -, gets all maps in one stream.")
-@click.option("--maps", "map_count", type=click.IntRange(min=1),
+@click.option("--maps", "map_count", type=common.PlainInt(min=1),
               help=f"Cut the odometry into N maps of (nearly) equal length [default: {DEFAULT_MAPS}, or one per "
                    "step if there are fewer steps]. --maps 1 is the full batch SLAM solution.")
-@click.option("--poses-per-map", type=click.IntRange(min=1),
+@click.option("--poses-per-map", type=common.PlainInt(min=1),
               help="Instead, a new map every K odometry steps (the last one takes what is left).")
 @format_option(LOCAL_MAPS, f"Format of the maps [default: from the -o extension, else {LOCAL_MAPS.default}, which "
                            "keeps the full covariance].")
@@ -42,7 +42,7 @@ DEFAULT_MAPS = 200
               help="Also write the full batch solution as a global map (.csv or .yaml): every feature and the "
                    "maps' end poses (pose k ends map k), with marginal covariances; compare it with `mapjoin join "
                    "DIR` (`mapjoin compare`). Every pose: --poses-per-map 1.")
-@click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("-j", "--jobs", type=common.PlainInt(min=1), default=1, show_default=True,
               help="Worker processes: the maps are cut into this many runs of consecutive maps, built in parallel "
                    "(the same maps, to rounding).")
 @common.json_option

@@ -51,6 +51,16 @@ class FiniteFloat(click.FloatRange):
         return number
 
 
+class PlainInt(click.IntRange):
+    """An integer option's type: ASCII digits (click's ``int`` takes fullwidth ``１２`` and ``1_000``, which the
+    float options and the text formats refuse), within ``min``/``max``; else a usage error naming the option."""
+
+    def convert(self, value: object, param: click.Parameter | None, ctx: click.Context | None) -> int:
+        if isinstance(value, str) and first_unplain([value]) is not None:
+            self.fail(f"expected an integer in ASCII digits, got {shown(value)}", param, ctx)
+        return super().convert(value, param, ctx)
+
+
 inputs_argument = click.argument("inputs", nargs=-1, required=True, metavar="INPUTS...")
 input_format_option = click.option(
     "--input-format", type=click.Choice(names(LOCAL_MAPS)),
@@ -173,7 +183,7 @@ def start_of(strategy: str | None, refining: bool, on_inconsistent: str) -> str:
 
 
 jobs_option = click.option(
-    "-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+    "-j", "--jobs", type=PlainInt(min=1), default=1, show_default=True,
     help="Processes for the independent joins of the tree's lower levels (--strategy tree).")
 report_option = click.option(
     "--report", "report_path", metavar="FILE",
@@ -197,7 +207,7 @@ def refine_options(command: Callable) -> Callable:
     """The options of the exact solve (:func:`mapjoin.refine.refine`), declared once for ``refine`` and
     ``join --refine``."""
     for option in reversed((
-            click.option("--max-iterations", type=click.IntRange(min=0), default=100, show_default=True,
+            click.option("--max-iterations", type=PlainInt(min=0), default=100, show_default=True,
                          help="At most this many (accepted) Gauss-Newton/Newton steps of the exact solve."),
             click.option("--tolerance", type=FiniteFloat(TOLERANCE_RANGE), show_default="1e-12",
                          help="Stop the exact solve when a full undamped step (not shortened after a rejected "

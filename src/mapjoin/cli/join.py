@@ -157,9 +157,12 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
 
 def confirm_stream(ctx: click.Context, result: JoinResult, inputs: tuple[str, ...], input_format: str | None,
                    outputs: mapio.Outputs, gate: float) -> JoinResult:
-    """The streamed join's flags confirmed on the exact problem, its maps read again from files (not stdin)."""
-    read = None if "-" in inputs else (lambda: common.read_local_maps(inputs, input_format, outputs))
-    confirmed, unconfirmed = confirm_streamed(result, read, gate)
+    """The streamed join's flags confirmed on the exact problem, its maps read again from files (not from
+    stdin, a FIFO or a pipe, which give their data once: read again, they would block or give none)."""
+    once = next((path for path in mapio.resolve_inputs(inputs) if mapio.read_once(path)), None)
+    read = None if once else (lambda: common.read_local_maps(inputs, input_format, outputs))
+    confirmed, unconfirmed = confirm_streamed(result, read, gate,
+                                              "stdin" if once == mapio.STDIN else f"{once}, read once")
     if unconfirmed:
         say(ctx, unconfirmed)
     return confirmed

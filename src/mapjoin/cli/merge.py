@@ -25,7 +25,7 @@ PROBABILITY_RANGE = Range("gate probability", 0.5, 1.0 - 1e-12)
 @click.option("--associate", is_flag=True,
               help="The maps share no feature ids: find the common features by a global search (refused "
                    "when the overlap is too small to be sure).")
-@click.option("--min-common", type=click.IntRange(min=2), default=lambda: _defaults()[0], show_default="5",
+@click.option("--min-common", type=common.PlainInt(min=2), default=lambda: _defaults()[0], show_default="5",
               help="--associate: fewest features the transform found must match (and twice as many as any "
                    "other transform).")
 @click.option("--gate-association", "probability", type=common.FiniteFloat(PROBABILITY_RANGE),

@@ -108,7 +108,7 @@ def plot_minima(ctx: click.Context, report: str, output: str) -> None:
 @main.command("plot-join")
 @inputs_argument
 @figure_option
-@click.option("--join", "join_number", type=click.IntRange(min=1), metavar="K",
+@click.option("--join", "join_number", type=common.PlainInt(min=1), metavar="K",
               help="Which join of the chain INPUTS: join K places map K+1 (the `join` column of a report of "
                    "`mapjoin join`, sequential strategy). Default: 1 when INPUTS are two maps.")
 @covariance_option

@@ -20,16 +20,16 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
 @click.option("-o", "--output", required=True, metavar="DIR|FILE|-",
               help="Directory for localmap_<k> files and truth; a .csv/.yaml file, or - for stdout, gets "
                    "one stream of maps (no truth unless --truth).")
-@click.option("--maps", "count", type=click.IntRange(min=1), default=20, show_default=True,
+@click.option("--maps", "count", type=common.PlainInt(min=1), default=20, show_default=True,
               help="Number of local maps.")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Random seed (same seed, same output).")
-@click.option("--steps-per-map", type=click.IntRange(min=1), default=10, show_default=True,
+@click.option("--seed", type=common.PlainInt(min=0), default=0, show_default=True, help="Random seed (same seed, same output).")
+@click.option("--steps-per-map", type=common.PlainInt(min=1), default=10, show_default=True,
               help="Robot steps in each local map.")
 @click.option("--format", "output_format", type=click.Choice(_FORMATS),
               help=f"Format of the local maps (default: a stream file's extension, else {LOCAL_MAPS.default}).")
 @click.option("--truth", "truth_path", metavar="FILE",
               help="Where to write the ground truth (default: truth.<format> in the directory).")
-@click.option("--robots", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--robots", type=common.PlainInt(min=1), default=1, show_default=True,
               help="Robots in one world, --maps maps each, their areas overlapping: the directory gets one "
                    "folder robot<r> per robot (its maps and truth, in its own frame) and the world's truth in "
                    "the first robot's frame (README, 'Merging maps').")

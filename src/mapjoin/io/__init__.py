@@ -54,7 +54,7 @@ from .inputs import resolve_inputs
 from .lines import text_lines
 from .mat_maps import STAB_NOISE
 from .outputs import Outputs, Parts, check_not_overwriting, is_special, transaction, write_output
-from .paths import STDIN, Source, is_path, read_file, read_text, source_name
+from .paths import STDIN, Source, is_path, read_file, read_once, read_text, source_name
 from .registry import MAP_FORMATS, TABLE_FORMATS, Codec, Format, Kind, detect_format, map_file_name
 from .tables import MinimaTable, read_minima_csv, read_minima_records
 from .trajectory import Trajectory
@@ -79,6 +79,7 @@ __all__ = [
     "read_map_paths",
     "read_maps",
     "read_minima_table",
+    "read_once",
     "read_truth",
     "read_truth_folder",
     "resolve_inputs",

@@ -13,6 +13,8 @@ import sys
 from collections.abc import Iterator
 from typing import IO
 
+import numpy as np
+
 from ..errors import InputError
 from . import paths
 from .paths import Source, is_path, not_utf8
@@ -34,7 +36,7 @@ def text_lines(source: Source, name: str) -> Iterator[str]:
         yield from _lines(getattr(stream, "buffer", stream), name)
         return
     try:
-        file = open(os.fspath(source), encoding="utf-8-sig", newline="")  # noqa: SIM115 -- closed below
+        file = open(os.fspath(source), "rb")  # noqa: SIM115 -- closed below; decoded by _lines, which knows where
     except OSError as error:
         raise InputError(f"cannot read ({error.strerror or error})", name) from None
     with file:
@@ -48,12 +50,19 @@ def _lines(stream: IO, name: str) -> Iterator[str]:
     decoder = codecs.getincrementaldecoder("utf-8")()
     pending: list[str] = []  # the start of the line being read
     pending_size, first = 0, True
+    offset, start, line = 0, 0, 1  # bytes read, where the bytes decoded next start, the line reached: for errors
     while True:
         try:
             raw = stream.read(_BLOCK)
-            block = decoder.decode(raw, final=not raw) if isinstance(raw, bytes) else raw
+            if isinstance(raw, bytes):
+                start = offset - len(decoder.getstate()[0])  # a character cut by the last block comes first
+                block = decoder.decode(raw, final=not raw)
+                offset += len(raw)
+                line += int(np.count_nonzero(np.frombuffer(raw, np.uint8) == 10))  # "\n": twice as fast as count
+            else:
+                block = raw
         except UnicodeDecodeError as error:
-            raise not_utf8(error, name) from None
+            raise not_utf8(error, name, start, line) from None
         except OSError as error:
             raise InputError(f"cannot read ({error.strerror or error})", name) from None
         if not raw:

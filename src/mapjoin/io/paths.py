@@ -14,8 +14,8 @@ from typing import AnyStr, TextIO
 
 from ..errors import InputError
 
-__all__ = ["MAX_STREAM_BYTES", "STDIN", "Source", "is_path", "map_name", "not_utf8", "read_file", "read_text",
-           "source_name"]
+__all__ = ["MAX_STREAM_BYTES", "STDIN", "Source", "is_path", "map_name", "not_utf8", "read_file", "read_once",
+           "read_text", "source_name"]
 
 STDIN = "-"
 
@@ -25,6 +25,18 @@ Source = str | os.PathLike | TextIO  # os.PathLike: e.g. a pathlib.Path
 def is_path(source: Source) -> bool:
     """Whether ``source`` names a file (not ``-`` and not a stream)."""
     return isinstance(source, (str, os.PathLike)) and os.fspath(source) != STDIN
+
+
+def read_once(source: Source) -> bool:
+    """Whether ``source`` gives its data only once: ``-`` (stdin), an open stream, or a path that is not a
+    regular file (a FIFO, a process substitution's ``/dev/fd/N``, a device). Reading such a source again
+    blocks or gives other data, so a second reading (a streamed join's confirmation) is not tried."""
+    if not is_path(source):
+        return True
+    try:
+        return not stat.S_ISREG(os.stat(source).st_mode)
+    except (OSError, ValueError):
+        return True
 
 
 def source_name(source: Source, dash: str = "<stdin>") -> str:
@@ -115,9 +127,13 @@ def _bounded(read: Callable[[int], AnyStr]) -> AnyStr:
     return chunks[0][:0].join(chunks)
 
 
-def not_utf8(error: UnicodeDecodeError, name: str) -> InputError:
-    """The error for text of ``name`` that is not UTF-8."""
-    return InputError(f"expected UTF-8 text ({error.reason} at byte {error.start})", name)
+def not_utf8(error: UnicodeDecodeError, name: str, offset: int = 0, line: int = 1) -> InputError:
+    """The error for text of ``name`` that is not UTF-8: the line, the bytes and their offset in the source.
+    ``offset``, ``line``: where ``error.object`` starts in the source (a block of a stream read a block at a time)."""
+    line += error.object.count(b"\n", 0, error.start)
+    found = bytes(error.object[error.start:error.end])
+    return InputError(f"expected UTF-8 text, got {found!r} at byte {offset + error.start} ({error.reason})", name,
+                      f"line {line}")
 
 
 def map_name(source: str, label: str | None, number: int | None) -> str:
