@@ -215,3 +215,13 @@ def test_an_unwritable_cache_is_a_clear_error(tmp_path, data_dir):
     result = run("datasets", "fetch", "sim-535", "--into", str(blocked / "cache"), "--source", data_dir.as_uri())
     assert result.exit_code == 1 and result.stderr.count("\n") == 1
     assert result.stderr.rstrip().endswith("choose another cache folder: pass it with --into DIR")
+
+
+@pytest.mark.parametrize("source", ["", " "])
+def test_an_empty_source_is_refused_not_read_as_the_current_folder(tmp_path, source):
+    result = run("datasets", "fetch", "sim-535", "--into", str(tmp_path / "cache"), "--source", source)
+    assert result.exit_code == 2 and "Invalid value for '--source': is empty" in result.stderr
+    assert not (tmp_path / "cache").exists()
+    with pytest.raises(FetchError, match="the source is empty"):
+        datasets.fetch("sim-535", tmp_path / "cache", source)
+    assert not (tmp_path / "cache").exists()

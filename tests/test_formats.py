@@ -826,6 +826,13 @@ def test_unknown_stdin_format_asks_for_format():
     assert "give its format" in str(raised.value)
 
 
+@pytest.mark.parametrize("text", ["", "\n", "  \n\t\n"])
+def test_an_empty_stream_is_said_to_be_empty_not_of_unknown_format(text):
+    with pytest.raises(InputError) as raised:
+        mapio.read_maps(["-"], stdin=io.StringIO(text))
+    assert str(raised.value) == "<stdin>: is empty"
+
+
 def test_mat_cannot_come_from_a_text_stream():
     with pytest.raises(InputError, match="cannot be read from a text stream"):
         mapio.read_map_file(io.StringIO("x"), "mat")

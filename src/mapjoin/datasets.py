@@ -222,7 +222,10 @@ def _remove_empty(folders: list[Path]) -> None:
 
 
 def _as_url(source: str) -> str:
-    """``source`` as a URL: URLs as they are, local paths as ``file://`` URLs."""
+    """``source`` as a URL: URLs as they are, local paths as ``file://`` URLs; an empty ``source`` is refused
+    (it would name the current folder)."""
+    if not source.strip():
+        raise FetchError("the source is empty; expected a URL or a folder")
     if "://" in source:
         return source
     return Path(source).expanduser().resolve().as_uri()

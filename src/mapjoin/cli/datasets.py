@@ -83,6 +83,8 @@ def fetch(ctx: click.Context, names: tuple[str, ...], into: Path | None, source:
     """
     from .. import datasets as catalogue
 
+    if source is not None and not source.strip():  # it would name the current folder
+        raise click.BadParameter("is empty; expected a URL or a folder", ctx, param_hint="'--source'")
     for dataset in [catalogue.get(name) for name in names]:
         with progress_bar(ctx, len(dataset.files), f"fetching {dataset.name}") as progress:
             try:

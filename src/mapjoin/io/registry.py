@@ -182,7 +182,10 @@ def named_format(name: str) -> str | None:
 
 
 def sniff(text: str, name: str) -> str:
-    """The format of a stream, from its text (the first format whose ``sniff`` says yes)."""
+    """The format of a stream, from its text (the first format whose ``sniff`` says yes). An empty stream is
+    said to be empty: no format would read anything from it, so naming one is no remedy."""
+    if not text.strip():
+        raise InputError("is empty", name)
     found = next((fmt.name for fmt in FORMATS if fmt.sniff and fmt.sniff(text)), None)
     if found is None:
         expected = [fmt.sniff_text for fmt in FORMATS if fmt.sniff]
