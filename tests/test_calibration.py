@@ -352,3 +352,22 @@ def test_a_consistent_two_lap_run_has_no_join_far_beyond_the_drift_it_allows_for
         patch.setattr(logging.getLogger("mapjoin"), "disabled", True)  # the loop closures' warnings
         report = join_sequential(maps).report
     assert max(r.chi2 / r.dof for r in report if r.dof) < 100
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.tuples(st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(1e-4, 10.0), st.floats(1e-4, 10.0)),
+                min_size=1, max_size=8))
+def test_the_fusion_bias_is_the_fused_estimates_offset_beyond_ten_times_the_residuals_variance(rows):
+    """fusion_bias against the fusion itself (covariance.fuse, a different implementation): the fused estimate is
+    off the placed one by w r, so the bias is |fused - placed|^2 / 2 less 10 w^2 (var0 + var1), never negative."""
+    from mapjoin.covariance import fuse
+    from mapjoin.drift import BIAS_LEVEL, fusion_bias
+
+    dx, dy, var0, var1 = (np.array(column) for column in zip(*rows))
+    placed = np.linspace(-5.0, 5.0, len(rows)) + 1j
+    z0 = placed + dx + 1j * dy
+    fused, _ = fuse(z0, var0, placed, 1.0 / var1)
+    weight = var1 / (var0 + var1)
+    expected = np.maximum(np.abs(fused - placed) ** 2 / 2 - BIAS_LEVEL * weight ** 2 * (var0 + var1), 0.0)
+    assert np.allclose(fusion_bias(z0, var0, placed, var1), expected, rtol=1e-9, atol=1e-9 * (1 + expected.max()))
+    assert (fusion_bias(placed + 0.1 * np.sqrt(var0 + var1), var0, placed, var1) == 0).all()  # noise: nothing kept
