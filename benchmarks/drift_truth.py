@@ -94,10 +94,10 @@ def ratios(count: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndar
 
 def main(counts: tuple[int, ...]) -> None:
     logging.getLogger("mapjoin").disabled = True  # the loop closures' warnings
-    lines = ["Two laps, seed 0, information mode, sequential in memory; `python benchmarks/drift_truth.py`. "
-             "Per common-feature row: |e|²/2 over the variance allowed (model: median 0.69, 99 % 4.6).", "",
-             "| maps | fast flags | rows | sighting D starts from | over var0: median | 99 % | "
-             "over var0 + D: median | 99 % | max | over var0 + D + bias: median | 99 % | max |",
+    lines = [("Two laps, seed 0, information mode, sequential in memory; `python benchmarks/drift_truth.py`. "
+              "Per common-feature row: |e|²/2 over the variance allowed (model: median 0.69, 99 % 4.6)."), "",
+             ("| maps | fast flags | rows | sighting D starts from | over var0: median | 99 % | "
+              "over var0 + D: median | 99 % | max | over var0 + D + bias: median | 99 % | max |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for count in counts:
         count, error, var0, drift, bias, group, flagged = ratios(count)

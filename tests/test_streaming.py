@@ -18,9 +18,9 @@ from hypothesis import strategies as st
 
 from mapjoin import InputError, JoinError
 from mapjoin import io as mapio
+from mapjoin.faults import corrupted
 from mapjoin.io import csv_blocks, csv_maps
 from mapjoin.io.outputs import Outputs, Parts
-from mapjoin.faults import corrupted
 from mapjoin.joining import join, join_sequential
 from mapjoin.simulation import simulate, simulate_stream
 from mapjoin.streaming import join_stream

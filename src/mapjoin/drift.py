@@ -40,7 +40,7 @@ import numpy as np
 if TYPE_CHECKING:
     from .joins import _Pieces
 
-__all__ = ["BIAS_LEVEL", "ChainDrift", "Retest", "SequentialRecord", "TreeRecord", "SolveWidened", "drift_variance",
+__all__ = ["BIAS_LEVEL", "ChainDrift", "Retest", "SequentialRecord", "SolveWidened", "TreeRecord", "drift_variance",
            "fusion_bias"]
 
 #: ``retest(joins)``: for these report indices (ascending), the drift-aware minimum with and without the heading link
