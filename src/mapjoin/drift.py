@@ -18,7 +18,11 @@ need its local shape) and the prefix sums ``V``, ``P``, ``PX``, ``PXX`` of ``v_i
 ``p_i x_i``, ``p_i |x_i|^2`` over the junctions, so that ``D`` of any feature over any run of
 junctions costs O(1).
 
-The drift-aware statistic is the join's minimum cost with ``D`` added to its common features'
+A sequential join's fused estimate of a feature is off the map's own estimate by a share of the join's
+residual, which at a loop closure is the drift since the feature was last seen: :func:`fusion_bias` keeps
+the excess for the next joins that meet the feature, where ``D`` (from this sighting on) is 0.
+
+The drift-aware statistic is the join's minimum cost with ``D`` (and the bias) added to its common features'
 variances (the one-step problem solved again, Algorithm 1, by the one implementation
 :func:`mapjoin.joining._solve_joins`). Adding variance lowers every weighted residual, so it
 is never above the join's own cost: a join whose own cost passes the gate passes with the
@@ -207,12 +211,11 @@ class SequentialRecord:
         if not self.joins:
             return bias
         offsets = np.asarray(starts, dtype=np.int64)
-        counts = (np.asarray(ends_common, dtype=np.int64) - offsets[:-1])
+        counts = np.asarray(ends_common, dtype=np.int64) - offsets[:-1]
         rows = np.flatnonzero(np.arange(len(z)) - offsets[piece] < counts[piece])  # common rows, map after map
-        maps = piece[rows]
-        joined = np.asarray(maps - 1)
-        t = np.asarray(pose_xy, dtype=complex)[joined]
-        turn = np.exp(1j * np.asarray(pose_phi, dtype=float)[joined])
+        start = piece[rows] - 1  # map k starts at pose k - 1, where its join placed it
+        t = np.asarray(pose_xy, dtype=complex)[start]
+        turn = np.exp(1j * np.asarray(pose_phi, dtype=float)[start])
         z0 = np.concatenate([join[0] for join in self.joins])
         var0 = np.concatenate([join[1] for join in self.joins])
         bias[rows] = fusion_bias(z0, var0, t + turn * z[rows], var[rows])

@@ -8,7 +8,8 @@ that sighting and the junction (docs/method.md#drift). Both look back only, so a
 (:mod:`mapjoin.streaming`) can test each block's joins at the block's end, without the history:
 :class:`StreamCalibration` keeps the running median's halves (a float per join), the chain's
 dead-reckoned pose and drift sums at its end, and per feature (bounded by the global map) its last
-sighting: the map, its dead-reckoned position and the drift sums there. The cumulative sums are
+sighting: the map, its dead-reckoned position, the drift sums there and what its fused estimate kept of
+that join's residual (:func:`mapjoin.drift.fusion_bias`). The cumulative sums are
 continued from their carried values, so every number equals the in-memory join's, bit for bit.
 """
 
