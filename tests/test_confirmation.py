@@ -208,7 +208,7 @@ def test_the_streamed_join_reads_its_files_again_to_confirm(data_dir, tmp_path):
     expected = join(mapio.read_maps(str(folder)), confirm=confirm).report
     assert [row["flag"] for row in rows] == [str(r.flag) for r in expected]
     assert [row["exact_p"] for row in rows] == ["" if r.exact_p is None else repr(r.exact_p) for r in expected]
-    assert sum(r.exact_p is not None for r in expected) == 6 and not any(r.flag for r in expected)
+    assert sum(r.exact_p is not None for r in expected) == 1 and not any(r.flag for r in expected)  # join 181
 
 
 def test_a_streamed_join_from_stdin_keeps_the_fast_flags_and_says_so(tmp_path):
@@ -217,7 +217,7 @@ def test_a_streamed_join_from_stdin_keeps_the_fast_flags_and_says_so(tmp_path):
     text = run("simulate", "-o", "-", "--maps", "200", "--seed", "0").stdout
     result = run("join", "-", "-o", str(tmp_path / "g.csv"), input=text)
     assert result.exit_code == 0
-    assert "17 flagged joins tested by the fast statistic only" in result.output
+    assert "11 flagged joins tested by the fast statistic only" in result.output
     assert "its maps came from stdin" in result.output
 
 
@@ -240,12 +240,13 @@ def test_a_join_whose_exact_problems_exceed_the_cap_keeps_the_fast_flag(data_dir
     import mapjoin.confirmation as confirmation
 
     maps = mapio.read_maps(str(data_dir / "DLR_200_local_maps"))
-    fast = join(maps)
+    fast = join(maps, gate=1e-4)  # DLR's clean joins flagged at 1e-4: 3, 51, 181, 182, 194
     flagged = [r.join for r in fast.report if r.flag]
-    whole = confirm(maps, fast, "sequential", 1e-10)
+    assert len(flagged) > 1
+    whole = confirm(maps, fast, "sequential", 1e-4)
     assert all(r.exact_p is not None for r in whole.report if r.join in flagged)
     monkeypatch.setattr(confirmation, "MAX_SOLVED", flagged[0] + 1)   # the first join's union: maps 0..k
-    capped = confirm(maps, fast, "sequential", 1e-10)
+    capped = confirm(maps, fast, "sequential", 1e-4)
     confirmed = [r.join for r in capped.report if r.exact_p is not None]
     assert confirmed == flagged[:1]
     assert all(r.flag for r in capped.report if r.join in flagged[1:])
@@ -264,19 +265,20 @@ def test_a_confirmation_solves_with_the_whole_chains_backend(data_dir, name):
 
 
 def test_the_confirmation_of_dlrs_first_loop_closures_is_the_same_with_either_backend(data_dir, monkeypatch):
-    """The first 75 maps of DLR 200 (a dense chain: 701 unknowns) flag joins 71 and 72 at the fast stage; the
+    """The first 75 maps of DLR 200 (a dense chain: 701 unknowns) flag joins 3 and 51 at the fast stage at gate
+    1e-4 (at 1e-10 its loop closures 71 and 72 did, until the fused estimates' bias, docs/method.md#drift); the
     exact statistics the dense backend gives them are the sparse backend's (1e-9 relative), and so are the
     verdicts (both cleared)."""
     from mapjoin import confirmation
     from mapjoin.confirmation import chain_backend
 
     maps = mapio.read_maps([str(data_dir / "DLR_200_local_maps")])[:75]
-    fast = join(maps)
-    assert chain_backend(maps) == "dense" and [r.join for r in fast.report if r.flag] == [71, 72]
+    fast = join(maps, gate=1e-4)
+    assert chain_backend(maps) == "dense" and [r.join for r in fast.report if r.flag] == [3, 51]
     results = {}
     for backend in ("dense", "sparse"):
         monkeypatch.setattr(confirmation, "chain_backend", lambda _maps, chosen=backend: chosen)
-        results[backend] = confirm(maps, fast, "sequential", 1e-10).report
+        results[backend] = confirm(maps, fast, "sequential", 1e-4).report
     for dense, sparse in zip(results["dense"], results["sparse"]):
         assert dense.flag == sparse.flag
         if sparse.exact_chi2 is None:
@@ -284,5 +286,5 @@ def test_the_confirmation_of_dlrs_first_loop_closures_is_the_same_with_either_ba
         else:
             assert dense.exact_chi2 == pytest.approx(sparse.exact_chi2, rel=1e-9)
             assert dense.exact_p == pytest.approx(sparse.exact_p, rel=1e-6)
-    assert [r.join for r in results["dense"] if r.exact_chi2 is not None] == [71, 72]
+    assert [r.join for r in results["dense"] if r.exact_chi2 is not None] == [3, 51]
     assert not any(r.flag for r in results["dense"])

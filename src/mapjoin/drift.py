@@ -18,7 +18,11 @@ need its local shape) and the prefix sums ``V``, ``P``, ``PX``, ``PXX`` of ``v_i
 ``p_i x_i``, ``p_i |x_i|^2`` over the junctions, so that ``D`` of any feature over any run of
 junctions costs O(1).
 
-The drift-aware statistic is the join's minimum cost with ``D`` added to its common features'
+A sequential join's fused estimate of a feature is off the map's own estimate by a share of the join's
+residual, which at a loop closure is the drift since the feature was last seen: :func:`fusion_bias` keeps
+the excess for the next joins that meet the feature, where ``D`` (from this sighting on) is 0.
+
+The drift-aware statistic is the join's minimum cost with ``D`` (and the bias) added to its common features'
 variances (the one-step problem solved again, Algorithm 1, by the one implementation
 :func:`mapjoin.joining._solve_joins`). Adding variance lowers every weighted residual, so it
 is never above the join's own cost: a join whose own cost passes the gate passes with the
@@ -32,7 +36,7 @@ statistic of the joins asked for, all at once as one batch.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -40,7 +44,8 @@ import numpy as np
 if TYPE_CHECKING:
     from .joins import _Pieces
 
-__all__ = ["ChainDrift", "Retest", "SequentialRecord", "TreeRecord", "SolveWidened", "drift_variance"]
+__all__ = ["BIAS_LEVEL", "ChainDrift", "Retest", "SequentialRecord", "SolveWidened", "TreeRecord", "drift_variance",
+           "fusion_bias"]
 
 #: ``retest(joins)``: for these report indices (ascending), the drift-aware minimum with and without the heading link
 Retest = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -48,6 +53,8 @@ Retest = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 #: ``(z0, var0, z1, var1, odometry_xy, odometry_phi, var_o, p_phi)`` whose variances carry the drift
 #: (:func:`mapjoin.joining.solve_widened`, passed in: the join strategies use this module)
 SolveWidened = Callable[[list[tuple]], tuple[np.ndarray, np.ndarray]]
+#: a fused estimate keeps its join's residual beyond this many times the residual's own half-trace variance
+BIAS_LEVEL = 10.0
 
 
 @dataclass(frozen=True)
@@ -102,6 +109,23 @@ def drift_variance(sums: np.ndarray, points: np.ndarray) -> np.ndarray:
     return v + np.maximum(lever, 0.0) / 2.0
 
 
+def fusion_bias(z0: np.ndarray, var0: np.ndarray, placed: np.ndarray, var1: np.ndarray) -> np.ndarray:
+    """The error a sequential join's fused estimate of each common feature keeps relative to its junction, as a
+    half-trace variance (docs/method.md#drift): ``w^2 max(0, |r|^2 / 2 - BIAS_LEVEL (var0 + var1))``.
+
+    The join fuses ``z0`` (the map so far) and ``placed`` (the map's own estimate, rigid with its junction) as
+    ``w z0 + (1 - w) placed``, ``w = var1 / (var0 + var1)`` (:func:`mapjoin.covariance.fuse`), so the fused
+    estimate is off the placed one by ``w r``, ``r = z0 - placed`` the join's residual, which the join has
+    observed. Where ``r`` is noise the fused variance already holds it; at a loop closure ``r`` is the
+    chain's drift since the feature was last seen (kilometres on long runs), and the feature's last
+    sighting is now this map, so the drift since it (:meth:`ChainDrift.variance`) is 0 at the next join while
+    the estimate is ``w r`` off. Only the excess over :data:`BIAS_LEVEL` times the residual's own variance is
+    kept (``P(chi2(2) / 2 > 10) = 4.5e-5`` under the model), so a consistent join keeps nothing."""
+    weight = var1 / (var0 + var1)
+    residual = (z0.real - placed.real) ** 2 + (z0.imag - placed.imag) ** 2
+    return weight ** 2 * np.maximum(residual / 2.0 - BIAS_LEVEL * (var0 + var1), 0.0)
+
+
 @dataclass(frozen=True)
 class _Sightings:
     """The input rows of the chain that saw some features: each row's map and position (in that map's
@@ -112,6 +136,8 @@ class _Sightings:
     points: np.ndarray
     keys: np.ndarray
     width: int
+    rows: np.ndarray  # the input row of each entry
+    bias: np.ndarray | None = None  # per entry: what its fused estimate keeps (:func:`fusion_bias`)
 
     @classmethod
     def of(cls, maps: np.ndarray, ids: np.ndarray, points: np.ndarray, width: int, needed: np.ndarray
@@ -122,7 +148,7 @@ class _Sightings:
         keys = ids[rows].astype(np.int64) * width + maps[rows]
         order = np.argsort(keys, kind="stable")
         rows = rows[order]
-        return cls(maps[rows], points[rows], keys[order], width)
+        return cls(maps[rows], points[rows], keys[order], width, rows)
 
     def last(self, ids: np.ndarray, up_to: int) -> np.ndarray:
         """The row of the last map ``<= up_to`` that saw each feature (one exists: the callers' invariant)."""
@@ -153,6 +179,8 @@ def _statistic(end_poses: np.ndarray, posteriors: tuple[np.ndarray, np.ndarray, 
         junction = m + 1  # the left piece's end pose, where the right piece starts
         seen = sightings.maps[left]
         var0 = var0 + drift.variance(seen + 1, junction, drift.dead_reckoned(seen, sightings.points[left]))
+        if sightings.bias is not None:
+            var0 = var0 + sightings.bias[left]
         seen = sightings.maps[right]
         reckoned = drift.dead_reckoned(seen, sightings.points[right])
         widened.append((z0, var0, z1, var1 + drift.variance(junction + 1, seen + 1, reckoned), *odometry))
@@ -174,15 +202,37 @@ class SequentialRecord:
         """Join ``len(joins) + 1`` is made: O(1), references only."""
         self.joins.append((z0, var0, odometry_xy, odometry_phi, var_o, p_phi, t_variance, phi_variance))
 
+    def biases(self, z: np.ndarray, var: np.ndarray, piece: np.ndarray, starts: list[int], ends_common: list[int],
+               pose_xy: list[complex], pose_phi: list[float]) -> np.ndarray:
+        """Per input row (``z``, ``var``, ``piece`` its map; map ``k``'s common rows ``starts[k] .. ends_common[k]``,
+        join ``k`` the ``k``-th recorded; ``pose_xy``, ``pose_phi`` each map's start pose once joined, i.e. its
+        join's ``(t*, phi*)``): :func:`fusion_bias` of its join's fusion, 0 for a first sighting."""
+        bias = np.zeros(len(z))
+        if not self.joins:
+            return bias
+        offsets = np.asarray(starts, dtype=np.int64)
+        counts = np.asarray(ends_common, dtype=np.int64) - offsets[:-1]
+        rows = np.flatnonzero(np.arange(len(z)) - offsets[piece] < counts[piece])  # common rows, map after map
+        start = piece[rows] - 1  # map k starts at pose k - 1, where its join placed it
+        t = np.asarray(pose_xy, dtype=complex)[start]
+        turn = np.exp(1j * np.asarray(pose_phi, dtype=float)[start])
+        z0 = np.concatenate([join[0] for join in self.joins])
+        var0 = np.concatenate([join[1] for join in self.joins])
+        bias[rows] = fusion_bias(z0, var0, t + turn * z[rows], var[rows])
+        return bias
+
     def retest(self, ids: np.ndarray, z: np.ndarray, var: np.ndarray, piece: np.ndarray, starts: list[int],
-               ends_common: list[int], solve: SolveWidened) -> Retest:
+               ends_common: list[int], solve: SolveWidened, pose_xy: list[complex], pose_phi: list[float]) -> Retest:
         """The drift-aware statistic of the joins asked for, once the chain is joined: ``ids``, ``z``, ``var``,
         ``piece`` the input rows in the order the joins read them (each map's common rows
-        ``starts[k] .. ends_common[k]`` first), as numbered at the end."""
+        ``starts[k] .. ends_common[k]`` first), as numbered at the end; ``pose_xy``, ``pose_phi`` the maps'
+        start poses once joined (:meth:`biases`)."""
         def retest(joins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             end_poses = _end_poses(self.chain)
             needed = np.concatenate([ids[starts[k]:ends_common[k]] for k in (joins + 1).tolist()])
             sightings = _Sightings.of(piece, ids, z, len(end_poses) + 1, needed)
+            bias = self.biases(z, var, piece, starts, ends_common, pose_xy, pose_phi)
+            sightings = replace(sightings, bias=bias[sightings.rows])
             posteriors = (np.arange(1, len(self.joins) + 1), np.array([j[6] for j in self.joins]),
                           np.array([j[7] for j in self.joins]))
             problems = []

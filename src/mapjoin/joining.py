@@ -318,7 +318,7 @@ def join_sequential(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     report = _join_segment(segment, maps, positions, position_variances, solver, 1, progress, warn=warn,
                            unlinked=unlinked, associate=associate, record=record)
     retest = record.retest(segment.ids, segment.z, segment.var, pieces.feature_piece, segment.starts,
-                           segment.ends_common, partial(solve_widened, solver=solver))
+                           segment.ends_common, partial(solve_widened, solver=solver), segment.pose_xy, segment.pose_phi)
     if associate is not None:
         feature_ids = np.arange(associate.count)
         positions, position_variances = positions[:associate.count], position_variances[:associate.count]

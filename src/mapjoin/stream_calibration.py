@@ -8,7 +8,8 @@ that sighting and the junction (docs/method.md#drift). Both look back only, so a
 (:mod:`mapjoin.streaming`) can test each block's joins at the block's end, without the history:
 :class:`StreamCalibration` keeps the running median's halves (a float per join), the chain's
 dead-reckoned pose and drift sums at its end, and per feature (bounded by the global map) its last
-sighting: the map, its dead-reckoned position and the drift sums there. The cumulative sums are
+sighting: the map, its dead-reckoned position, the drift sums there and what its fused estimate kept of
+that join's residual (:func:`mapjoin.drift.fusion_bias`). The cumulative sums are
 continued from their carried values, so every number equals the in-memory join's, bit for bit.
 """
 
@@ -34,7 +35,8 @@ class StreamCalibration:
         self._sums = np.zeros(5)  # the drift sums over the junctions before that pose
         self._seen = np.zeros(0, dtype=np.int64)  # by compact id: the last map that saw the feature ...
         self._reckoned = np.zeros(0, dtype=complex)  # ... its position there, dead-reckoned ...
-        self._seen_sums = np.zeros((0, 5))  # ... and the drift sums over the junctions up to that map
+        self._seen_sums = np.zeros((0, 5))  # ... and the drift sums over the junctions up to that map ...
+        self._bias = np.zeros(0)  # ... and what its fused estimate kept there (drift.fusion_bias)
 
     def block(self, segment: _Segment, piece: np.ndarray, end_poses: np.ndarray, first: int, number: int,
               record: SequentialRecord, cost: np.ndarray, features_cost: np.ndarray, gate: float, solver: Solver
@@ -59,6 +61,8 @@ class StreamCalibration:
         maps = offset + piece  # the rows' maps in the chain
         reckoned = poses[maps - low] + np.exp(1j * headings[maps - low]) * segment.z
         row_sums = sums[maps + 1 - low]
+        bias = record.biases(segment.z, segment.var, piece, segment.starts, segment.ends_common, segment.pose_xy,
+                             segment.pose_phi)
 
         dof = degrees_of_freedom(np.array([join[0].size for join in record.joins], dtype=np.int64))
         factors = self._factors.extend(cost, dof)
@@ -74,24 +78,27 @@ class StreamCalibration:
                                   offset + len(segment.starts), needed)
             table_reckoned = np.concatenate([self._reckoned[carried], reckoned])
             table_sums = np.concatenate([self._seen_sums[carried], row_sums])
+            table_bias = np.concatenate([self._bias[carried], bias])
             problems = []
             for j in (joins + 1).tolist():
                 common = slice(starts[j], ends_common[j])
                 row = table.points[table.last(ids[common], offset + j - 1)]
                 z0, var0, *odometry, _, _ = record.joins[j - 1]
-                widened = var0 + drift_variance(sums[offset + j - low] - table_sums[row], table_reckoned[row])
+                widened = (var0 + drift_variance(sums[offset + j - low] - table_sums[row], table_reckoned[row])
+                           + table_bias[row])
                 problems.append((z0, widened, segment.z[common], segment.var[common], *odometry))
             return solve_widened(problems, solver)
 
         test = calibrated(cost, features_cost, dof, np.ones(len(cost), dtype=bool), gate, retest, factors) \
             if len(cost) else None
         self._heading, self._pose, self._sums = float(headings[-1]), complex(poses[-1]), sums[-1]
-        self._keep(segment.ids, maps, reckoned, row_sums)
+        self._keep(segment.ids, maps, reckoned, row_sums, bias)
         if test is None:  # no joins: the chain's first map alone
             return cost, features_cost, cost, cost
         return test.chi2, test.features_cost, test.variance_factor, test.p
 
-    def _keep(self, ids: np.ndarray, maps: np.ndarray, reckoned: np.ndarray, row_sums: np.ndarray) -> None:
+    def _keep(self, ids: np.ndarray, maps: np.ndarray, reckoned: np.ndarray, row_sums: np.ndarray,
+              bias: np.ndarray) -> None:
         """Each feature's last sighting among these rows (grouped by map, in chain order) as its carried one."""
         if len(ids) == 0:
             return
@@ -102,6 +109,8 @@ class StreamCalibration:
             self._seen = np.concatenate([self._seen, np.full(size - grown, -1, dtype=np.int64)])
             self._reckoned = np.resize(self._reckoned, size)
             self._seen_sums = np.concatenate([self._seen_sums, np.zeros((size - grown, 5))])
+            self._bias = np.concatenate([self._bias, np.zeros(size - grown)])
         unique, backwards = np.unique(ids[::-1], return_index=True)
         last = len(ids) - 1 - backwards
         self._seen[unique], self._reckoned[unique], self._seen_sums[unique] = maps[last], reckoned[last], row_sums[last]
+        self._bias[unique] = bias[last]
