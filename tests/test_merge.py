@@ -458,6 +458,24 @@ def test_simulate_robots_needs_a_directory(tmp_path):
     assert not (tmp_path / "maps.csv").exists()
 
 
+def test_simulate_robots_writes_the_world_truth_into_a_robots_new_folder_but_never_onto_its_files(tmp_path):
+    """--truth may name a file in a robot folder the same command creates; onto a robot's truth or map it is
+    refused in one line naming the path, and nothing is written."""
+    world = tmp_path / "w"
+    result = run("simulate", "-o", str(world), "--robots", "2", "--maps", "3", "--truth", str(world / "robot1" / "x.csv"))
+    assert result.exit_code == 0, result.stderr
+    assert mapio.read_truth(str(world / "robot1" / "x.csv")) is not None
+    assert sorted(p.name for p in (world / "robot1").iterdir()) == [
+        "localmap_1.yaml", "localmap_2.yaml", "localmap_3.yaml", "truth.yaml", "x.csv"]
+    for clash in ("truth.yaml", "localmap_2.yaml"):
+        other = tmp_path / f"world-{clash[:-5]}"
+        target = other / "robot1" / clash
+        result = run("simulate", "-o", str(other), "--robots", "2", "--maps", "3", "--truth", str(target))
+        assert result.exit_code == 1 and str(target) in result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
+        assert not other.exists()
+
+
 def test_results_beyond_the_global_ranges_and_coincident_points_are_errors_naming_the_map():
     """Huge variances that the merge would push past 1e40, and maps of coincident points (no pair has a
     direction), end in a JoinError naming the map, with no numpy warning on the way."""

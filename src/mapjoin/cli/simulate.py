@@ -110,14 +110,17 @@ def _simulate_robots(ctx: click.Context, output: str, robots: int, count: int, s
     """``--robots``: ``output/robot<r>/`` (localmap files, truth.<format>) per robot, the world's truth beside."""
     truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     folders = [os.path.join(output, f"robot{r}") for r in range(1, robots + 1)]
-    outputs = mapio.Outputs(files={"--truth": truth_path}, folders={"-o": output})
+    truths = [os.path.join(folder, f"truth.{output_format}") for folder in folders]
+    # every folder and truth declared up front: --truth may go into a robot's folder, never onto its truth
+    outputs = mapio.Outputs(files={**{f"robot {r} truth": path for r, path in enumerate(truths, 1)},
+                                   "--truth": truth_path},
+                            folders={"-o": output, **{f"robot {r} folder": path for r, path in enumerate(folders, 1)}})
     common.check_output_formats((truth_path, None, TRUTH, None))
     world = simulate_robots(robots, count, seed=seed, steps_per_map=steps_per_map)
     with outputs:
-        for folder, run in zip(folders, world.robots):
-            outputs.folder(folder)
+        for folder, truth, run in zip(folders, truths, world.robots):
             mapio.write_maps(run.maps, os.path.join(folder, ""), output_format, covariances=not no_covariances)
-            mapio.write_truth(run.truth, os.path.join(folder, f"truth.{output_format}"))
+            mapio.write_truth(run.truth, truth)
         mapio.write_truth(world.truth, truth_path)
     common.summary(ctx, f"simulated {common.counted(robots, 'robot')}, {common.counted(count, 'local map')} each (seed {seed}) -> "
                    f"{os.path.join(output, 'robot<r>')}, world truth -> {truth_path}",
