@@ -80,6 +80,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .association_drift import SightingDrift
+from .association_lone import LONE_MARGIN, lone_drifted
 from .association_loops import rigid_votes
 from .association_strain import drift_rivals
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
@@ -552,8 +553,11 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     if drift is None:
         return found
     if pair_drift is not None:
-        found = _unstrained(found, left, left_covariances, left_join, link_xy, link_phi, right, right_covariances,
-                            right_join, pair_drift(found.left, found.right), left_sightings)
+        drifts = pair_drift(found.left, found.right)
+        unstrained = _unstrained(found, left, left_covariances, left_join, link_xy, link_phi, right,
+                                 right_covariances, right_join, drifts, left_sightings)
+        found = _unconfirmed(unstrained, left, left_covariances, left_join, link_xy, link_phi, right,
+                             right_covariances, right_join, drifts[np.isin(found.right, unstrained.right)])
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
     return found if closed is None else closed
@@ -569,6 +573,29 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
              + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
     drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
                         drift, left_sightings)
+    if not drop.any():
+        return found
+    undecided = np.union1d(found.undecided, found.right[drop])
+    return Matches(found.left[~drop], found.right[~drop], np.bincount(right_join[undecided], minlength=len(link_xy)),
+                   found.rejected, undecided, found.correction)
+
+
+def _unconfirmed(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
+                 link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_covariances: np.ndarray,
+                 right_join: np.ndarray, drift: np.ndarray) -> Matches:
+    """``found`` less its lone drifted pairs (:func:`mapjoin.association_lone.lone_drifted`; ``drift``: each pair's)
+    with any other left feature of their join within their drift (:func:`mapjoin.association_strain.drift_rivals`
+    without the sighting rule, margin :data:`mapjoin.association_lone.LONE_MARGIN`; step 8), whose right features
+    are left new and counted ambiguous."""
+    noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
+             + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
+    lone = lone_drifted(right_join[found.right], noise, drift, len(link_xy))
+    if not lone.any():
+        return found
+    drop = np.zeros(len(found.left), dtype=bool)
+    drop[lone] = drift_rivals(left, left_join, found.left[lone],
+                              _corrected(found, link_xy, link_phi, right, right_join)[lone], noise[lone], drift[lone],
+                              None, LONE_MARGIN)
     if not drop.any():
         return found
     undecided = np.union1d(found.undecided, found.right[drop])

@@ -1,0 +1,41 @@
+"""Drifted pairs that no other pair confirms: a lone drifted pair with any feature of the map so far within its drift.
+
+Step 7 (:mod:`mapjoin.association_strain`) leaves a drifted pair new when a rival *seen in one map with the chosen
+feature* lies within the drift. A rival never seen with it is not counted there, because it may be the chosen
+feature mapped twice after a miss (docs/method.md#data-association, step 3). On DLR the last false links are of that
+kind (benchmarks/README.md, "Data association"): a marker met again after about 1 m of drift lands 0.06-0.15 m from
+an old marker *and* 0.1-0.5 m from that marker's duplicate, its true partner a metre away; and each is the only pair
+of its join whose drift is large against its noise (30-500 times), the others being recent features. The drift is
+one rigid correction for the features seen at one time (step 6), so drifted pairs confirm one another when there are
+three (two fix a correction, the third checks it); a lone one (or one of two) is confirmed by nothing but its small
+offset, which the drift makes chance where other features are near.
+
+:func:`lone_drifted` names those pairs; :mod:`mapjoin.association` hands them to
+:func:`mapjoin.association_strain.drift_rivals` with every left feature a rival (no sighting rule) and the margin
+:data:`LONE_MARGIN` (docs/method.md#data-association, step 8).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["CHECKED", "LONE_DRIFT", "LONE_MARGIN", "lone_drifted"]
+
+#: a pair is drifted for this rule when its drift ``D`` is at least this many times its noise (DLR's false pairs:
+#: 49-480; at 1, VicPark's sequential join loses true pairs whose drift is about their noise)
+LONE_DRIFT = 10.0
+#: ... and lone when its join has fewer than this many such pairs (two fix a rigid correction, a third checks it)
+CHECKED = 3
+#: a lone drifted pair is left new when another left feature is nearer than this much farther, in squared distance
+#: over the pair's drift and noise (DLR's false pairs: 0.007-0.2; 1 costs a true pair of VicPark's sequential join)
+LONE_MARGIN = 0.5
+
+
+def lone_drifted(pair_join: np.ndarray, noise: np.ndarray, drift: np.ndarray, joins: int) -> np.ndarray:
+    """Which pairs are drifted (``drift >= LONE_DRIFT * noise``; ``noise``, ``drift``: each pair's half-trace variance
+    and drift ``D``) and lone: in a join (``pair_join``, values < ``joins``) with fewer than :data:`CHECKED` such
+    pairs (a mask over the pairs)."""
+    drift = np.asarray(drift, dtype=float)
+    drifted = (drift > 0) & (drift >= LONE_DRIFT * np.asarray(noise, dtype=float))
+    count = np.bincount(np.asarray(pair_join)[drifted], minlength=joins)
+    return drifted & (count[pair_join] < CHECKED)
