@@ -54,6 +54,11 @@ join (sequential and tree) which features of the right piece are features of the
    plus the strain of the joins that fused features partway between two estimates (a quarter of each pair's
    squared residual, per feature and per tie; :meth:`mapjoin.association_drift.SightingDrift.settled`,
    :meth:`~mapjoin.association_drift.SightingDrift.settled_after`).
+8. **A lone drifted pair** (:mod:`mapjoin.association_lone`). After step 7, a pair whose drift is
+   :data:`~mapjoin.association_lone.LONE_DRIFT` times its noise, in a join with fewer than
+   :data:`~mapjoin.association_lone.CHECKED` such pairs (nothing confirms its drift), is left new when *any* other left
+   feature lies within its drift (margin :data:`~mapjoin.association_lone.LONE_MARGIN`), even one never seen with the
+   chosen one: that may be the chosen feature mapped twice, which says the map so far is not sure there.
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -544,7 +549,8 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Matches:
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
     right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the associator's, through
-    the chain's ties), then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
+    the chain's ties) and the lone drifted pairs with any left feature within their drift (:func:`_unconfirmed`,
+    step 8), then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
     (:mod:`mapjoin.association_drift`), or None for none."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
