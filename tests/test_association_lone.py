@@ -30,17 +30,19 @@ def test_lone_drifted_equals_a_brute_force_count(seed):
 NOISE = 0.015
 
 
-def strained_join(rng, drifted=1, duplicate=True):
-    """A DLR-like join: markers on a 0.7 m lattice (jittered), all seen by map 1. The right map (map 9) sees 8 of them
-    with no drift and ``drifted`` old markers through 0.3 m^2 of drift, each landing 0.02 m from a *different* marker
-    ``wrong`` (shifted by one common offset); with ``duplicate``, each ``wrong`` was also mapped a second time 0.25 m
-    away, by map 2 alone (never seen with it). Returns the join's arrays, the left rows of the true recent markers,
-    the wrong ones, and the left drift."""
-    grid = np.array([complex(x, y) for x in np.arange(-6, 6, 0.7) for y in np.arange(-6, 6, 0.7)])
+def strained_join(rng, drifted=1, duplicate=True, spacing=0.7):
+    """A DLR-like join: markers on a lattice ``spacing`` m apart (jittered), all seen by map 1. The right map (map 9)
+    sees 8 of them with no drift and ``drifted`` old markers through 0.3 m^2 of drift, each landing 0.02 m from a
+    *different* marker ``wrong`` (one lattice step away); with ``duplicate``, each ``wrong`` was also mapped a second
+    time 0.25 m away, by map 2 alone (never seen with it). Returns the join's arrays, the left rows of the true recent
+    markers, the wrong ones, and the left drift."""
+    steps = np.arange(-8, 9)
+    grid = spacing * np.array([complex(x, y) for x in steps for y in steps])
     grid = grid + rng.normal(scale=0.05, size=len(grid)) + 1j * rng.normal(scale=0.05, size=len(grid))
-    recent = rng.choice(np.flatnonzero(np.abs(grid) < 3), 8, replace=False)
-    old = np.setdiff1d(np.flatnonzero((np.abs(grid) > 3.5) & (np.abs(grid) < 4.5)), recent)[::3][:drifted]
-    wrong = np.array([np.argmin(np.abs(grid - (grid[p] + 0.7))) for p in old], dtype=np.intp)
+    recent = rng.choice(np.flatnonzero(np.abs(grid) < 4 * spacing), 8, replace=False)
+    ring = (np.abs(grid) > 5 * spacing) & (np.abs(grid) < 6.5 * spacing)
+    old = np.setdiff1d(np.flatnonzero(ring), recent)[::3][:drifted]
+    wrong = np.array([np.argmin(np.abs(grid - (grid[p] + spacing))) for p in old], dtype=np.intp)
     right = np.concatenate([grid[recent], grid[wrong] + 0.02])
     right = right + rng.normal(scale=NOISE / 3, size=len(right)) + 1j * rng.normal(scale=NOISE / 3, size=len(right))
     left = np.concatenate([grid, grid[wrong] + 0.25j]) if duplicate else grid
@@ -63,17 +65,19 @@ def associate(left, right, maps, left_drift):
 
 def test_a_lone_drifted_pair_beside_a_duplicate_is_left_new():
     """The drifted sighting lands 0.02 m from a different marker whose second copy (never seen with it, so no rival of
-    step 7) is 0.25 m away, inside the drift: step 8 leaves it new, counted ambiguous; the recent pairs (all true) are
-    kept. Without the copy the lone pair has no feature within its drift and is kept (it is false: the drift's own
-    gate does not see it)."""
+    step 7) is 0.25 m away, inside half the drift, and whose neighbours seen with it (0.7 m away: 1.6 in squared
+    distance over the drift) are within step 3's margin: step 8 leaves it new, counted ambiguous; the recent pairs (all
+    true) are kept. Without the copy, or with the neighbours 3 m away (30 over the drift, so the nearest is clear), the
+    lone pair is kept (a false pair: what is left of it is for steps 3 and 7 to see)."""
     for seed in range(10):
         left, right, maps, recent, wrong, left_drift = strained_join(np.random.default_rng(seed))
         found = associate(left, right, maps, left_drift)
         assert set(zip(found.left.tolist(), found.right.tolist())) == set(zip(recent.tolist(), range(8)))
         assert 8 in found.undecided.tolist() and found.ambiguous[0] >= 1
-        left, right, maps, recent, wrong, left_drift = strained_join(np.random.default_rng(seed), duplicate=False)
-        found = associate(left, right, maps, left_drift)
-        assert (int(wrong[0]), 8) in set(zip(found.left.tolist(), found.right.tolist()))
+        for case in ({"duplicate": False}, {"spacing": 3.0}):
+            left, right, maps, recent, wrong, left_drift = strained_join(np.random.default_rng(seed), **case)
+            found = associate(left, right, maps, left_drift)
+            assert (int(wrong[0]), 8) in set(zip(found.left.tolist(), found.right.tolist())), case
 
 
 def test_drifted_pairs_that_confirm_one_another_are_kept():

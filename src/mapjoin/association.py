@@ -56,9 +56,9 @@ join (sequential and tree) which features of the right piece are features of the
    :meth:`~mapjoin.association_drift.SightingDrift.settled_after`).
 8. **A lone drifted pair** (:mod:`mapjoin.association_lone`). After step 7, a pair whose drift is
    :data:`~mapjoin.association_lone.LONE_DRIFT` times its noise, in a join with fewer than
-   :data:`~mapjoin.association_lone.CHECKED` such pairs (nothing confirms its drift), is left new when *any* other left
-   feature lies within its drift (margin :data:`~mapjoin.association_lone.LONE_MARGIN`), even one never seen with the
-   chosen one: that may be the chosen feature mapped twice, which says the map so far is not sure there.
+   :data:`~mapjoin.association_lone.CHECKED` such pairs (nothing confirms its drift), is left new when another left
+   feature, even one never seen with the chosen one (its second copy), lies within half its drift
+   (:data:`~mapjoin.association_lone.LONE_MARGIN`) and a rival seen with it is within ``margin`` under the drift.
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -563,7 +563,8 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
         unstrained = _unstrained(found, left, left_covariances, left_join, link_xy, link_phi, right,
                                  right_covariances, right_join, drifts, left_sightings)
         found = _unconfirmed(unstrained, left, left_covariances, left_join, link_xy, link_phi, right,
-                             right_covariances, right_join, drifts[np.isin(found.right, unstrained.right)])
+                             right_covariances, right_join, drifts[np.isin(found.right, unstrained.right)],
+                             left_sightings, margin)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
     return found if closed is None else closed
@@ -588,20 +589,24 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
 
 def _unconfirmed(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
                  link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_covariances: np.ndarray,
-                 right_join: np.ndarray, drift: np.ndarray) -> Matches:
+                 right_join: np.ndarray, drift: np.ndarray, left_sightings: np.ndarray | None = None,
+                 margin: float = DEFAULT_MARGIN) -> Matches:
     """``found`` less its lone drifted pairs (:func:`mapjoin.association_lone.lone_drifted`; ``drift``: each pair's)
-    with any other left feature of their join within their drift (:func:`mapjoin.association_strain.drift_rivals`
-    without the sighting rule, margin :data:`mapjoin.association_lone.LONE_MARGIN`; step 8), whose right features
-    are left new and counted ambiguous."""
+    that have both another left feature of their join within half their drift, seen with the chosen one or not (a
+    second copy: :func:`mapjoin.association_strain.drift_rivals` without ``left_sightings``, margin
+    :data:`mapjoin.association_lone.LONE_MARGIN`), and a rival seen with it within step 3's ``margin`` (the same
+    function with the sightings; step 8); their right features are left new and counted ambiguous."""
     noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
              + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
     lone = lone_drifted(right_join[found.right], noise, drift, len(link_xy))
     if not lone.any():
         return found
     drop = np.zeros(len(found.left), dtype=bool)
-    drop[lone] = drift_rivals(left, left_join, found.left[lone],
-                              _corrected(found, link_xy, link_phi, right, right_join)[lone], noise[lone], drift[lone],
-                              None, LONE_MARGIN)
+    asked = (left, left_join, found.left[lone], _corrected(found, link_xy, link_phi, right, right_join)[lone],
+             noise[lone], drift[lone])
+    drop[lone] = drift_rivals(*asked, None, LONE_MARGIN)
+    if drop.any():
+        drop[lone] &= drift_rivals(*asked, left_sightings, margin)
     if not drop.any():
         return found
     undecided = np.union1d(found.undecided, found.right[drop])
