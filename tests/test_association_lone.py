@@ -52,8 +52,11 @@ def strained_join(rng, drifted=1, duplicate=True, spacing=0.7):
     return left, right, maps, recent, wrong, left_drift
 
 
+def covariance(count):
+    return np.tile([NOISE**2, 0.0, NOISE**2], (count, 1))
+
+
 def associate(left, right, maps, left_drift):
-    covariance = lambda n: np.tile([NOISE**2, 0.0, NOISE**2], (n, 1))  # noqa: E731
     link = (np.zeros(1, complex), np.zeros(1), np.array([[1e-4, 1e-6]]))
     zeros = np.zeros(len(right))
     return match_with_drift(left, covariance(len(left)), np.zeros(len(left), np.intp), *link, right,
@@ -83,7 +86,7 @@ def test_a_lone_drifted_pair_beside_a_duplicate_is_left_new():
 def test_drifted_pairs_that_confirm_one_another_are_kept():
     """Three drifted pairs moved by one common offset are not lone: step 8 keeps them (steps 6-7 judge them)."""
     for seed in range(10):
-        left, right, maps, recent, wrong, left_drift = strained_join(np.random.default_rng(seed), drifted=CHECKED)
+        left, right, maps, _, wrong, left_drift = strained_join(np.random.default_rng(seed), drifted=CHECKED)
         assert len(wrong) == CHECKED
         found = associate(left, right, maps, left_drift)
         pairs = set(zip(found.left.tolist(), found.right.tolist()))
