@@ -549,8 +549,8 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Matches:
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
     right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the associator's, through
-    the chain's ties) and the lone drifted pairs with any left feature within their drift (:func:`_unconfirmed`,
-    step 8), then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
+    the chain's ties) and the lone drifted pairs beside a second copy and a rival (:func:`_unconfirmed`, step 8),
+    then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
     (:mod:`mapjoin.association_drift`), or None for none."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)

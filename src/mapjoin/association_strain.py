@@ -36,7 +36,7 @@ def drift_rivals(left: np.ndarray, left_join: np.ndarray, pair_left: np.ndarray,
     ``drift >= noise`` is dropped when a rival left feature ``r`` of the same join (seen in a same map as the chosen
     one: ``left_sightings``, :func:`mapjoin.association.sighting_bits`; without them every other left feature)
     has ``|f_r - x|^2 < |f_i - x|^2 + margin (noise + drift)`` (``margin``: :data:`DRIFT_MARGIN`; step 8 asks with
-    :data:`mapjoin.association_lone.LONE_MARGIN`)."""
+    :data:`mapjoin.association_lone.LONE_MARGIN` without sightings, then with step 3's margin and sightings)."""
     pair_left = np.asarray(pair_left, dtype=np.intp)
     drop = np.zeros(len(pair_left), dtype=bool)
     flagged = np.flatnonzero(drift >= noise)
