@@ -297,9 +297,8 @@ def unmet(name, strategy, measured):
 @pytest.mark.parametrize("name, strategy", [
     ("VicPark_200_local_maps", "sequential"),
     unmet("VicPark_200_local_maps", "tree", "recall 98.9 % (41 missed), 1 false link (a new feature 2.5 m from another, no rival)"),
-    unmet("DLR_200_local_maps", "sequential", "recall 91.9 %, 2 false links (joins 195-196, a drifted marker's "
-          "neighbours never seen with it or within too small a drift)"),
-    unmet("DLR_200_local_maps", "tree", "recall 76.2 %, 1 false link (a marker's rival never seen with it)"),
+    unmet("DLR_200_local_maps", "sequential", "recall 92.1 %, no false link (misses at loop closures with drift)"),
+    unmet("DLR_200_local_maps", "tree", "recall 76.2 %, no false link (pieces bent against each other)"),
     unmet("8240_data_50_local_maps", "sequential", "recall 97.4 % (one drifted loop closure), no false link"),
     unmet("8240_data_50_local_maps", "tree", "recall 90.8 %, no false link"),
     unmet("simulation", "sequential", "recall 75.6 %, 10 false links (features closer than the noise)"),
@@ -316,6 +315,20 @@ def test_target_recall_99_percent_without_false_links(data_dir, name, strategy, 
     if missed == 0:
         known = join(maps, strategy=strategy).global_map
         assert np.allclose(found.global_map.poses, known.poses, atol=1e-9)
+
+
+@pytest.mark.parametrize("name, strategy", [
+    ("VicPark_200_local_maps", "sequential"),
+    unmet("VicPark_200_local_maps", "tree", "1 false link: at level 2 a new tree 2.36 m from an old one, each piece "
+          "seeing one of the two"),
+    ("DLR_200_local_maps", "sequential"), ("DLR_200_local_maps", "tree"),
+    ("8240_data_50_local_maps", "sequential"), ("8240_data_50_local_maps", "tree")])
+def test_no_false_link_on_the_datasets(data_dir, name, strategy, caplog):
+    """Issue 13's first target alone, against the datasets' true ids: no two different features joined (DLR's last
+    three false links were lone drifted pairs, docs/method.md#data-association, step 8)."""
+    caplog.set_level(logging.ERROR, logger="mapjoin")
+    local, truth = local_ids(mapio.read_maps(str(data_dir / name)))
+    assert link_errors(local, truth, join_associated(local, strategy=strategy))[2] == 0
 
 
 def test_cli_writes_one_association_row_per_feature_and_report_columns(tmp_path):

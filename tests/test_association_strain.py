@@ -115,8 +115,8 @@ def test_settled_drift_of_a_right_piece_is_the_shortest_way_through_its_ties(see
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 10_000), with_sightings=st.booleans())
-def test_drift_rivals_equal_a_brute_force_loop(seed, with_sightings):
+@given(seed=st.integers(0, 10_000), with_sightings=st.booleans(), margin=st.sampled_from([DRIFT_MARGIN, 0.5, 3.0]))
+def test_drift_rivals_equal_a_brute_force_loop(seed, with_sightings, margin):
     rng = np.random.default_rng(seed)
     n, k = int(rng.integers(1, 30)), int(rng.integers(0, 8))
     left = rng.uniform(0, 5, n) + 1j * rng.uniform(0, 5, n)
@@ -126,7 +126,7 @@ def test_drift_rivals_equal_a_brute_force_loop(seed, with_sightings):
     noise = rng.uniform(0.001, 0.05, k)
     drift = np.where(rng.random(k) < 0.7, rng.uniform(0, 2, k), 0.0)
     sightings = sighting_bits(rng.integers(0, 4, n)) if with_sightings else None
-    got = drift_rivals(left, left_join, pair_left, predicted, noise, drift, sightings)
+    got = drift_rivals(left, left_join, pair_left, predicted, noise, drift, sightings, margin)
     for pair in range(k):
         expected = False
         if drift[pair] >= noise[pair]:
@@ -134,7 +134,7 @@ def test_drift_rivals_equal_a_brute_force_loop(seed, with_sightings):
             for r in range(n):
                 shares = sightings is None or bool((sightings[r] & sightings[pair_left[pair]]).any())
                 if r != pair_left[pair] and left_join[r] == left_join[pair_left[pair]] and shares and \
-                        abs(left[r] - predicted[pair]) ** 2 < own + DRIFT_MARGIN * (noise[pair] + drift[pair]):
+                        abs(left[r] - predicted[pair]) ** 2 < own + margin * (noise[pair] + drift[pair]):
                     expected = True
         assert got[pair] == expected
 

@@ -54,6 +54,11 @@ join (sequential and tree) which features of the right piece are features of the
    plus the strain of the joins that fused features partway between two estimates (a quarter of each pair's
    squared residual, per feature and per tie; :meth:`mapjoin.association_drift.SightingDrift.settled`,
    :meth:`~mapjoin.association_drift.SightingDrift.settled_after`).
+8. **A lone drifted pair** (:mod:`mapjoin.association_lone`). After step 7, a pair whose drift is
+   :data:`~mapjoin.association_lone.LONE_DRIFT` times its noise, in a join with fewer than
+   :data:`~mapjoin.association_lone.CHECKED` such pairs (nothing confirms its drift), is left new when another left
+   feature, even one never seen with the chosen one (its second copy), lies within half its drift
+   (:data:`~mapjoin.association_lone.LONE_MARGIN`) and a rival seen with it is within ``margin`` under the drift.
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -80,6 +85,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .association_drift import SightingDrift
+from .association_lone import LONE_MARGIN, lone_drifted
 from .association_loops import rigid_votes
 from .association_strain import drift_rivals
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
@@ -543,7 +549,8 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Matches:
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
     right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the associator's, through
-    the chain's ties), then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
+    the chain's ties) and the lone drifted pairs beside a second copy and a rival (:func:`_unconfirmed`, step 8),
+    then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
     (:mod:`mapjoin.association_drift`), or None for none."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
@@ -552,8 +559,12 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     if drift is None:
         return found
     if pair_drift is not None:
-        found = _unstrained(found, left, left_covariances, left_join, link_xy, link_phi, right, right_covariances,
-                            right_join, pair_drift(found.left, found.right), left_sightings)
+        drifts = pair_drift(found.left, found.right)
+        unstrained = _unstrained(found, left, left_covariances, left_join, link_xy, link_phi, right,
+                                 right_covariances, right_join, drifts, left_sightings)
+        found = _unconfirmed(unstrained, left, left_covariances, left_join, link_xy, link_phi, right,
+                             right_covariances, right_join, drifts[np.isin(found.right, unstrained.right)],
+                             left_sightings, margin)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
     return found if closed is None else closed
@@ -569,6 +580,33 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
              + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
     drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
                         drift, left_sightings)
+    if not drop.any():
+        return found
+    undecided = np.union1d(found.undecided, found.right[drop])
+    return Matches(found.left[~drop], found.right[~drop], np.bincount(right_join[undecided], minlength=len(link_xy)),
+                   found.rejected, undecided, found.correction)
+
+
+def _unconfirmed(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
+                 link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_covariances: np.ndarray,
+                 right_join: np.ndarray, drift: np.ndarray, left_sightings: np.ndarray | None = None,
+                 margin: float = DEFAULT_MARGIN) -> Matches:
+    """``found`` less its lone drifted pairs (:func:`mapjoin.association_lone.lone_drifted`; ``drift``: each pair's)
+    that have both another left feature of their join within half their drift, seen with the chosen one or not (a
+    second copy: :func:`mapjoin.association_strain.drift_rivals` without ``left_sightings``, margin
+    :data:`mapjoin.association_lone.LONE_MARGIN`), and a rival seen with it within step 3's ``margin`` (the same
+    function with the sightings; step 8); their right features are left new and counted ambiguous."""
+    noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
+             + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
+    lone = lone_drifted(right_join[found.right], noise, drift, len(link_xy))
+    if not lone.any():
+        return found
+    drop = np.zeros(len(found.left), dtype=bool)
+    asked = (left, left_join, found.left[lone], _corrected(found, link_xy, link_phi, right, right_join)[lone],
+             noise[lone], drift[lone])
+    drop[lone] = drift_rivals(*asked, None, LONE_MARGIN)
+    if drop.any():
+        drop[lone] &= drift_rivals(*asked, left_sightings, margin)
     if not drop.any():
         return found
     undecided = np.union1d(found.undecided, found.right[drop])

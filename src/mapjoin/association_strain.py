@@ -28,20 +28,22 @@ _CHUNK = 1 << 18
 
 
 def drift_rivals(left: np.ndarray, left_join: np.ndarray, pair_left: np.ndarray, predicted: np.ndarray,
-                 noise: np.ndarray, drift: np.ndarray, left_sightings: np.ndarray | None = None) -> np.ndarray:
+                 noise: np.ndarray, drift: np.ndarray, left_sightings: np.ndarray | None = None,
+                 margin: float = DRIFT_MARGIN) -> np.ndarray:
     """Which pairs to leave new (a mask over them): pair ``p`` joins left row ``pair_left[p]`` (``left``: complex
     points, ``left_join`` their joins) with a right feature predicted at ``predicted[p]`` (after the link's
     correction); ``noise[p]`` is its half-trace variance without drift, ``drift[p]`` its drift ``D``. A pair with
     ``drift >= noise`` is dropped when a rival left feature ``r`` of the same join (seen in a same map as the chosen
     one: ``left_sightings``, :func:`mapjoin.association.sighting_bits`; without them every other left feature)
-    has ``|f_r - x|^2 < |f_i - x|^2 + DRIFT_MARGIN (noise + drift)``."""
+    has ``|f_r - x|^2 < |f_i - x|^2 + margin (noise + drift)`` (``margin``: :data:`DRIFT_MARGIN`; step 8 asks with
+    :data:`mapjoin.association_lone.LONE_MARGIN` without sightings, then with step 3's margin and sightings)."""
     pair_left = np.asarray(pair_left, dtype=np.intp)
     drop = np.zeros(len(pair_left), dtype=bool)
     flagged = np.flatnonzero(drift >= noise)
     if not len(flagged) or not len(left):
         return drop
     own = np.abs(left[pair_left[flagged]] - predicted[flagged]) ** 2
-    reach = own + DRIFT_MARGIN * (noise[flagged] + drift[flagged])
+    reach = own + margin * (noise[flagged] + drift[flagged])
     step = max(1, _CHUNK // len(left))
     for start in range(0, len(flagged), step):
         rows = slice(start, start + step)
