@@ -294,11 +294,13 @@ def rotated(covariances: np.ndarray, phi: np.ndarray | float) -> np.ndarray:
                             s * s * xx + 2 * c * s * xy + c * c * yy])
 
 
+_ADJUGATE_SIGNS = np.array([1.0, -1.0, 1.0])
+
+
 def inverted(covariances: np.ndarray) -> np.ndarray:
     """The inverses of 2 x 2 symmetric matrices (rows ``[xx, xy, yy]``), in closed form."""
-    xx, xy, yy = covariances.T
-    det = xx * yy - xy * xy
-    return np.column_stack([yy / det, -xy / det, xx / det])
+    det = covariances[:, 0] * covariances[:, 2] - covariances[:, 1] * covariances[:, 1]
+    return covariances[:, ::-1] * _ADJUGATE_SIGNS / det[:, None]  # [yy, -xy, xx] / det
 
 
 def fused(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -390,6 +392,8 @@ def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarr
 
 def _segment_medians(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarray:
     """The median of ``values`` in each group (the upper one of an even group; NaN for an empty group)."""
+    if count == 1:
+        return np.sort(values)[len(values) // 2:][:1] if len(values) else np.full(1, np.nan)
     order = np.lexsort((values, group))
     start, size = _segments(group[order], count)
     middle = np.minimum(start + size // 2, max(len(values) - 1, 0))
@@ -402,7 +406,10 @@ def _best(group: np.ndarray, other: np.ndarray, d2: np.ndarray, sightings: np.nd
     its group, and the distance of the group's nearest *rival*, infinite when there is none. A rival is another
     candidate that is a different feature from the nearest: one seen in a same map as it (``sightings``: each
     other-side feature's maps, :func:`sighting_bits`; without them every other candidate is a rival). Two
-    candidates never seen together may be one feature mapped twice, and either is the right match."""
+    candidates never seen together may be one feature mapped twice, and either is the right match. A join's
+    groups are mostly of one candidate: then each is its group's nearest with no rival, without sorting."""
+    if len(group) < 2 or np.bincount(group).max() == 1:
+        return np.ones(len(group), dtype=bool), np.full(len(group), np.inf)
     order = np.lexsort((d2, group))
     grouped, others, distances = group[order], other[order], d2[order]
     first = np.ones(len(order), dtype=bool)
@@ -430,16 +437,18 @@ def sighting_bits(maps: np.ndarray) -> np.ndarray:
     return bits
 
 
-def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, predicted: np.ndarray,
-          lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray, link: np.ndarray, g2: float,
-          margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
-          right_sightings: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, largest: np.ndarray,
+          predicted: np.ndarray, lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray,
+          link: np.ndarray, scale: np.ndarray, g2: float, margin: float = DEFAULT_MARGIN,
+          left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The unambiguous candidate pairs (left rows, right rows) of every join, and the ambiguous right rows
     (sorted).
 
     A pair's innovation ``r = f - x`` has covariance ``S = C0 + C1 + H link H^T`` with ``H = [I, u]`` (``C0``,
-    ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``; ``link[join]``: the 3 x 3 covariance of the
-    join's link error); it is a candidate when ``d^2 = r^T S^-1 r <= g2``. A candidate is taken when it is its
+    ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``, times their join's variance factor ``scale``;
+    ``largest[join]``: the largest trace of its left ``C0`` before the factor; ``link[join]``: the 3 x 3 covariance
+    of the join's link error); it is a candidate when ``d^2 = r^T S^-1 r <= g2``. A candidate is taken when it is its
     right feature's nearest and its left feature's nearest, and each one's nearest rival (:func:`_best`, given the
     features' ``sightings``) is at least ``margin`` farther (in ``d^2``); the other right features with candidates
     are ambiguous.
@@ -451,21 +460,24 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     sxx = own[:, 0, 0] + 2 * ux * own[:, 0, 2] + own[:, 2, 2] * ux * ux
     syy = own[:, 1, 1] + 2 * uy * own[:, 1, 2] + own[:, 2, 2] * uy * uy
     sxy = own[:, 0, 1] + ux * own[:, 1, 2] + uy * own[:, 0, 2] + own[:, 2, 2] * ux * uy
-    largest = np.zeros(joins)
-    np.maximum.at(largest, left_join, left_covariances[:, 0] + left_covariances[:, 2])
     # the trace bounds the largest eigenvalue: every pair in the gate is within this Euclidean radius
-    radius = np.sqrt(g2 * (largest[right_join] + right_covariances[:, 0] + right_covariances[:, 2] + sxx + syy))
+    radius = np.sqrt(g2 * (scale[right_join] * (largest[right_join] + right_covariances[:, 0] + right_covariances[:, 2])
+                           + sxx + syy))
     i, j = _candidates(left, left_join, predicted, right_join, radius, joins)
     r = left[i] - predicted[j]
-    innovation = left_covariances[i] + right_covariances[j] + np.column_stack([sxx[j], sxy[j], syy[j]])
-    d2 = _mahalanobis(r, inverted(innovation))
+    own_covariances = scale[left_join[i], None] * left_covariances[i] + scale[right_join[j], None] * right_covariances[j]
+    xx, xy, yy = own_covariances[:, 0] + sxx[j], own_covariances[:, 1] + sxy[j], own_covariances[:, 2] + syy[j]
+    det = xx * yy - xy * xy  # S^-1 in closed form (as inverted), its quadratic form (as _mahalanobis)
+    d2 = (yy / det) * r.real**2 + 2 * (-xy / det) * r.real * r.imag + (xx / det) * r.imag**2
     gated = d2 <= g2
     i, j, d2 = i[gated], j[gated], d2[gated]
     right_best, right_second = _best(j, i, d2, left_sightings)
     left_best, left_second = _best(i, j, d2, right_sightings)
     taken = right_best & left_best & (right_second - d2 >= margin) & (left_second - d2 >= margin)
-    undecided = np.setdiff1d(j, j[taken])
-    return i[taken], j[taken], undecided
+    undecided = np.zeros(len(predicted), dtype=bool)  # the right rows with candidates, none taken (sorted)
+    undecided[j] = True
+    undecided[j[taken]] = False
+    return i[taken], j[taken], np.flatnonzero(undecided)
 
 
 def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
@@ -501,11 +513,16 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     correction = np.zeros((joins, 3))
     g2 = float(_threshold(gate, 1))
     scale = np.ones(joins)
+    traces = left_covariances[:, 0] + left_covariances[:, 2]
+    if joins == 1:
+        largest = traces.max(initial=0.0)[None]
+    else:
+        largest = np.zeros(joins)
+        np.maximum.at(largest, left_join, traces)
     previous = None
     for _ in range(ROUNDS):
-        i, j, undecided = _gate(left, scale[left_join, None] * left_covariances, left_join, predicted, lever,
-                                scale[right_join, None] * right_covariances, right_join, link, g2, margin,
-                                left_sightings, right_sightings)
+        i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
+                                right_join, link, scale, g2, margin, left_sightings, right_sightings)
         ambiguous = np.bincount(right_join[undecided], minlength=joins)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
@@ -515,19 +532,21 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         information = prior_information / scale[:, None, None]
         keep = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
-        outcome = (i[keep], j[keep], ambiguous, rejected, undecided, correction)
-        if previous is not None and np.array_equal(previous[0], i[keep]) and np.array_equal(previous[1], j[keep]):
+        if not keep.all():  # mostly all are kept: then the pairs and their terms as they are
+            i, j, r, unscaled, pair_join = i[keep], j[keep], r[keep], unscaled[keep], pair_join[keep]
+            terms = tuple(term[keep] for term in terms)
+        outcome = (i, j, ambiguous, rejected, undecided, correction)
+        if previous is not None and np.array_equal(previous[0], i) and np.array_equal(previous[1], j):
             break
         previous = outcome
         # each link's correction and posterior covariance from its kept pairs; the robust variance factor
-        c, g, h = (term[keep] for term in terms)
-        kept_join = pair_join[keep]
-        posterior = np.linalg.inv(information + _segment_sums(h, kept_join, joins).reshape(joins, 3, 3))
-        correction = np.einsum("jab,jb->ja", posterior, _segment_sums(g, kept_join, joins))
+        _, g, h = terms
+        posterior = np.linalg.inv(information + _segment_sums(h, pair_join, joins).reshape(joins, 3, 3))
+        correction = np.einsum("jab,jb->ja", posterior, _segment_sums(g, pair_join, joins))
         shift = correction[:, 0] + 1j * correction[:, 1]
-        residual = r[keep] - shift[kept_join] - lever[j[keep]] * correction[kept_join, 2]
-        dof = 2 * np.bincount(kept_join, minlength=joins) - 3
-        factor = _segment_medians(_mahalanobis(residual, unscaled[keep]), kept_join, joins) / CHI2_2_MEDIAN
+        residual = r - shift[pair_join] - lever[j] * correction[pair_join, 2]
+        dof = 2 * np.bincount(pair_join, minlength=joins) - 3
+        factor = _segment_medians(_mahalanobis(residual, unscaled), pair_join, joins) / CHI2_2_MEDIAN
         old, scale = scale, np.where(dof >= MIN_DOF, np.maximum(1.0, factor), 1.0)
         link = posterior * (scale / old)[:, None, None]  # the posterior in the new scale's units
         predicted = prior_prediction + shift[right_join] + lever * correction[right_join, 2]
@@ -565,8 +584,7 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
     """``found`` less the pairs :func:`mapjoin.association_strain.drift_rivals` names (``drift``: each pair's), whose
     right features are left new and counted ambiguous; the right features are predicted through each join's link
     as ``found`` corrected it."""
-    noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
-             + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
+    noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
     drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
                         drift, left_sightings)
     if not drop.any():
@@ -574,6 +592,13 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
     undecided = np.union1d(found.undecided, found.right[drop])
     return Matches(found.left[~drop], found.right[~drop], np.bincount(right_join[undecided], minlength=len(link_xy)),
                    found.rejected, undecided, found.correction)
+
+
+def _pair_noise(left_covariances: np.ndarray, right_covariances: np.ndarray, left_rows: np.ndarray,
+                right_rows: np.ndarray) -> np.ndarray:
+    """Each pair's isotropic noise without drift (steps 6 and 7): the half trace of its two features' covariances."""
+    return (left_covariances[left_rows, 0] + left_covariances[left_rows, 2]
+            + right_covariances[right_rows, 0] + right_covariances[right_rows, 2]) / 2
 
 
 def _corrected(found: Matches, link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_join: np.ndarray
@@ -751,7 +776,7 @@ class _Associator:
 
     def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
         """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums)."""
-        self.drift.placed(np.array([k]), np.array([t_variance]), np.array([phi_variance]))
+        self.drift.placed(k, t_variance, phi_variance)
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
@@ -768,11 +793,14 @@ class _Associator:
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
                                  right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
                                  self.sightings[:used], self.row_sightings[rows],
-                                 lambda i, j: self.drift.settled(i, k - 1))
+                                 lambda i, j: self.drift.settled(i, k - 1, level=_pair_noise(
+                                     self.covariances, right_covariances, i, j)))
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         left_ids = found.left
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
-                           np.zeros(len(z), np.intp), right_covariances, self.drift.settled(left_ids, k - 1),
+                           np.zeros(len(z), np.intp), right_covariances,
+                           self.drift.settled(left_ids, k - 1, level=_pair_noise(self.covariances, right_covariances,
+                                                                                 left_ids, found.right)),
                            np.array([k]))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
@@ -797,9 +825,7 @@ class _Associator:
         the median), strained by their strains' median (:meth:`mapjoin.association_drift.SightingDrift.tie`)."""
         pair_join = right_join[found.right]
         strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
-        noise = (self.covariances[left_ids, 0] + self.covariances[left_ids, 2]
-                 + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
-        drifted = drift >= noise
+        drifted = drift >= _pair_noise(self.covariances, right_covariances, left_ids, found.right)
         for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= LOOP_SUPPORT).tolist():
             pairs = drifted & (pair_join == tying)
             self.drift.tie(int(np.median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),

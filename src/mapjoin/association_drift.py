@@ -71,9 +71,16 @@ class SightingDrift:
                                                        (self.first_map, self.first_point, self.last_map,
                                                         self.last_point, self.strain)), self.ties)
 
-    def placed(self, junctions: np.ndarray, t_variance: np.ndarray, phi_variance: np.ndarray) -> None:
+    def placed(self, junctions: np.ndarray | int, t_variance: np.ndarray | float, phi_variance: np.ndarray | float
+               ) -> None:
         """Joins placed these ``junctions`` (pose indices, each once) with these posterior variances: the prefix
-        sums from the lowest of them on gain their terms (in place)."""
+        sums from the lowest of them on gain their terms (in place). One junction (an int, the sequential join's)
+        is one row of terms, in floats."""
+        if isinstance(junctions, (int, np.integer)):
+            x, p = complex(self.chain.poses[junctions]), float(phi_variance)
+            self.sums[junctions + 1:] += (float(t_variance), p, p * x.real, p * x.imag,
+                                          p * (x.real * x.real + x.imag * x.imag))
+            return
         junctions = np.atleast_1d(np.asarray(junctions, dtype=np.intp))
         if not len(junctions):
             return
@@ -132,32 +139,41 @@ class SightingDrift:
         from then on, the link is also known through that map, up to the strain (in place)."""
         self.ties.append((int(old_map), int(junction), float(strain)))
 
-    def settled(self, ids: np.ndarray, link_map: np.ndarray | int, start: np.ndarray | int = 0) -> np.ndarray:
+    def settled(self, ids: np.ndarray, link_map: np.ndarray | int, start: np.ndarray | int = 0,
+                level: np.ndarray | None = None) -> np.ndarray:
         """``D`` of left features ``ids`` relative to the end of map ``link_map`` (one, or one per feature) over the
         shorter way: the junctions since their last sighting (:meth:`before`), or, through a tie ``(m, c)`` made
         between map ``start`` and the link (the left piece's maps: the sequential join's start at 0), the junctions
         between their last sighting and map ``m`` (either way along the chain) and those from ``c`` up to the link
         (the feature moved with map ``m``'s place to map ``c``'s, a translation) plus the tie's strain; and, either
-        way, the feature's own :attr:`strain`. O(ties) per feature: the callers ask it for a join's pairs only."""
+        way, the feature's own :attr:`strain`. O(ties) per feature: the callers ask it for a join's pairs only.
+
+        The callers only compare ``D`` with a ``level`` (a pair's noise): given it, the ties are searched only for
+        the features whose direct ``D`` plus strain reaches it (the shorter way is no longer); the others' direct
+        ``D`` plus strain is below it, as is their ``D``."""
         ids = np.asarray(ids, dtype=np.intp)
-        link_map = np.broadcast_to(np.asarray(link_map, dtype=np.intp), ids.shape)
-        start = np.broadcast_to(np.asarray(start, dtype=np.intp), ids.shape)
         seen, point = self.last_map[ids], self.last_point[ids]
-        best = drift_variance(self.sums[link_map + 1] - self.sums[seen + 1], point)
-        ties = np.array(self.ties, dtype=float).reshape(-1, 3)
-        drifted = np.flatnonzero(best > 0)  # a feature seen by the link's map has no shorter way
-        if len(ties) and len(drifted):  # every (drifted feature, tie) at once
-            old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+        best = drift_variance(self.sums[np.asarray(link_map, dtype=np.intp) + 1] - self.sums[seen + 1], point)
+        strain = self.strain[ids]
+        drifted = best > 0  # a feature seen by the link's map has no shorter way
+        if level is not None:
+            drifted &= best + strain >= level
+        drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
+        if len(drifted):  # every (drifted feature, tie) at once
+            ties = np.array(self.ties, dtype=float).reshape(-1, 3)
+            link_map = np.broadcast_to(np.asarray(link_map, dtype=np.intp), ids.shape)
+            start = np.broadcast_to(np.asarray(start, dtype=np.intp), ids.shape)
+            old_map, junction, tie_strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
             seen, point, link, first = seen[drifted], point[drifted], link_map[drifted], start[drifted]
             low, high = np.minimum(seen[:, None], old_map), np.maximum(seen[:, None], old_map)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
                                    np.repeat(point, len(ties))).reshape(len(seen), len(ties))
             moved = point[:, None] - self.chain.poses[old_map] + self.chain.poses[junction]
             since = self.sums[link + 1][:, None, :] - self.sums[junction + 1][None, :, :]
-            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(ties))
+            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(ties))
             inside = (junction <= link[:, None]) & (junction >= first[:, None]) & (old_map >= first[:, None])
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
-        return best + self.strain[ids]
+        return best + strain
 
     def settled_after(self, ids: np.ndarray, link_map: np.ndarray, end: np.ndarray) -> np.ndarray:
         """``D`` of right features ``ids`` of a tree join (:meth:`after`) over the shorter way: directly, or through a
