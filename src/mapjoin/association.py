@@ -61,8 +61,8 @@ by map, then by local id.
 
 Cost: :func:`match_features` associates all the joins of a tree level at once (as the tree joins
 them), and the sequential join is a batch of one; candidates are all pairs of a join up to
-:data:`BRUTE_FORCE_PAIRS`, else found with a k-d tree. Only a join whose pairs fail the joint test
-is searched on its own.
+:data:`BRUTE_FORCE_PAIRS`, else found with a grid (:mod:`mapjoin.association_grid`). Only a join whose pairs fail
+the joint test is searched on its own.
 
 :func:`local_ids` turns a map set with global ids into one with ids local to each map and
 returns the true correspondence (tests, benchmarks, ``simulate --local-ids``).
@@ -80,6 +80,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .association_drift import SightingDrift
+from .association_grid import pairs_within
 from .association_loops import rigid_votes
 from .association_strain import drift_rivals
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
@@ -122,7 +123,7 @@ __all__ = [
 DEFAULT_GATE = 0.999
 #: the joint test searches every subset of at most this many pairs (2^10 = 1024 subsets, as arrays)
 EXHAUSTIVE_PAIRS = 10
-#: candidate pairs are found by brute force up to this many (left x right) pairs, else by a k-d tree
+#: a single join's candidate pairs are found by brute force up to this many (left x right) pairs, else by a grid
 BRUTE_FORCE_PAIRS = 1 << 16
 #: the variance factor of a round needs at least this many degrees of freedom (2k - 3 for k pairs)
 MIN_DOF = 4
@@ -247,9 +248,9 @@ def _segments(group: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
 def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, right_join: np.ndarray,
                 radius: np.ndarray, joins: int) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (left row, right row) of the same join whose Euclidean distance is at most ``radius[right]``
-    (complex points; rows grouped by join): every pair of a join at once when there are few in all, else
-    from a k-d tree (scipy.spatial, imported then) of the points lifted to 3-D, the join as the third
-    coordinate, far apart, so that one tree serves every join."""
+    (complex points; rows grouped by join), sorted by left row then right row: for one join with few pairs in
+    reach of the right points' bounding box, every such pair at once; else by a grid
+    (:func:`mapjoin.association_grid.pairs_within`)."""
     if joins == 1 and len(predicted):  # one join: the left points in the right ones' reach, then the outer difference
         reach = float(radius.max())
         rows = np.flatnonzero((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
@@ -257,25 +258,7 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
         if len(rows) * len(predicted) <= BRUTE_FORCE_PAIRS:
             i, j = np.nonzero(np.abs(left[rows, None] - predicted[None, :]) <= radius[None, :])
             return rows[i], j
-    left_start, left_size = _segments(left_join, joins)
-    right_start, right_size = _segments(right_join, joins)
-    per_join = left_size * right_size
-    total = int(per_join.sum())
-    if total <= BRUTE_FORCE_PAIRS:
-        join = np.repeat(np.arange(joins), per_join)
-        q = np.arange(total) - np.repeat(np.cumsum(per_join) - per_join, per_join)
-        i = left_start[join] + q // right_size[join]
-        j = right_start[join] + q % right_size[join]
-        near = np.abs(left[i] - predicted[j]) <= radius[j]
-        return i[near], j[near]
-    from scipy.spatial import cKDTree
-
-    apart = 2.0 ** math.ceil(math.log2(4 * float(radius.max(initial=1.0)) + 1))
-    tree = cKDTree(np.column_stack([left.real, left.imag, left_join * apart]))
-    found = tree.query_ball_point(np.column_stack([predicted.real, predicted.imag, right_join * apart]), radius)
-    counts = np.fromiter(map(len, found), np.intp, len(predicted))
-    i = np.concatenate(found).astype(np.intp) if counts.sum() else np.zeros(0, np.intp)
-    return i, np.repeat(np.arange(len(predicted)), counts)
+    return pairs_within(left, left_join, predicted, right_join, radius, joins)
 
 
 def blocks(variances: np.ndarray) -> np.ndarray:
@@ -380,6 +363,15 @@ def _jointly_compatible(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, link
         best = np.lexsort((distance, -sizes, ~compatible))[0]
         keep[rows[masks[best] > 0]] = True
     return keep
+
+
+def _join_maxima(values: np.ndarray, join: np.ndarray, joins: int) -> np.ndarray:
+    """The largest of ``values`` (non-negative) in each of ``joins`` joins (0 for a join without any)."""
+    if joins == 1:  # the sequential join: no scatter
+        return values.max(initial=0.0)[None]
+    largest = np.zeros(joins)
+    np.maximum.at(largest, join, values)
+    return largest
 
 
 def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarray:
@@ -513,12 +505,7 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     correction = np.zeros((joins, 3))
     g2 = float(_threshold(gate, 1))
     scale = np.ones(joins)
-    traces = left_covariances[:, 0] + left_covariances[:, 2]
-    if joins == 1:
-        largest = traces.max(initial=0.0)[None]
-    else:
-        largest = np.zeros(joins)
-        np.maximum.at(largest, left_join, traces)
+    largest = _join_maxima(left_covariances[:, 0] + left_covariances[:, 2], left_join, joins)
     previous = None
     for _ in range(ROUNDS):
         i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
@@ -642,8 +629,7 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     left_noise = (left_covariances[lefts, 0] + left_covariances[lefts, 2]) / 2
     right_noise = (right_covariances[rights, 0] + right_covariances[rights, 2]) / 2
     link_spread = link_variances[r_join, 0] + link_variances[r_join, 1] * np.abs(right[rights]) ** 2  # isotropic
-    widest = np.zeros(joins)
-    np.maximum.at(widest, left_join[lefts], left_noise + left_drift[lefts])
+    widest = _join_maxima(left_noise + left_drift[lefts], left_join[lefts], joins)
     radius = np.sqrt(g2 * (widest[r_join] + right_noise + right_drift[rights] + link_spread))
     a, b = _candidates(left[lefts], left_join[lefts], predicted, r_join, radius, joins)
     offsets = left[lefts[a]] - predicted[b]
@@ -788,19 +774,24 @@ class _Associator:
         rows = slice(self.offsets[k], self.offsets[k + 1])
         right_covariances = rotated(self.row_covariances[rows], link_phi)
         nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
-        drift = (*self.drift.before(np.arange(used), np.full(used, k - 1)), nothing, nothing)
+        drift = (*self.drift.before(np.arange(used), k - 1), nothing, nothing)
+        asked: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the pairs' drift, asked by steps 7 and the tie
+
+        def pair_drift(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+            if asked and np.array_equal(asked[0][0], i) and np.array_equal(asked[0][1], j):
+                return asked[0][2]  # mostly steps 6 and 7 changed no pair
+            asked[:] = [(i, j, self.drift.settled(i, k - 1, level=_pair_noise(self.covariances, right_covariances,
+                                                                                i, j)))]
+            return asked[0][2]
+
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
                                  right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
-                                 self.sightings[:used], self.row_sightings[rows],
-                                 lambda i, j: self.drift.settled(i, k - 1, level=_pair_noise(
-                                     self.covariances, right_covariances, i, j)))
+                                 self.sightings[:used], self.row_sightings[rows], pair_drift)
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         left_ids = found.left
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
-                           np.zeros(len(z), np.intp), right_covariances,
-                           self.drift.settled(left_ids, k - 1, level=_pair_noise(self.covariances, right_covariances,
-                                                                                 left_ids, found.right)),
+                           np.zeros(len(z), np.intp), right_covariances, pair_drift(left_ids, found.right),
                            np.array([k]))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True

@@ -119,9 +119,9 @@ class SightingDrift:
         for array in (self.first_map, self.first_point, self.last_map, self.last_point, self.strain):
             array[ids] = array[others]
 
-    def before(self, ids: np.ndarray, link_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``D`` of left features ``ids`` relative to the end of map ``link_map`` (their piece's last map, one per
-        feature), over the junctions after their last sighting up to that map's start, and the heading variance
+    def before(self, ids: np.ndarray, link_map: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
+        """``D`` of left features ``ids`` relative to the end of map ``link_map`` (their piece's last map: one, or one
+        per feature), over the junctions after their last sighting up to that map's start, and the heading variance
         those junctions add (the sum of their ``p``)."""
         sums = self.sums[link_map + 1] - self.sums[self.last_map[ids] + 1]
         return drift_variance(sums, self.last_point[ids]), sums[:, 1]
