@@ -517,19 +517,19 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         w = unscaled / scale[pair_join, None]
         terms = _joint_terms(r, w, lever[j])
         information = prior_information / scale[:, None, None]
-        keep = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
+        keep, sum_g, sum_m = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
-        if not keep.all():  # mostly all are kept: then the pairs and their terms as they are
+        if not keep.all():  # mostly all are kept: then the pairs and the joint test's sums as they are
             i, j, r, unscaled, pair_join = i[keep], j[keep], r[keep], unscaled[keep], pair_join[keep]
-            terms = tuple(term[keep] for term in terms)
+            sum_g = _segment_sums(terms[1][keep], pair_join, joins)
+            sum_m = information + _segment_sums(terms[2][keep], pair_join, joins).reshape(joins, 3, 3)
         outcome = (i, j, ambiguous, rejected, undecided, correction)
         if previous is not None and np.array_equal(previous[0], i) and np.array_equal(previous[1], j):
             break
         previous = outcome
         # each link's correction and posterior covariance from its kept pairs; the robust variance factor
-        _, g, h = terms
-        posterior = np.linalg.inv(information + _segment_sums(h, pair_join, joins).reshape(joins, 3, 3))
-        correction = np.einsum("jab,jb->ja", posterior, _segment_sums(g, pair_join, joins))
+        posterior = np.linalg.inv(sum_m)
+        correction = np.einsum("jab,jb->ja", posterior, sum_g)
         shift = correction[:, 0] + 1j * correction[:, 1]
         residual = r - shift[pair_join] - lever[j] * correction[pair_join, 2]
         dof = 2 * np.bincount(pair_join, minlength=joins) - 3
@@ -687,9 +687,11 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
 
 
 def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
-                information: np.ndarray, gate: float, joins: int) -> np.ndarray:
+                information: np.ndarray, gate: float, joins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The pairs kept by the joint compatibility test of every join (a mask over the pairs, grouped by join):
-    each join's joint distance at once; a join that fails is searched alone by :func:`_jointly_compatible`."""
+    each join's joint distance at once; a join that fails is searched alone by :func:`_jointly_compatible`.
+    Also each join's ``sum H^T W r`` (joins x 3) and ``P_link^-1 + sum H^T W H`` (joins x 3 x 3) over all its
+    pairs: the link's correction when every pair is kept."""
     c, g, h = terms
     sizes = np.bincount(pair_join, minlength=joins)
     big_g = _segment_sums(g, pair_join, joins)
@@ -702,7 +704,7 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
         rows = slice(starts[join], starts[join] + sizes[join])
         keep[rows] = _jointly_compatible((c[rows], g[rows], h[rows]), r[rows], w[rows], u[rows],
                                          information[join], gate)
-    return keep
+    return keep, big_g, big_m
 
 
 class _Associator:

@@ -114,14 +114,18 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
             continue
         which = np.repeat(np.arange(len(u)), per)
         k = np.arange(total) - np.repeat(np.cumsum(per) - per, per)
-        p = rows[first[u[which]] + k // size[v[which]]]
-        q = rows[first[v[which]] + k % size[v[which]]]
-        distinct = a[p] != a[q]
-        p, q = p[distinct], q[distinct]
-        span_left, span_right = left[a[p]] - left[a[q]], right_points[b[p]] - right_points[b[q]]
-        agree = (np.abs(span_left) - np.abs(span_right)) ** 2 <= g2 * (noise[p] + noise[q])
-        p, q, span_left, span_right = p[agree], q[agree], span_left[agree], span_right[agree]
-        dphi = np.angle(span_left / span_right)
+        down, along = np.divmod(k, size[v[which]])
+        p, q = first[u[which]] + down, first[v[which]] + along  # positions in rows
+        # two different left features whose distance agrees with their right features' (one per pair u, v); the
+        # rows' left features, points and noise gathered once, each vote reading them by position
+        row_left, row_noise = a[rows], noise[rows]
+        row_point = left[row_left]
+        span_left = row_point[p] - row_point[q]
+        span = np.abs(right_points[features[u]] - right_points[features[v]])
+        agree = (row_left[p] != row_left[q]) & ((np.abs(span_left) - span[which]) ** 2
+                                                 <= g2 * (row_noise[p] + row_noise[q]))
+        p, q, span_left = rows[p[agree]], rows[q[agree]], span_left[agree]
+        dphi = np.angle(span_left / (right_points[b[p]] - right_points[b[q]]))
         allowed = np.abs(dphi) <= np.minimum(turning[p], turning[q])
         p, q, dphi = p[allowed], q[allowed], dphi[allowed]
         o = left[a[p]] + np.exp(1j * dphi) * (centre[join] - right_points[b[p]]) - centre[join]
