@@ -514,9 +514,10 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
         unscaled = inverted(left_covariances[i] + right_covariances[j])
-        w = unscaled / scale[pair_join, None]
+        first_round = previous is None  # the factor is 1 (a division by it changes nothing)
+        w = unscaled if first_round else unscaled / scale[pair_join, None]
         terms = _joint_terms(r, w, lever[j])
-        information = prior_information / scale[:, None, None]
+        information = prior_information if first_round else prior_information / scale[:, None, None]
         keep, sum_g, sum_m = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
         if not keep.all():  # mostly all are kept: then the pairs and the joint test's sums as they are
@@ -572,6 +573,8 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
     right features are left new and counted ambiguous; the right features are predicted through each join's link
     as ``found`` corrected it."""
     noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
+    if not (drift >= noise).any():  # no drifted pair (drift_rivals would drop none)
+        return found
     drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
                         drift, left_sightings)
     if not drop.any():
@@ -744,13 +747,14 @@ class _Associator:
         self.drift = self.drift.grown(self.count)
         return ids
 
-    def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray) -> None:
+    def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray | slice,
+                 new: np.ndarray | slice) -> None:
         """Features ``ids`` seen with ``covariances`` (in their frame) by maps ``sightings``: fused into the
-        ``matched`` ones, the others new."""
+        ``matched`` ones, the ``new`` ones (the others; a mask and its negation, or two slices) new."""
         self.covariances[ids[matched]] = fused(self.covariances[ids[matched]], covariances[matched])
-        self.covariances[ids[~matched]] = covariances[~matched]
+        self.covariances[ids[new]] = covariances[new]
         self.sightings[ids[matched]] |= sightings[matched]
-        self.sightings[ids[~matched]] = sightings[~matched]
+        self.sightings[ids[new]] = sightings[new]
 
     # sequential strategy -----------------------------------------------------------------
     def first(self, size: int) -> np.ndarray:
@@ -801,7 +805,8 @@ class _Associator:
         ids = np.empty(len(z), dtype=np.int64)
         ids[:len(found.right)] = found.left
         ids[len(found.right):] = self._fresh(len(z) - len(found.right))
-        self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], np.arange(len(z)) < len(found.right))
+        self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], slice(None, len(found.right)),
+                      slice(len(found.right), None))
         self.row_ids[self.offsets[k] + order] = ids
         points, maps, matched_count = self.row_points[rows][order], np.full(len(z), k), len(found.right)
         self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count], strain)
@@ -871,7 +876,7 @@ class _Associator:
         ids[right] = renamed
         matched = np.zeros(len(right), dtype=bool)
         matched[found.right] = True
-        self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched)
+        self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched, ~matched)
         # a match's last sighting is its right feature's; a new id has its old one's sightings
         self.drift.merged(renamed[matched], pieces.feature_ids[right][matched])
         self.drift.strain[renamed[found.right]] = strain
