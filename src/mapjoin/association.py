@@ -222,12 +222,13 @@ def chi2_quantile(level: float, dof: np.ndarray | int) -> np.ndarray:
 
 
 _QUANTILES: dict[float, np.ndarray] = {}  # level -> chi2_quantile(level, 2k) for k = 0, 1, 2, ...
+_NO_QUANTILES = np.zeros(1)
 
 
 def _threshold(level: float, pairs: np.ndarray | int) -> np.ndarray:
     """``chi2_quantile(level, 2 * pairs)`` from a table grown by doubling (the joint test asks it per join)."""
-    table = _QUANTILES.get(level, np.zeros(1))
-    largest = int(np.max(pairs, initial=0))
+    table = _QUANTILES.get(level, _NO_QUANTILES)
+    largest = pairs if isinstance(pairs, int) else int(pairs.max(initial=0))
     if largest >= len(table):
         table = np.concatenate([[0.0], chi2_quantile(level, 2 * np.arange(1, max(2 * len(table), largest + 1)))])
         _QUANTILES[level] = table
@@ -314,10 +315,13 @@ def _joint_terms(r: np.ndarray, w: np.ndarray, u: np.ndarray) -> tuple[np.ndarra
     ``[xx, xy, yy]``): ``r^T W r``, ``H^T W r`` (k x 3) and ``H^T W H`` (k x 9), ``H = [I, u]`` (complex ``r``, ``u``)."""
     wxx, wxy, wyy = w.T
     ux, uy = u.real, u.imag
-    qx, qy = wxx * r.real + wxy * r.imag, wxy * r.real + wyy * r.imag  # W r
-    g = np.stack([qx, qy, ux * qx + uy * qy], axis=1)
-    px, py = wxx * ux + wxy * uy, wxy * ux + wyy * uy  # W u
-    h = np.stack([wxx, wxy, px, wxy, wyy, py, px, py, ux * px + uy * py], axis=1)
+    g, h = np.empty((len(r), 3)), np.empty((len(r), 9))  # filled by columns (fewer calls than stacking)
+    g[:, 0] = qx = wxx * r.real + wxy * r.imag  # W r
+    g[:, 1] = qy = wxy * r.real + wyy * r.imag
+    g[:, 2] = ux * qx + uy * qy
+    h[:, 2] = h[:, 6] = px = wxx * ux + wxy * uy  # W u
+    h[:, 5] = h[:, 7] = py = wxy * ux + wyy * uy
+    h[:, 0], h[:, 1], h[:, 3], h[:, 4], h[:, 8] = wxx, wxy, wxy, wyy, ux * px + uy * py
     return r.real * qx + r.imag * qy, g, h
 
 
@@ -926,8 +930,7 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     order = np.argsort(relabelled, kind="stable")
     global_map = dataclasses.replace(global_map, feature_ids=relabelled[order], features=global_map.features[order],
                                      feature_variances=global_map.feature_variances[order])
-    report = tuple(AssociatedJoinRecord(**{f.name: getattr(record, f.name) for f in dataclasses.fields(record)},
-                                        ambiguous=ambiguous, rejected=rejected)
+    report = tuple(AssociatedJoinRecord(**vars(record), ambiguous=ambiguous, rejected=rejected)
                    for record, (ambiguous, rejected) in zip(result.report, associator.counts))
     offsets = associator.offsets.tolist()
     per_map = []
