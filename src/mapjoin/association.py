@@ -274,8 +274,11 @@ def rotated(covariances: np.ndarray, phi: np.ndarray | float) -> np.ndarray:
     """``R(phi) C R(phi)^T`` of 2 x 2 covariances (rows ``[xx, xy, yy]``; ``phi`` one angle or one per row)."""
     c, s = np.cos(phi), np.sin(phi)
     xx, xy, yy = covariances.T
-    return np.column_stack([c * c * xx - 2 * c * s * xy + s * s * yy, c * s * (xx - yy) + (c * c - s * s) * xy,
-                            s * s * xx + 2 * c * s * xy + c * c * yy])
+    out = np.empty((len(covariances), 3))
+    out[:, 0] = c * c * xx - 2 * c * s * xy + s * s * yy
+    out[:, 1] = c * s * (xx - yy) + (c * c - s * s) * xy
+    out[:, 2] = s * s * xx + 2 * c * s * xy + c * c * yy
+    return out
 
 
 _ADJUGATE_SIGNS = np.array([1.0, -1.0, 1.0])
@@ -784,7 +787,7 @@ class _Associator:
         rows = slice(self.offsets[k], self.offsets[k + 1])
         right_covariances = rotated(self.row_covariances[rows], link_phi)
         nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
-        drift = (*self.drift.before(np.arange(used), k - 1), nothing, nothing)
+        drift = (*self.drift.before(slice(None, used), k - 1), nothing, nothing)
         asked: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the pairs' drift, asked by steps 7 and the tie
 
         def pair_drift(i: np.ndarray, j: np.ndarray) -> np.ndarray:

@@ -119,7 +119,7 @@ class SightingDrift:
         for array in (self.first_map, self.first_point, self.last_map, self.last_point, self.strain):
             array[ids] = array[others]
 
-    def before(self, ids: np.ndarray, link_map: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
+    def before(self, ids: np.ndarray | slice, link_map: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
         """``D`` of left features ``ids`` relative to the end of map ``link_map`` (their piece's last map: one, or one
         per feature), over the junctions after their last sighting up to that map's start, and the heading variance
         those junctions add (the sum of their ``p``)."""
