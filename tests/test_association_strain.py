@@ -137,6 +137,31 @@ def test_settled_drift_against_a_level_is_exact_where_it_reaches_it(seed, n, tie
     assert np.array_equal(got >= level, reached)
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(5, 14), tie_count=st.integers(0, 4))
+def test_settled_drift_of_right_pieces_against_a_level_is_exact_where_it_reaches_it(seed, n, tie_count):
+    """settled_after(level=L) against settled_after: the same D where that reaches L, below L elsewhere; level=inf
+    is the direct way plus strain, at least D (the tree's pairs ask the ties only where that bound reaches L)."""
+    rng = np.random.default_rng(seed)
+    _, _, drift, _ = _random_chain(rng, n, 12)
+    link = rng.integers(0, n - 3, 12)
+    end = link + 1 + rng.integers(0, n - 2 - link)
+    first = link + 1 + (rng.integers(0, 1 << 30, 12) % (end - link))
+    points = rng.normal(size=12) + 1j * rng.normal(size=12)
+    drift.seen(np.arange(12), first, points)
+    drift.strain[:] = rng.uniform(0, 0.01, len(drift.strain))
+    for _ in range(tie_count):
+        old, junction = sorted(int(x) for x in rng.integers(0, n, 2))
+        drift.tie(old, junction, float(rng.uniform(0, 0.05)))
+    exact = drift.settled_after(np.arange(12), link, end)
+    level = exact * rng.choice([0.5, 1.0, 2.0], 12)
+    got = drift.settled_after(np.arange(12), link, end, level=level)
+    reached = exact >= level
+    assert np.array_equal(got[reached], exact[reached])
+    assert (got[~reached] < level[~reached]).all()
+    assert (drift.settled_after(np.arange(12), link, end, level=np.inf) >= exact).all()
+
+
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(2, 10))
 def test_one_junction_placed_as_a_float_row_equals_the_array_form(seed, n):

@@ -717,6 +717,20 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
     return keep, big_g, big_m
 
 
+def _asked_once(pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray]
+                ) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``pair_drift`` remembering its last pairs and answer: step 7 asks it for a join's pairs, the chain's ties ask
+    it again after step 6, which mostly changed no pair."""
+    last: list = []
+
+    def remembered(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        if not (last and np.array_equal(last[0], i) and np.array_equal(last[1], j)):
+            last[:] = [i, j, pair_drift(i, j)]
+        return last[2]
+
+    return remembered
+
+
 class _Associator:
     """The hooks :mod:`mapjoin.joining` calls before each join (``associate=``), numbering features as they are
     matched, and after each sequential join (:meth:`placed`: its posterior, for the drift; the tree's are read
@@ -788,14 +802,8 @@ class _Associator:
         right_covariances = rotated(self.row_covariances[rows], link_phi)
         nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
         drift = (*self.drift.before(slice(None, used), k - 1), nothing, nothing)
-        asked: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # the pairs' drift, asked by steps 7 and the tie
-
-        def pair_drift(i: np.ndarray, j: np.ndarray) -> np.ndarray:
-            if asked and np.array_equal(asked[0][0], i) and np.array_equal(asked[0][1], j):
-                return asked[0][2]  # mostly steps 6 and 7 changed no pair
-            asked[:] = [(i, j, self.drift.settled(i, k - 1, level=_pair_noise(self.covariances, right_covariances,
-                                                                                i, j)))]
-            return asked[0][2]
+        pair_drift = _asked_once(lambda i, j: self.drift.settled(
+            i, k - 1, level=_pair_noise(self.covariances, right_covariances, i, j)))
 
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
@@ -865,9 +873,17 @@ class _Associator:
         end = pieces.last[1:2 * count:2]  # each join's right piece's last map
         right_ids = pieces.feature_ids[right]
 
+        @_asked_once
         def pair_drift(i: np.ndarray, j: np.ndarray) -> np.ndarray:
-            return (self.drift.settled(left_ids[i], link_map[left_join[i]], start[left_join[i]])
-                    + self.drift.settled_after(right_ids[j], link_map[right_join[j]], end[right_join[j]]))
+            # compared with the pairs' noise only: the ties are searched for the pairs whose direct ways reach it
+            left_way = (left_ids[i], link_map[left_join[i]], start[left_join[i]])
+            right_way = (right_ids[j], link_map[right_join[j]], end[right_join[j]])
+            drift = self.drift.settled(*left_way, level=np.inf) + self.drift.settled_after(*right_way, level=np.inf)
+            reach = np.flatnonzero(drift >= _pair_noise(self.covariances, right_covariances, left_ids[i], j))
+            if len(reach):
+                drift[reach] = (self.drift.settled(*(part[reach] for part in left_way))
+                                + self.drift.settled_after(*(part[reach] for part in right_way)))
+            return drift
 
         found = match_with_drift(pieces.features[left], self.covariances[left_ids], left_join,
                                  pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],

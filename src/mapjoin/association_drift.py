@@ -140,7 +140,7 @@ class SightingDrift:
         self.ties.append((int(old_map), int(junction), float(strain)))
 
     def settled(self, ids: np.ndarray, link_map: np.ndarray | int, start: np.ndarray | int = 0,
-                level: np.ndarray | None = None) -> np.ndarray:
+                level: np.ndarray | float | None = None) -> np.ndarray:
         """``D`` of left features ``ids`` relative to the end of map ``link_map`` (one, or one per feature) over the
         shorter way: the junctions since their last sighting (:meth:`before`), or, through a tie ``(m, c)`` made
         between map ``start`` and the link (the left piece's maps: the sequential join's start at 0), the junctions
@@ -150,7 +150,8 @@ class SightingDrift:
 
         The callers only compare ``D`` with a ``level`` (a pair's noise): given it, the ties are searched only for
         the features whose direct ``D`` plus strain reaches it (the shorter way is no longer); the others' direct
-        ``D`` plus strain is below it, as is their ``D``."""
+        ``D`` plus strain is below it, as is their ``D`` (``level=np.inf``: the direct way plus strain for all, an upper
+        bound)."""
         ids = np.asarray(ids, dtype=np.intp)
         seen, point = self.last_map[ids], self.last_point[ids]
         best = drift_variance(self.sums[np.asarray(link_map, dtype=np.intp) + 1] - self.sums[seen + 1], point)
@@ -175,25 +176,32 @@ class SightingDrift:
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
         return best + strain
 
-    def settled_after(self, ids: np.ndarray, link_map: np.ndarray, end: np.ndarray) -> np.ndarray:
+    def settled_after(self, ids: np.ndarray, link_map: np.ndarray, end: np.ndarray,
+                      level: np.ndarray | float | None = None) -> np.ndarray:
         """``D`` of right features ``ids`` of a tree join (:meth:`after`) over the shorter way: directly, or through a
         tie ``(m, c)`` inside the right piece (maps ``link_map + 1`` to ``end``), the junctions from the piece's start
         to map ``m`` (at the feature moved by map ``c``'s place to map ``m``'s), the tie's strain, and the junctions
-        between map ``c`` and the feature's first sighting (either way); plus the feature's own :attr:`strain`."""
+        between map ``c`` and the feature's first sighting (either way); plus the feature's own :attr:`strain`. As
+        :meth:`settled`, with a ``level`` the ties are searched only where the direct way reaches it (``np.inf``:
+        nowhere, the direct way plus strain, an upper bound)."""
         ids = np.asarray(ids, dtype=np.intp)
         first, point = self.first_map[ids], self.first_point[ids]
         best = drift_variance(self.sums[first + 1] - self.sums[link_map + 2], point)
-        ties = np.array(self.ties, dtype=float).reshape(-1, 3)
-        drifted = np.flatnonzero(best > 0)
-        if len(ties) and len(drifted):
-            old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+        strain = self.strain[ids]
+        drifted = best > 0
+        if level is not None:
+            drifted &= best + strain >= level
+        drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
+        if len(drifted):
+            ties = np.array(self.ties, dtype=float).reshape(-1, 3)
+            old_map, junction, tie_strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
             first, point, link, last = first[drifted], point[drifted], link_map[drifted], end[drifted]
             low, high = np.minimum(first[:, None], junction), np.maximum(first[:, None], junction)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
                                    np.repeat(point, len(ties))).reshape(len(first), len(ties))
             moved = point[:, None] - self.chain.poses[junction] + self.chain.poses[old_map]
             since = self.sums[old_map + 1][None, :, :] - self.sums[link + 2][:, None, :]  # masked below unless inside
-            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(first), len(ties))
+            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(first), len(ties))
             inside = (old_map >= link[:, None] + 1) & (junction <= last[:, None])
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
-        return best + self.strain[ids]
+        return best + strain

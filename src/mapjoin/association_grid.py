@@ -5,8 +5,8 @@ a Euclidean radius per right feature; :func:`pairs_within` finds the (left, righ
 Every pair of a join at once costs the product of the two sides (a tree level's upper joins: hundreds by hundreds),
 a k-d tree per call returns Python lists per point; a grid costs what the points and the pairs found cost. Each
 join gets square cells as wide as its largest radius, so a right point's partners lie in the 3 x 3 cells around
-its own: the left points are sorted once by (join, cell), and each right point's nine cells are two binary
-searches each, as arrays.
+its own: the left points are sorted once by (join, cell), and each right point's nine cells, three runs of
+consecutive keys, are two binary searches per run, as arrays.
 """
 
 from __future__ import annotations
@@ -17,9 +17,8 @@ __all__ = ["pairs_within"]
 
 #: a join's cells across the points' extent, at most (2^16 + 3)^2 per join: keys of up to 2^20 joins exact in floats
 _MOST_CELLS = 2.0 ** 16
-#: the 3 x 3 neighbourhood of a cell, as offsets in x and y
-_AROUND_X = np.repeat(np.arange(-1, 2), 3)
-_AROUND_Y = np.tile(np.arange(-1, 2), 3)
+#: the 3 x 3 neighbourhood of a cell: three columns (offsets in x), each three consecutive keys (y - 1 .. y + 1)
+_AROUND_X = np.arange(-1, 2)
 
 
 def pairs_within(left: np.ndarray, left_join: np.ndarray, right: np.ndarray, right_join: np.ndarray,
@@ -43,12 +42,12 @@ def pairs_within(left: np.ndarray, left_join: np.ndarray, right: np.ndarray, rig
     left_key = (left_join * width + (left_x - low_x)) * height + (left_y - low_y)
     order = np.argsort(left_key.astype(np.int64), kind="stable")
     sorted_key = left_key.astype(np.int64)[order]
-    keys = ((right_join[:, None] * width + (right_x[:, None] + _AROUND_X - low_x)) * height
-            + (right_y[:, None] + _AROUND_Y - low_y)).astype(np.int64).ravel()
-    first = np.searchsorted(sorted_key, keys, side="left")
-    count = np.searchsorted(sorted_key, keys, side="right") - first
+    column = ((right_join[:, None] * width + (right_x[:, None] + _AROUND_X - low_x)) * height
+              + (right_y[:, None] - low_y)).astype(np.int64).ravel()
+    first = np.searchsorted(sorted_key, column - 1, side="left")
+    count = np.searchsorted(sorted_key, column + 1, side="right") - first
     total = int(count.sum())
-    j = np.repeat(np.arange(len(keys)) // 9, count)
+    j = np.repeat(np.arange(len(column)) // 3, count)
     i = order[np.repeat(first - (np.cumsum(count) - count), count) + np.arange(total)]
     near = np.abs(left[i] - right[j]) <= radius[j]
     i, j = i[near], j[near]
