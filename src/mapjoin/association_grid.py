@@ -33,7 +33,7 @@ def pairs_within(left: np.ndarray, left_join: np.ndarray, right: np.ndarray, rig
     np.maximum.at(cell, right_join, radius)
     # cells at least 2^-16 of the points' extent (wider cells only hold more points): their keys stay exact
     span = max(np.ptp(left.real), np.ptp(left.imag), np.ptp(right.real), np.ptp(right.imag))
-    cell = np.maximum(cell, max(span, 1.0) / _MOST_CELLS)
+    cell = np.maximum(cell * (1 + 1e-9), max(span, 1.0) / _MOST_CELLS)  # a hair wider: no rounding skips a cell
     left_x, left_y = np.floor(left.real / cell[left_join]), np.floor(left.imag / cell[left_join])
     right_x, right_y = np.floor(right.real / cell[right_join]), np.floor(right.imag / cell[right_join])
     low_x, low_y = min(left_x.min(), right_x.min() - 1), min(left_y.min(), right_y.min() - 1)

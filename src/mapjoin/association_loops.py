@@ -57,16 +57,14 @@ def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.
     for column in (join, *cells.T):
         values, compact = np.unique(column, return_inverse=True)
         key = key * len(values) + compact
-    cell, number = np.unique(key, return_inverse=True)
+    cell, row, number = np.unique(key, return_index=True, return_inverse=True)  # row: each cell's first vote
     size = np.int64(max(int(first.max(initial=0)), int(second.max(initial=0))) + 1)
     pairs = np.unique((number * size + first) * size + second)  # one vote per right pair and cell
     agreement = np.bincount(pairs // (size * size), minlength=len(cell))
     ends = np.unique(np.concatenate([pairs // (size * size) * size + pairs % (size * size) // size,
                                      pairs // (size * size) * size + pairs % size]))
     support = np.bincount(ends // size, minlength=len(cell))
-    where = np.searchsorted(key, cell, sorter=np.argsort(key, kind="stable"))
-    row = np.argsort(key, kind="stable")[where]  # a vote of each cell: its join and coordinates
-    return join[row], cells[row], support, agreement
+    return join[row], cells[row], support, agreement  # a vote of each cell: its join and coordinates
 
 
 def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
