@@ -51,12 +51,20 @@ def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The occupied cells (``cells``: integer coordinates per vote, a vote being two pairs of right features
     ``first`` < ``second``) with their join, their distinct right features and their distinct right pairs.
-    Cells are numbered by one integer key (each column's values made compact), so that every count is a sort of
-    integers."""
+    Cells are numbered by one integer key, lexicographic in (join, cell), so that every count is a sort of
+    integers: each column offset by its least value, or, were the key too large for that, its values made compact
+    (a sort per column)."""
+    columns = [join, *cells.T]
+    low = [int(column.min(initial=0)) for column in columns]
+    spans = [int(column.max(initial=0)) - least + 1 for column, least in zip(columns, low)]
+    compact = float(np.prod(np.array(spans, dtype=float))) >= 2.0 ** 62
     key = np.zeros(len(join), np.int64)
-    for column in (join, *cells.T):
-        values, compact = np.unique(column, return_inverse=True)
-        key = key * len(values) + compact
+    for column, least, span in zip(columns, low, spans):
+        if compact:
+            values, offset = np.unique(column, return_inverse=True)
+            key = key * len(values) + offset
+        else:
+            key = key * span + (column - least)
     cell, row, number = np.unique(key, return_index=True, return_inverse=True)  # row: each cell's first vote
     size = np.int64(max(int(first.max(initial=0)), int(second.max(initial=0))) + 1)
     pairs = np.unique((number * size + first) * size + second)  # one vote per right pair and cell
