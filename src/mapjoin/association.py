@@ -295,6 +295,9 @@ def fused(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     return inverted(inverted(first) + inverted(second))
 
 
+_BLOCK_ROWS, _BLOCK_COLUMNS = np.array([0, 0, 1]), np.array([0, 1, 1])  # a 2 x 2 block's xx, xy, yy
+
+
 def feature_covariances(local_map: LocalMap) -> np.ndarray:
     """Each feature's 2 x 2 marginal covariance in ``local_map``'s frame (rows ``[xx, xy, yy]``, in the order of
     the sorted feature ids, as :mod:`mapjoin.joining` holds them): the blocks of the full covariance when the map
@@ -303,9 +306,8 @@ def feature_covariances(local_map: LocalMap) -> np.ndarray:
     order = np.argsort(local_map.feature_ids, kind="stable")
     if local_map.covariance is None:
         return blocks(local_map.feature_variances[order])
-    rows = 3 + 2 * order
-    covariance = local_map.covariance
-    return np.column_stack([covariance[rows, rows], covariance[rows, rows + 1], covariance[rows + 1, rows + 1]])
+    rows = 3 + 2 * order[:, None]  # each feature's x row; its [xx, xy, yy] entries in one gather
+    return local_map.covariance[rows + _BLOCK_ROWS, rows + _BLOCK_COLUMNS]
 
 
 def _mahalanobis(r: np.ndarray, information: np.ndarray) -> np.ndarray:
