@@ -711,8 +711,11 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
     distance = np.bincount(pair_join, c, minlength=joins) - np.einsum(
         "ji,ji->j", big_g, np.linalg.solve(big_m, big_g[..., None])[..., 0])
     keep = np.ones(len(r), dtype=bool)
+    failing = (sizes > 0) & (distance > _threshold(gate, sizes))
+    if not failing.any():  # mostly every join's pairs are compatible
+        return keep, big_g, big_m
     starts = np.cumsum(sizes) - sizes
-    for join in np.flatnonzero((sizes > 0) & (distance > _threshold(gate, sizes))).tolist():
+    for join in np.flatnonzero(failing).tolist():
         rows = slice(starts[join], starts[join] + sizes[join])
         keep[rows] = _jointly_compatible((c[rows], g[rows], h[rows]), r[rows], w[rows], u[rows],
                                          information[join], gate)
