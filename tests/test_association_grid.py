@@ -16,11 +16,12 @@ def brute_force(left, left_join, right, right_join, radius):
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 100_000), joins=st.integers(1, 4), n=st.integers(0, 40), m=st.integers(0, 30),
+@given(seed=st.integers(0, 100_000), joins=st.integers(1, 4), n=st.integers(0, 300), m=st.integers(0, 120),
        extent=st.sampled_from([0.5, 10.0, 1e4]), spread=st.sampled_from([1e-6, 0.1, 1.0, 50.0]))
 def test_pairs_within_equal_every_pair_compared(seed, joins, n, m, extent, spread):
     """Points of several joins (each join's rows together, as the tree's), radii from tiny to wider than the extent,
-    some points on cell boundaries and duplicated: the same pairs in the same order as the brute force."""
+    some points on cell boundaries and duplicated, few pairs (compared at once) and many (the grid): the same pairs
+    in the same order as the brute force."""
     rng = np.random.default_rng(seed)
     left = rng.uniform(-extent, extent, n) + 1j * rng.uniform(-extent, extent, n)
     right = rng.uniform(-extent, extent, m) + 1j * rng.uniform(-extent, extent, m)

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["pairs_within"]
+__all__ = ["ALL_PAIRS", "pairs_within"]
 
+#: up to this many (left x right) pairs, every pair is compared (no grid)
+ALL_PAIRS = 1 << 14
 #: a join's cells across the points' extent, at most (2^16 + 3)^2 per join: keys of up to 2^20 joins exact in floats
 _MOST_CELLS = 2.0 ** 16
 #: the 3 x 3 neighbourhood of a cell: three columns (offsets in x), each three consecutive keys (y - 1 .. y + 1)
@@ -25,10 +27,13 @@ def pairs_within(left: np.ndarray, left_join: np.ndarray, right: np.ndarray, rig
                  radius: np.ndarray, joins: int) -> tuple[np.ndarray, np.ndarray]:
     """The pairs ``(i, j)`` of rows of ``left`` and ``right`` (complex points) in the same join (``left_join``,
     ``right_join``: each row's join, ``< joins``) with ``|left[i] - right[j]| <= radius[j]``, sorted by ``i`` then
-    ``j`` (the order of every pair enumerated row by row)."""
+    ``j`` (the order of every pair enumerated row by row). Up to :data:`ALL_PAIRS` pairs, every pair is compared."""
     empty = np.zeros(0, np.intp)
     if not len(left) or not len(right):
         return empty, empty
+    if len(left) * len(right) <= ALL_PAIRS:  # few: every pair compared at once costs less than sorting cells
+        i, j = np.nonzero((np.abs(left[:, None] - right[None, :]) <= radius) & (left_join[:, None] == right_join))
+        return i, j
     cell = np.zeros(joins)
     np.maximum.at(cell, right_join, radius)
     # cells at least 2^-16 of the points' extent (wider cells only hold more points): their keys stay exact
