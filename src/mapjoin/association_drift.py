@@ -51,6 +51,9 @@ class SightingDrift:
     strain: np.ndarray
     #: the chain's ties (old map, junction, strain), in the order they were made (:meth:`tie`)
     ties: list[tuple[int, int, float]] = field(default_factory=list)
+    #: the ties as arrays (old maps, junctions, strains), made again once ties were added (:meth:`tie_arrays`)
+    made_ties: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list, repr=False,
+                                                                       compare=False)
 
     @classmethod
     def of(cls, end_poses: np.ndarray, capacity: int) -> SightingDrift:
@@ -133,6 +136,13 @@ class SightingDrift:
         sums = self.sums[self.first_map[ids] + 1] - self.sums[link_map + 2]
         return drift_variance(sums, self.first_point[ids]), sums[:, 1]
 
+    def tie_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The chain's ties as arrays: old maps, junctions, strains (made once per new tie, not per join)."""
+        if not self.made_ties or len(self.made_ties[0][0]) != len(self.ties):
+            ties = np.array(self.ties, dtype=float).reshape(-1, 3)
+            self.made_ties[:] = [(ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2])]
+        return self.made_ties[0]
+
     def tie(self, old_map: int, junction: int, strain: float) -> None:
         """A join placed map ``junction`` (its start) by matching features last seen around map ``old_map``, whose
         estimates disagreed by ``strain`` (a variance: the join fused them partway and placed the map between):
@@ -161,17 +171,16 @@ class SightingDrift:
             drifted &= best + strain >= level
         drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
         if len(drifted):  # every (drifted feature, tie) at once
-            ties = np.array(self.ties, dtype=float).reshape(-1, 3)
+            old_map, junction, tie_strain = self.tie_arrays()
             link_map = np.broadcast_to(np.asarray(link_map, dtype=np.intp), ids.shape)
             start = np.broadcast_to(np.asarray(start, dtype=np.intp), ids.shape)
-            old_map, junction, tie_strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
             seen, point, link, first = seen[drifted], point[drifted], link_map[drifted], start[drifted]
             low, high = np.minimum(seen[:, None], old_map), np.maximum(seen[:, None], old_map)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
-                                   np.repeat(point, len(ties))).reshape(len(seen), len(ties))
+                                   np.repeat(point, len(old_map))).reshape(len(seen), len(old_map))
             moved = point[:, None] - self.chain.poses[old_map] + self.chain.poses[junction]
             since = self.sums[link + 1][:, None, :] - self.sums[junction + 1][None, :, :]
-            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(ties))
+            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(old_map))
             inside = (junction <= link[:, None]) & (junction >= first[:, None]) & (old_map >= first[:, None])
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
         return best + strain
@@ -193,15 +202,14 @@ class SightingDrift:
             drifted &= best + strain >= level
         drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
         if len(drifted):
-            ties = np.array(self.ties, dtype=float).reshape(-1, 3)
-            old_map, junction, tie_strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+            old_map, junction, tie_strain = self.tie_arrays()
             first, point, link, last = first[drifted], point[drifted], link_map[drifted], end[drifted]
             low, high = np.minimum(first[:, None], junction), np.maximum(first[:, None], junction)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
-                                   np.repeat(point, len(ties))).reshape(len(first), len(ties))
+                                   np.repeat(point, len(old_map))).reshape(len(first), len(old_map))
             moved = point[:, None] - self.chain.poses[junction] + self.chain.poses[old_map]
             since = self.sums[old_map + 1][None, :, :] - self.sums[link + 2][:, None, :]  # masked below unless inside
-            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(first), len(ties))
+            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(first), len(old_map))
             inside = (old_map >= link[:, None] + 1) & (junction <= last[:, None])
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
         return best + strain
