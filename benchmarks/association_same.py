@@ -3,7 +3,7 @@ rejected counts of `join --associate`, compared between this checkout and anothe
 
 The cases: the association benchmark's three datasets with local ids, sequential and tree, also with a narrower
 gate and margin; simulated runs with local ids (as `simulate --local-ids` makes them) of 20 and 40 maps over
---seeds seeds, with and without the maps' full covariances. A change meant to make the association faster must
+--seeds seeds, with and without the maps' full covariances, and noiseless runs of 13 maps. A change meant to make the association faster must
 leave every id as it was (then every output of `join --associate` is the same, byte for byte).
 
     git archive main src | tar -x -C /tmp/before
@@ -47,6 +47,9 @@ def cases(data: Path, seeds: int):
             for strategy in ("sequential", "tree"):
                 yield f"simulation {count} seed {seed} {strategy}", local, {"strategy": strategy}
                 yield f"simulation {count} seed {seed} {strategy} no covariances", spherical, {"strategy": strategy}
+        noiseless, _ = local_ids(simulate(13, seed=seed + 112, noiseless=True).maps)  # seed 119: a false link
+        for strategy in ("sequential", "tree"):
+            yield f"noiseless simulation 13 seed {seed + 112} {strategy}", noiseless, {"strategy": strategy}
 
 
 def dump(path: str, data: Path, seeds: int) -> None:
