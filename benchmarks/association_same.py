@@ -3,8 +3,9 @@ rejected counts of `join --associate`, compared between this checkout and anothe
 
 The cases: the association benchmark's three datasets with local ids, sequential and tree, also with a narrower
 gate and margin; simulated runs with local ids (as `simulate --local-ids` makes them) of 20 and 40 maps over
---seeds seeds, with and without the maps' full covariances, and noiseless runs of 13 maps. A change meant to make the association faster must
-leave every id as it was (then every output of `join --associate` is the same, byte for byte).
+--seeds seeds, with and without the maps' full covariances, and noiseless runs of 13 maps. A change meant to make
+the association faster must leave every id as it was (then every output of `join --associate` is the same, byte
+for byte).
 
     git archive main src | tar -x -C /tmp/before
     PYTHONPATH=src python benchmarks/association_same.py --before /tmp/before/src [--seeds 8]

@@ -440,14 +440,15 @@ def sighting_bits(maps: np.ndarray) -> np.ndarray:
 
 def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, largest: np.ndarray,
           predicted: np.ndarray, lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray,
-          link: np.ndarray, scale: np.ndarray, g2: float, margin: float = DEFAULT_MARGIN,
+          link: np.ndarray, scale: np.ndarray | None, g2: float, margin: float = DEFAULT_MARGIN,
           left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The unambiguous candidate pairs (left rows, right rows) of every join, and the ambiguous right rows
     (sorted).
 
     A pair's innovation ``r = f - x`` has covariance ``S = C0 + C1 + H link H^T`` with ``H = [I, u]`` (``C0``,
-    ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``, times their join's variance factor ``scale``;
+    ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``, times their join's variance factor ``scale``
+    (None: 1);
     ``largest[join]``: the largest trace of its left ``C0`` before the factor; ``link[join]``: the 3 x 3 covariance
     of the join's link error); it is a candidate when ``d^2 = r^T S^-1 r <= g2``. A candidate is taken when it is its
     right feature's nearest and its left feature's nearest, and each one's nearest rival (:func:`_best`, given the
@@ -462,11 +463,15 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     syy = own[:, 1, 1] + 2 * uy * own[:, 1, 2] + own[:, 2, 2] * uy * uy
     sxy = own[:, 0, 1] + ux * own[:, 1, 2] + uy * own[:, 0, 2] + own[:, 2, 2] * ux * uy
     # the trace bounds the largest eigenvalue: every pair in the gate is within this Euclidean radius
-    radius = np.sqrt(g2 * (scale[right_join] * (largest[right_join] + right_covariances[:, 0] + right_covariances[:, 2])
-                           + sxx + syy))
+    own_trace = largest[right_join] + right_covariances[:, 0] + right_covariances[:, 2]
+    radius = np.sqrt(g2 * ((own_trace if scale is None else scale[right_join] * own_trace) + sxx + syy))
     i, j = _candidates(left, left_join, predicted, right_join, radius, joins)
     r = left[i] - predicted[j]
-    own_covariances = scale[left_join[i], None] * left_covariances[i] + scale[right_join[j], None] * right_covariances[j]
+    if scale is None:  # a factor of 1 changes nothing
+        own_covariances = left_covariances[i] + right_covariances[j]
+    else:
+        own_covariances = (scale[left_join[i], None] * left_covariances[i]
+                           + scale[right_join[j], None] * right_covariances[j])
     xx, xy, yy = own_covariances[:, 0] + sxx[j], own_covariances[:, 1] + sxy[j], own_covariances[:, 2] + syy[j]
     det = xx * yy - xy * xy  # S^-1 in closed form (as inverted), its quadratic form (as _mahalanobis)
     d2 = (yy / det) * r.real**2 + 2 * (-xy / det) * r.real * r.imag + (xx / det) * r.imag**2
@@ -517,13 +522,14 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     largest = _join_maxima(left_covariances[:, 0] + left_covariances[:, 2], left_join, joins)
     previous = None
     for _ in range(ROUNDS):
+        first_round = previous is None  # the factor is 1 (a product or a division by it changes nothing)
         i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
-                                right_join, link, scale, g2, margin, left_sightings, right_sightings)
+                                right_join, link, None if first_round else scale, g2, margin, left_sightings,
+                                right_sightings)
         ambiguous = np.bincount(right_join[undecided], minlength=joins)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
         unscaled = inverted(left_covariances[i] + right_covariances[j])
-        first_round = previous is None  # the factor is 1 (a division by it changes nothing)
         w = unscaled if first_round else unscaled / scale[pair_join, None]
         terms = _joint_terms(r, w, lever[j])
         information = prior_information if first_round else prior_information / scale[:, None, None]
@@ -828,9 +834,9 @@ class _Associator:
         self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], slice(None, len(found.right)),
                       slice(len(found.right), None))
         self.row_ids[self.offsets[k] + order] = ids
-        points, maps, matched_count = self.row_points[rows][order], np.full(len(z), k), len(found.right)
-        self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count], strain)
-        self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
+        points, matched_count = self.row_points[rows][order], len(found.right)
+        self.drift.seen_again(ids[:matched_count], k, points[:matched_count], strain)
+        self.drift.seen(ids[matched_count:], k, points[matched_count:])
         return order, ids, len(found.right)
 
     def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,

@@ -98,15 +98,16 @@ class SightingDrift:
         np.add.at(terms, junctions + 1, rows)
         self.sums[:] += np.cumsum(terms, axis=0)
 
-    def seen(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray) -> None:
-        """New features ``ids`` seen by ``maps`` at ``points`` (each in its map's frame): first and last sighting."""
+    def seen(self, ids: np.ndarray, maps: np.ndarray | int, points: np.ndarray) -> None:
+        """New features ``ids`` seen by ``maps`` (one each, or one for all) at ``points`` (each in its map's frame):
+        first and last sighting."""
         reckoned = self.chain.dead_reckoned(maps, points)
         self.first_map[ids], self.first_point[ids] = maps, reckoned
         self.last_map[ids], self.last_point[ids] = maps, reckoned
         self.strain[ids] = 0.0
 
-    def seen_again(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray, strain: np.ndarray | float = 0.0
-                   ) -> None:
+    def seen_again(self, ids: np.ndarray, maps: np.ndarray | int, points: np.ndarray,
+                   strain: np.ndarray | float = 0.0) -> None:
         """Features ``ids`` seen again by later ``maps`` at ``points``, ``strain`` from their estimates (squared
         distances): their last sighting."""
         self.last_map[ids], self.last_point[ids] = maps, self.chain.dead_reckoned(maps, points)
@@ -180,7 +181,8 @@ class SightingDrift:
                                    np.repeat(point, len(old_map))).reshape(len(seen), len(old_map))
             moved = point[:, None] - self.chain.poses[old_map] + self.chain.poses[junction]
             since = self.sums[link + 1][:, None, :] - self.sums[junction + 1][None, :, :]
-            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(old_map))
+            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(
+                len(seen), len(old_map))
             inside = (junction <= link[:, None]) & (junction >= first[:, None]) & (old_map >= first[:, None])
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
         return best + strain
@@ -209,7 +211,8 @@ class SightingDrift:
                                    np.repeat(point, len(old_map))).reshape(len(first), len(old_map))
             moved = point[:, None] - self.chain.poses[junction] + self.chain.poses[old_map]
             since = self.sums[old_map + 1][None, :, :] - self.sums[link + 2][:, None, :]  # masked below unless inside
-            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(first), len(old_map))
+            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(
+                len(first), len(old_map))
             inside = (old_map >= link[:, None] + 1) & (junction <= last[:, None])
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
         return best + strain
