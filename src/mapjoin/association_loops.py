@@ -122,17 +122,19 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
         # (u's rows, then one run of v's rows per row of u) repeated and shifted, without dividing vote indices
         runs, run_first = np.repeat(size[v], size[u]), np.repeat(first[v], size[u])
         own = np.arange(int(size[u].sum())) + np.repeat(first[u] - (np.cumsum(size[u]) - size[u]), size[u])
-        p = np.repeat(own, runs)
         q = np.arange(total) + np.repeat(run_first - (np.cumsum(runs) - runs), runs)
         # two different left features whose distance agrees with their right features' (one per pair u, v); the
-        # rows' left features, points and noise gathered once, each vote reading them by position
+        # rows' left features, points and noise gathered once, each vote reading them by position (u's side
+        # repeated along its runs), the distinct left features checked among the votes that agree
         row_left, row_noise = a[rows], noise[rows]
         row_point = left[row_left]
-        span_left = row_point[p] - row_point[q]
+        span_left = np.repeat(row_point[own], runs) - row_point[q]
         span = np.abs(right_points[features[u]] - right_points[features[v]])
-        agree = (row_left[p] != row_left[q]) & ((np.abs(span_left) - np.repeat(span, per)) ** 2
-                                                 <= g2 * (row_noise[p] + row_noise[q]))
-        p, q, span_left = rows[p[agree]], rows[q[agree]], span_left[agree]
+        agree = np.flatnonzero((np.abs(span_left) - np.repeat(span, per)) ** 2
+                               <= g2 * (np.repeat(row_noise[own], runs) + row_noise[q]))
+        p, q, span_left = np.repeat(own, runs)[agree], q[agree], span_left[agree]
+        distinct = row_left[p] != row_left[q]
+        p, q, span_left = rows[p[distinct]], rows[q[distinct]], span_left[distinct]
         dphi = np.angle(span_left / (right_points[b[p]] - right_points[b[q]]))
         allowed = np.abs(dphi) <= np.minimum(turning[p], turning[q])
         p, q, dphi = p[allowed], q[allowed], dphi[allowed]
