@@ -35,7 +35,7 @@ def pairs_within(left: np.ndarray, left_join: np.ndarray, right: np.ndarray, rig
         i, j = np.nonzero((np.abs(left[:, None] - right[None, :]) <= radius) & (left_join[:, None] == right_join))
         return i, j
     cell = np.zeros(joins)
-    np.maximum.at(cell, right_join, radius)
+    np.fmax.at(cell, right_join, radius)  # (a NaN radius reaches nothing, as in the comparison below)
     # cells at least 2^-16 of the points' extent (wider cells only hold more points): their keys stay exact
     span = max(np.ptp(left.real), np.ptp(left.imag), np.ptp(right.real), np.ptp(right.imag))
     cell = np.maximum(cell * (1 + 1e-9), max(span, 1.0) / _MOST_CELLS)  # a hair wider: no rounding skips a cell
