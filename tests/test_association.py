@@ -147,8 +147,9 @@ def match_one(left, left_variances, link_xy, link_phi, link_variances, right, ri
 @pytest.mark.parametrize("brute_force", [True, False])
 def test_joins_matched_together_match_as_alone(brute_force, monkeypatch):
     """Three joins in one call (as a tree level) give each join's own association, whether the candidates
-    come from all pairs or from the k-d tree."""
+    come from all pairs or from the grid's cells."""
     monkeypatch.setattr("mapjoin.association.BRUTE_FORCE_PAIRS", 1 << 30 if brute_force else 0)
+    monkeypatch.setattr("mapjoin.association_grid.ALL_PAIRS", 1 << 30 if brute_force else 0)
     rng = np.random.default_rng(8)
     problems = []
     for _ in range(3):
@@ -166,8 +167,38 @@ def test_joins_matched_together_match_as_alone(brute_force, monkeypatch):
     expected = [(30 * k + i, 17 * k + j) for k, found in enumerate(alone)
                 for i, j in zip(found.left.tolist(), found.right.tolist())]
     assert sorted(zip(together.left.tolist(), together.right.tolist())) == sorted(expected)
+    assert together.right.tolist() == sorted(set(together.right.tolist()))
     assert all(len(found.left) >= 11 for found in alone)
     assert together.ambiguous.tolist() == [int(found.ambiguous[0]) for found in alone]
+
+
+@pytest.mark.parametrize("rounds", [2, 3, 4])
+def test_a_tree_level_settles_joins_without_changing_them(rounds, monkeypatch):
+    """A tree level's joins whose state repeats (correction, factor, link) stop being associated while the others
+    go on: every level's outcome is consistent (each right row paired once, sorted; the ambiguous counts are the
+    undecided rows per join, which no pair uses), and the ids are those of the known-id truth's partition
+    wherever the tree found them, as with one round less or more (ROUNDS = 2, 3, 4)."""
+    monkeypatch.setattr("mapjoin.association.ROUNDS", rounds)
+    from mapjoin import association
+
+    seen = []
+    original = association.match_features
+
+    def checked(*args, **options):
+        found = original(*args, **options)
+        right_join = args[8]
+        assert found.right.tolist() == sorted(set(found.right.tolist()))
+        assert found.undecided.tolist() == sorted(set(found.undecided.tolist()))
+        assert not set(found.undecided.tolist()) & set(found.right.tolist())
+        assert found.ambiguous.tolist() == np.bincount(right_join[found.undecided], minlength=len(args[3])).tolist()
+        seen.append(len(args[3]))
+        return found
+
+    monkeypatch.setattr(association, "match_features", checked)
+    local, truth = local_ids(simulate(40, seed=4).maps)
+    found = join_associated(local, strategy="tree")
+    links, missed, _ = link_errors(local, truth, found)
+    assert max(seen) > 1 and links > 0 and missed < links
 
 
 def test_two_candidates_in_the_gate_leave_a_feature_new():

@@ -521,11 +521,21 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     scale = np.ones(joins)
     largest = _join_maxima(left_covariances[:, 0] + left_covariances[:, 2], left_join, joins)
     previous = None
-    for _ in range(ROUNDS):
+    live = np.ones(joins, dtype=bool)  # the joins whose next round may differ from their last
+    settled: list[tuple] = []  # the outcomes of the others: their state repeats, so would their rounds
+    for round_number in range(ROUNDS):
         first_round = previous is None  # the factor is 1 (a product or a division by it changes nothing)
-        i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
-                                right_join, link, None if first_round else scale, g2, margin, left_sightings,
-                                right_sightings)
+        if live.all():
+            i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
+                                    right_join, link, None if first_round else scale, g2, margin, left_sightings,
+                                    right_sightings)
+        else:  # the live joins' rows only; each join's pairs are what they would be among all
+            rows, columns = np.flatnonzero(live[left_join]), np.flatnonzero(live[right_join])
+            i, j, undecided = _gate(left[rows], left_covariances[rows], left_join[rows], largest, predicted[columns],
+                                    lever[columns], right_covariances[columns], right_join[columns], link, scale, g2,
+                                    margin, None if left_sightings is None else left_sightings[rows],
+                                    None if right_sightings is None else right_sightings[columns])
+            i, j, undecided = rows[i], columns[j], columns[undecided]
         ambiguous = np.bincount(right_join[undecided], minlength=joins)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
@@ -545,16 +555,49 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         previous = outcome
         # each link's correction and posterior covariance from its kept pairs; the robust variance factor
         posterior = np.linalg.inv(sum_m)
-        correction = np.einsum("jab,jb->ja", posterior, sum_g)
-        shift = correction[:, 0] + 1j * correction[:, 1]
-        residual = r - shift[pair_join] - lever[j] * correction[pair_join, 2]
+        fresh = np.einsum("jab,jb->ja", posterior, sum_g)
+        shift = fresh[:, 0] + 1j * fresh[:, 1]
+        residual = r - shift[pair_join] - lever[j] * fresh[pair_join, 2]
         dof = 2 * np.bincount(pair_join, minlength=joins) - 3
         factor = _segment_medians(_mahalanobis(residual, unscaled), pair_join, joins) / CHI2_2_MEDIAN
-        old, scale = scale, np.where(dof >= MIN_DOF, np.maximum(1.0, factor), 1.0)
-        link = posterior * (scale / old)[:, None, None]  # the posterior in the new scale's units
-        predicted = prior_prediction + shift[right_join] + lever * correction[right_join, 2]
+        fresh_scale = np.where(dof >= MIN_DOF, np.maximum(1.0, factor), 1.0)
+        fresh_link = posterior * (fresh_scale / scale)[:, None, None]  # the posterior in the new scale's units
+        if joins > 1 and round_number < ROUNDS - 1:  # a join whose state repeats would repeat its round: settled
+            repeats = live & (fresh_scale == scale) & (fresh == correction).all(axis=1) & (fresh_link == link).all(
+                axis=(1, 2))
+            if repeats.any():
+                settled.append(_settled_outcome(outcome, repeats, right_join))
+                live &= ~repeats
+                going = live[pair_join]
+                previous = (i[going], j[going])
+            fresh = np.where(live[:, None], fresh, correction)  # settled joins keep their state
+            fresh_scale = np.where(live, fresh_scale, scale)
+            fresh_link = np.where(live[:, None, None], fresh_link, link)
+        correction, scale, link = fresh, fresh_scale, fresh_link
+        predicted = prior_prediction + (correction[:, 0] + 1j * correction[:, 1])[right_join] \
+            + lever * correction[right_join, 2]
+    if settled:
+        outcome = _with_settled(outcome, settled, right_join)
     order = np.argsort(outcome[1], kind="stable")
     return Matches(outcome[0][order], outcome[1][order], *outcome[2:])
+
+
+def _settled_outcome(outcome: tuple, joins: np.ndarray, right_join: np.ndarray) -> tuple:
+    """The part of a round's ``outcome`` (left rows, right rows, ambiguous, rejected, undecided, correction) that
+    belongs to the ``joins`` (a mask over them)."""
+    i, j, ambiguous, rejected, undecided, _ = outcome
+    mine = joins[right_join[j]]
+    return i[mine], j[mine], joins, ambiguous, rejected, undecided[joins[right_join[undecided]]]
+
+
+def _with_settled(outcome: tuple, settled: list[tuple], right_join: np.ndarray) -> tuple:
+    """The last round's ``outcome`` of the live joins with the outcomes of the joins settled before it."""
+    i, j, ambiguous, rejected, undecided, correction = outcome
+    ambiguous, rejected = ambiguous.copy(), rejected.copy()
+    for _, _, joins, their_ambiguous, their_rejected, _ in settled:  # a few rounds at most
+        ambiguous[joins], rejected[joins] = their_ambiguous[joins], their_rejected[joins]
+    return (np.concatenate([i, *(part[0] for part in settled)]), np.concatenate([j, *(part[1] for part in settled)]),
+            ambiguous, rejected, np.sort(np.concatenate([undecided, *(part[5] for part in settled)])), correction)
 
 
 def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
