@@ -182,3 +182,28 @@ def test_clutter_alone_makes_no_loop_closure():
         pairs = set(zip(found.left.tolist(), found.right.tolist()))
         assert pairs == set(zip(plain.left.tolist(), plain.right.tolist())) and pairs <= set(zip(range(6), range(6)))
     assert LOOP_SUPPORT >= 4
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), votes=st.integers(1, 200), spread=st.sampled_from([1, 3, 1 << 21]))
+def test_cells_count_their_distinct_right_features_and_pairs_as_a_dictionary(seed, votes, spread):
+    """_fullest against a dictionary of cells: each occupied cell in (join, cell) order, its first vote's join and
+    coordinates, its distinct right features and distinct pairs of them; cells far apart (2^21 cells between
+    votes: the key from their spans would pass 2^62, each column is made compact) count alike."""
+    from mapjoin.association_loops import _fullest
+
+    rng = np.random.default_rng(seed)
+    join = np.sort(rng.integers(0, 3, votes))
+    cells = rng.integers(-2, 3, (votes, 3)) * spread
+    first = rng.integers(0, 6, votes)
+    second = first + 1 + rng.integers(0, 4, votes)
+    expected: dict[tuple, list] = {}
+    for v in range(votes):
+        entry = expected.setdefault((int(join[v]), *cells[v].tolist()), [set(), set()])
+        entry[0] |= {int(first[v]), int(second[v])}
+        entry[1].add((int(first[v]), int(second[v])))
+    owner, coordinates, support, agreement = _fullest(join, cells, first, second)
+    keys = sorted(expected)
+    assert [(int(j), *c) for j, c in zip(owner, coordinates.tolist())] == keys
+    assert support.tolist() == [len(expected[k][0]) for k in keys]
+    assert agreement.tolist() == [len(expected[k][1]) for k in keys]

@@ -115,6 +115,68 @@ def test_settled_drift_of_a_right_piece_is_the_shortest_way_through_its_ties(see
 
 
 @settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(4, 14), tie_count=st.integers(0, 4))
+def test_settled_drift_against_a_level_is_exact_where_it_reaches_it(seed, n, tie_count):
+    """settled(level=L), the associator's per-pair question (is D at least the pair's noise?), against settled
+    without a level: the same D wherever that reaches L, below L elsewhere; so every comparison with L agrees."""
+    rng = np.random.default_rng(seed)
+    _, _, drift, _ = _random_chain(rng, n, 12)
+    seen = rng.integers(0, n - 1, 12)
+    points = rng.normal(size=12) + 1j * rng.normal(size=12)
+    drift.seen(np.arange(12), seen, points)
+    drift.seen_again(np.arange(12), seen, points, rng.uniform(0, 0.01, 12))
+    for _ in range(tie_count):
+        drift.tie(int(rng.integers(0, n)), int(rng.integers(1, n)), float(rng.uniform(0, 0.05)))
+    link = int(rng.integers(seen.max(), n))
+    exact = drift.settled(np.arange(12), link)
+    level = exact * rng.choice([0.5, 1.0, 2.0], 12)  # below, at and above each feature's D
+    got = drift.settled(np.arange(12), link, level=level)
+    reached = exact >= level
+    assert np.array_equal(got[reached], exact[reached])
+    assert (got[~reached] < level[~reached]).all()
+    assert np.array_equal(got >= level, reached)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(5, 14), tie_count=st.integers(0, 4))
+def test_settled_drift_of_right_pieces_against_a_level_is_exact_where_it_reaches_it(seed, n, tie_count):
+    """settled_after(level=L) against settled_after: the same D where that reaches L, below L elsewhere; level=inf
+    is the direct way plus strain, at least D (the tree's pairs ask the ties only where that bound reaches L)."""
+    rng = np.random.default_rng(seed)
+    _, _, drift, _ = _random_chain(rng, n, 12)
+    link = rng.integers(0, n - 3, 12)
+    end = link + 1 + rng.integers(0, n - 2 - link)
+    first = link + 1 + (rng.integers(0, 1 << 30, 12) % (end - link))
+    points = rng.normal(size=12) + 1j * rng.normal(size=12)
+    drift.seen(np.arange(12), first, points)
+    drift.strain[:] = rng.uniform(0, 0.01, len(drift.strain))
+    for _ in range(tie_count):
+        old, junction = sorted(int(x) for x in rng.integers(0, n, 2))
+        drift.tie(old, junction, float(rng.uniform(0, 0.05)))
+    exact = drift.settled_after(np.arange(12), link, end)
+    level = exact * rng.choice([0.5, 1.0, 2.0], 12)
+    got = drift.settled_after(np.arange(12), link, end, level=level)
+    reached = exact >= level
+    assert np.array_equal(got[reached], exact[reached])
+    assert (got[~reached] < level[~reached]).all()
+    assert (drift.settled_after(np.arange(12), link, end, level=np.inf) >= exact).all()
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 10))
+def test_one_junction_placed_as_a_float_row_equals_the_array_form(seed, n):
+    """placed(k, t, p) (the sequential join's, scalars) leaves the drift's sums bit for bit as placed([k], [t], [p])."""
+    rng = np.random.default_rng(seed)
+    end_poses = np.column_stack([rng.uniform(1, 5, n), rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n)])
+    one, many = SightingDrift.of(end_poses, 1), SightingDrift.of(end_poses, 1)
+    for k in rng.permutation(n)[: n // 2 + 1].tolist():
+        t, p = float(rng.uniform(0.001, 0.1)), float(rng.uniform(1e-5, 1e-3))
+        one.placed(k, t, p)
+        many.placed(np.array([k]), np.array([t]), np.array([p]))
+    assert np.array_equal(one.sums, many.sums) and one.sums.any()
+
+
+@settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 10_000), with_sightings=st.booleans(), margin=st.sampled_from([DRIFT_MARGIN, 0.5, 3.0]))
 def test_drift_rivals_equal_a_brute_force_loop(seed, with_sightings, margin):
     rng = np.random.default_rng(seed)

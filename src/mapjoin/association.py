@@ -66,8 +66,8 @@ by map, then by local id.
 
 Cost: :func:`match_features` associates all the joins of a tree level at once (as the tree joins
 them), and the sequential join is a batch of one; candidates are all pairs of a join up to
-:data:`BRUTE_FORCE_PAIRS`, else found with a k-d tree. Only a join whose pairs fail the joint test
-is searched on its own.
+:data:`BRUTE_FORCE_PAIRS`, else found with a grid (:mod:`mapjoin.association_grid`). Only a join whose pairs fail
+the joint test is searched on its own.
 
 :func:`local_ids` turns a map set with global ids into one with ids local to each map and
 returns the true correspondence (tests, benchmarks, ``simulate --local-ids``).
@@ -85,6 +85,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .association_drift import SightingDrift
+from .association_grid import pairs_within
 from .association_lone import LONE_MARGIN, lone_drifted
 from .association_loops import rigid_votes
 from .association_strain import drift_rivals
@@ -128,7 +129,7 @@ __all__ = [
 DEFAULT_GATE = 0.999
 #: the joint test searches every subset of at most this many pairs (2^10 = 1024 subsets, as arrays)
 EXHAUSTIVE_PAIRS = 10
-#: candidate pairs are found by brute force up to this many (left x right) pairs, else by a k-d tree
+#: a single join's candidate pairs are found by brute force up to this many (left x right) pairs, else by a grid
 BRUTE_FORCE_PAIRS = 1 << 16
 #: the variance factor of a round needs at least this many degrees of freedom (2k - 3 for k pairs)
 MIN_DOF = 4
@@ -227,12 +228,13 @@ def chi2_quantile(level: float, dof: np.ndarray | int) -> np.ndarray:
 
 
 _QUANTILES: dict[float, np.ndarray] = {}  # level -> chi2_quantile(level, 2k) for k = 0, 1, 2, ...
+_NO_QUANTILES = np.zeros(1)
 
 
 def _threshold(level: float, pairs: np.ndarray | int) -> np.ndarray:
     """``chi2_quantile(level, 2 * pairs)`` from a table grown by doubling (the joint test asks it per join)."""
-    table = _QUANTILES.get(level, np.zeros(1))
-    largest = int(np.max(pairs, initial=0))
+    table = _QUANTILES.get(level, _NO_QUANTILES)
+    largest = pairs if isinstance(pairs, int) else int(pairs.max(initial=0))
     if largest >= len(table):
         table = np.concatenate([[0.0], chi2_quantile(level, 2 * np.arange(1, max(2 * len(table), largest + 1)))])
         _QUANTILES[level] = table
@@ -253,9 +255,9 @@ def _segments(group: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
 def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, right_join: np.ndarray,
                 radius: np.ndarray, joins: int) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (left row, right row) of the same join whose Euclidean distance is at most ``radius[right]``
-    (complex points; rows grouped by join): every pair of a join at once when there are few in all, else
-    from a k-d tree (scipy.spatial, imported then) of the points lifted to 3-D, the join as the third
-    coordinate, far apart, so that one tree serves every join."""
+    (complex points; rows grouped by join), sorted by left row then right row: for one join with few pairs in
+    reach of the right points' bounding box, every such pair at once; else by a grid
+    (:func:`mapjoin.association_grid.pairs_within`)."""
     if joins == 1 and len(predicted):  # one join: the left points in the right ones' reach, then the outer difference
         reach = float(radius.max())
         rows = np.flatnonzero((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
@@ -263,25 +265,7 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
         if len(rows) * len(predicted) <= BRUTE_FORCE_PAIRS:
             i, j = np.nonzero(np.abs(left[rows, None] - predicted[None, :]) <= radius[None, :])
             return rows[i], j
-    left_start, left_size = _segments(left_join, joins)
-    right_start, right_size = _segments(right_join, joins)
-    per_join = left_size * right_size
-    total = int(per_join.sum())
-    if total <= BRUTE_FORCE_PAIRS:
-        join = np.repeat(np.arange(joins), per_join)
-        q = np.arange(total) - np.repeat(np.cumsum(per_join) - per_join, per_join)
-        i = left_start[join] + q // right_size[join]
-        j = right_start[join] + q % right_size[join]
-        near = np.abs(left[i] - predicted[j]) <= radius[j]
-        return i[near], j[near]
-    from scipy.spatial import cKDTree
-
-    apart = 2.0 ** math.ceil(math.log2(4 * float(radius.max(initial=1.0)) + 1))
-    tree = cKDTree(np.column_stack([left.real, left.imag, left_join * apart]))
-    found = tree.query_ball_point(np.column_stack([predicted.real, predicted.imag, right_join * apart]), radius)
-    counts = np.fromiter(map(len, found), np.intp, len(predicted))
-    i = np.concatenate(found).astype(np.intp) if counts.sum() else np.zeros(0, np.intp)
-    return i, np.repeat(np.arange(len(predicted)), counts)
+    return pairs_within(left, left_join, predicted, right_join, radius, joins)
 
 
 def blocks(variances: np.ndarray) -> np.ndarray:
@@ -296,20 +280,28 @@ def rotated(covariances: np.ndarray, phi: np.ndarray | float) -> np.ndarray:
     """``R(phi) C R(phi)^T`` of 2 x 2 covariances (rows ``[xx, xy, yy]``; ``phi`` one angle or one per row)."""
     c, s = np.cos(phi), np.sin(phi)
     xx, xy, yy = covariances.T
-    return np.column_stack([c * c * xx - 2 * c * s * xy + s * s * yy, c * s * (xx - yy) + (c * c - s * s) * xy,
-                            s * s * xx + 2 * c * s * xy + c * c * yy])
+    out = np.empty((len(covariances), 3))
+    out[:, 0] = c * c * xx - 2 * c * s * xy + s * s * yy
+    out[:, 1] = c * s * (xx - yy) + (c * c - s * s) * xy
+    out[:, 2] = s * s * xx + 2 * c * s * xy + c * c * yy
+    return out
+
+
+_ADJUGATE_SIGNS = np.array([1.0, -1.0, 1.0])
 
 
 def inverted(covariances: np.ndarray) -> np.ndarray:
     """The inverses of 2 x 2 symmetric matrices (rows ``[xx, xy, yy]``), in closed form."""
-    xx, xy, yy = covariances.T
-    det = xx * yy - xy * xy
-    return np.column_stack([yy / det, -xy / det, xx / det])
+    det = covariances[:, 0] * covariances[:, 2] - covariances[:, 1] * covariances[:, 1]
+    return covariances[:, ::-1] * _ADJUGATE_SIGNS / det[:, None]  # [yy, -xy, xx] / det
 
 
 def fused(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """The covariance of two independent estimates of one point fused: ``(C1^-1 + C2^-1)^-1`` (rows ``[xx, xy, yy]``)."""
     return inverted(inverted(first) + inverted(second))
+
+
+_BLOCK_ROWS, _BLOCK_COLUMNS = np.array([0, 0, 1]), np.array([0, 1, 1])  # a 2 x 2 block's xx, xy, yy
 
 
 def feature_covariances(local_map: LocalMap) -> np.ndarray:
@@ -320,9 +312,8 @@ def feature_covariances(local_map: LocalMap) -> np.ndarray:
     order = np.argsort(local_map.feature_ids, kind="stable")
     if local_map.covariance is None:
         return blocks(local_map.feature_variances[order])
-    rows = 3 + 2 * order
-    covariance = local_map.covariance
-    return np.column_stack([covariance[rows, rows], covariance[rows, rows + 1], covariance[rows + 1, rows + 1]])
+    rows = 3 + 2 * order[:, None]  # each feature's x row; its [xx, xy, yy] entries in one gather
+    return local_map.covariance[rows + _BLOCK_ROWS, rows + _BLOCK_COLUMNS]
 
 
 def _mahalanobis(r: np.ndarray, information: np.ndarray) -> np.ndarray:
@@ -335,10 +326,13 @@ def _joint_terms(r: np.ndarray, w: np.ndarray, u: np.ndarray) -> tuple[np.ndarra
     ``[xx, xy, yy]``): ``r^T W r``, ``H^T W r`` (k x 3) and ``H^T W H`` (k x 9), ``H = [I, u]`` (complex ``r``, ``u``)."""
     wxx, wxy, wyy = w.T
     ux, uy = u.real, u.imag
-    qx, qy = wxx * r.real + wxy * r.imag, wxy * r.real + wyy * r.imag  # W r
-    g = np.stack([qx, qy, ux * qx + uy * qy], axis=1)
-    px, py = wxx * ux + wxy * uy, wxy * ux + wyy * uy  # W u
-    h = np.stack([wxx, wxy, px, wxy, wyy, py, px, py, ux * px + uy * py], axis=1)
+    g, h = np.empty((len(r), 3)), np.empty((len(r), 9))  # filled by columns (fewer calls than stacking)
+    g[:, 0] = qx = wxx * r.real + wxy * r.imag  # W r
+    g[:, 1] = qy = wxy * r.real + wyy * r.imag
+    g[:, 2] = ux * qx + uy * qy
+    h[:, 2] = h[:, 6] = px = wxx * ux + wxy * uy  # W u
+    h[:, 5] = h[:, 7] = py = wxy * ux + wyy * uy
+    h[:, 0], h[:, 1], h[:, 3], h[:, 4], h[:, 8] = wxx, wxy, wxy, wyy, ux * px + uy * py
     return r.real * qx + r.imag * qy, g, h
 
 
@@ -386,6 +380,15 @@ def _jointly_compatible(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, link
     return keep
 
 
+def _join_maxima(values: np.ndarray, join: np.ndarray, joins: int) -> np.ndarray:
+    """The largest of ``values`` (non-negative) in each of ``joins`` joins (0 for a join without any)."""
+    if joins == 1:  # the sequential join: no scatter
+        return values.max(initial=0.0)[None]
+    largest = np.zeros(joins)
+    np.maximum.at(largest, join, values)
+    return largest
+
+
 def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarray:
     """Sums of the rows of ``values`` (p x c) by ``group`` (count x c)."""
     if count == 1:
@@ -396,6 +399,8 @@ def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarr
 
 def _segment_medians(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarray:
     """The median of ``values`` in each group (the upper one of an even group; NaN for an empty group)."""
+    if count == 1:
+        return np.sort(values)[len(values) // 2:][:1] if len(values) else np.full(1, np.nan)
     order = np.lexsort((values, group))
     start, size = _segments(group[order], count)
     middle = np.minimum(start + size // 2, max(len(values) - 1, 0))
@@ -408,7 +413,10 @@ def _best(group: np.ndarray, other: np.ndarray, d2: np.ndarray, sightings: np.nd
     its group, and the distance of the group's nearest *rival*, infinite when there is none. A rival is another
     candidate that is a different feature from the nearest: one seen in a same map as it (``sightings``: each
     other-side feature's maps, :func:`sighting_bits`; without them every other candidate is a rival). Two
-    candidates never seen together may be one feature mapped twice, and either is the right match."""
+    candidates never seen together may be one feature mapped twice, and either is the right match. A join's
+    groups are mostly of one candidate: then each is its group's nearest with no rival, without sorting."""
+    if len(group) < 2 or np.bincount(group).max() == 1:
+        return np.ones(len(group), dtype=bool), np.full(len(group), np.inf)
     order = np.lexsort((d2, group))
     grouped, others, distances = group[order], other[order], d2[order]
     first = np.ones(len(order), dtype=bool)
@@ -436,16 +444,19 @@ def sighting_bits(maps: np.ndarray) -> np.ndarray:
     return bits
 
 
-def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, predicted: np.ndarray,
-          lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray, link: np.ndarray, g2: float,
-          margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
-          right_sightings: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, largest: np.ndarray,
+          predicted: np.ndarray, lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray,
+          link: np.ndarray, scale: np.ndarray | None, g2: float, margin: float = DEFAULT_MARGIN,
+          left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The unambiguous candidate pairs (left rows, right rows) of every join, and the ambiguous right rows
     (sorted).
 
     A pair's innovation ``r = f - x`` has covariance ``S = C0 + C1 + H link H^T`` with ``H = [I, u]`` (``C0``,
-    ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``; ``link[join]``: the 3 x 3 covariance of the
-    join's link error); it is a candidate when ``d^2 = r^T S^-1 r <= g2``. A candidate is taken when it is its
+    ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``, times their join's variance factor ``scale``
+    (None: 1);
+    ``largest[join]``: the largest trace of its left ``C0`` before the factor; ``link[join]``: the 3 x 3 covariance
+    of the join's link error); it is a candidate when ``d^2 = r^T S^-1 r <= g2``. A candidate is taken when it is its
     right feature's nearest and its left feature's nearest, and each one's nearest rival (:func:`_best`, given the
     features' ``sightings``) is at least ``margin`` farther (in ``d^2``); the other right features with candidates
     are ambiguous.
@@ -457,21 +468,28 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     sxx = own[:, 0, 0] + 2 * ux * own[:, 0, 2] + own[:, 2, 2] * ux * ux
     syy = own[:, 1, 1] + 2 * uy * own[:, 1, 2] + own[:, 2, 2] * uy * uy
     sxy = own[:, 0, 1] + ux * own[:, 1, 2] + uy * own[:, 0, 2] + own[:, 2, 2] * ux * uy
-    largest = np.zeros(joins)
-    np.maximum.at(largest, left_join, left_covariances[:, 0] + left_covariances[:, 2])
     # the trace bounds the largest eigenvalue: every pair in the gate is within this Euclidean radius
-    radius = np.sqrt(g2 * (largest[right_join] + right_covariances[:, 0] + right_covariances[:, 2] + sxx + syy))
+    own_trace = largest[right_join] + right_covariances[:, 0] + right_covariances[:, 2]
+    radius = np.sqrt(g2 * ((own_trace if scale is None else scale[right_join] * own_trace) + sxx + syy))
     i, j = _candidates(left, left_join, predicted, right_join, radius, joins)
     r = left[i] - predicted[j]
-    innovation = left_covariances[i] + right_covariances[j] + np.column_stack([sxx[j], sxy[j], syy[j]])
-    d2 = _mahalanobis(r, inverted(innovation))
+    if scale is None:  # a factor of 1 changes nothing
+        own_covariances = left_covariances[i] + right_covariances[j]
+    else:
+        own_covariances = (scale[left_join[i], None] * left_covariances[i]
+                           + scale[right_join[j], None] * right_covariances[j])
+    xx, xy, yy = own_covariances[:, 0] + sxx[j], own_covariances[:, 1] + sxy[j], own_covariances[:, 2] + syy[j]
+    det = xx * yy - xy * xy  # S^-1 in closed form (as inverted), its quadratic form (as _mahalanobis)
+    d2 = (yy / det) * r.real**2 + 2 * (-xy / det) * r.real * r.imag + (xx / det) * r.imag**2
     gated = d2 <= g2
     i, j, d2 = i[gated], j[gated], d2[gated]
     right_best, right_second = _best(j, i, d2, left_sightings)
     left_best, left_second = _best(i, j, d2, right_sightings)
     taken = right_best & left_best & (right_second - d2 >= margin) & (left_second - d2 >= margin)
-    undecided = np.setdiff1d(j, j[taken])
-    return i[taken], j[taken], undecided
+    undecided = np.zeros(len(predicted), dtype=bool)  # the right rows with candidates, none taken (sorted)
+    undecided[j] = True
+    undecided[j[taken]] = False
+    return i[taken], j[taken], np.flatnonzero(undecided)
 
 
 def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
@@ -507,38 +525,85 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     correction = np.zeros((joins, 3))
     g2 = float(_threshold(gate, 1))
     scale = np.ones(joins)
+    largest = _join_maxima(left_covariances[:, 0] + left_covariances[:, 2], left_join, joins)
     previous = None
-    for _ in range(ROUNDS):
-        i, j, undecided = _gate(left, scale[left_join, None] * left_covariances, left_join, predicted, lever,
-                                scale[right_join, None] * right_covariances, right_join, link, g2, margin,
-                                left_sightings, right_sightings)
+    live = np.ones(joins, dtype=bool)  # the joins whose next round may differ from their last
+    settled: list[tuple] = []  # the outcomes of the others: their state repeats, so would their rounds
+    for round_number in range(ROUNDS):
+        first_round = previous is None  # the factor is 1 (a product or a division by it changes nothing)
+        if live.all():
+            i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
+                                    right_join, link, None if first_round else scale, g2, margin, left_sightings,
+                                    right_sightings)
+        else:  # the live joins' rows only; each join's pairs are what they would be among all
+            rows, columns = np.flatnonzero(live[left_join]), np.flatnonzero(live[right_join])
+            i, j, undecided = _gate(left[rows], left_covariances[rows], left_join[rows], largest, predicted[columns],
+                                    lever[columns], right_covariances[columns], right_join[columns], link, scale, g2,
+                                    margin, None if left_sightings is None else left_sightings[rows],
+                                    None if right_sightings is None else right_sightings[columns])
+            i, j, undecided = rows[i], columns[j], columns[undecided]
         ambiguous = np.bincount(right_join[undecided], minlength=joins)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
         unscaled = inverted(left_covariances[i] + right_covariances[j])
-        w = unscaled / scale[pair_join, None]
+        w = unscaled if first_round else unscaled / scale[pair_join, None]
         terms = _joint_terms(r, w, lever[j])
-        information = prior_information / scale[:, None, None]
-        keep = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
+        information = prior_information if first_round else prior_information / scale[:, None, None]
+        keep, sum_g, sum_m = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
-        outcome = (i[keep], j[keep], ambiguous, rejected, undecided, correction)
-        if previous is not None and np.array_equal(previous[0], i[keep]) and np.array_equal(previous[1], j[keep]):
+        if not keep.all():  # mostly all are kept: then the pairs and the joint test's sums as they are
+            i, j, r, unscaled, pair_join = i[keep], j[keep], r[keep], unscaled[keep], pair_join[keep]
+            sum_g = _segment_sums(terms[1][keep], pair_join, joins)
+            sum_m = information + _segment_sums(terms[2][keep], pair_join, joins).reshape(joins, 3, 3)
+        outcome = (i, j, ambiguous, rejected, undecided, correction)
+        if previous is not None and np.array_equal(previous[0], i) and np.array_equal(previous[1], j):
             break
         previous = outcome
         # each link's correction and posterior covariance from its kept pairs; the robust variance factor
-        c, g, h = (term[keep] for term in terms)
-        kept_join = pair_join[keep]
-        posterior = np.linalg.inv(information + _segment_sums(h, kept_join, joins).reshape(joins, 3, 3))
-        correction = np.einsum("jab,jb->ja", posterior, _segment_sums(g, kept_join, joins))
-        shift = correction[:, 0] + 1j * correction[:, 1]
-        residual = r[keep] - shift[kept_join] - lever[j[keep]] * correction[kept_join, 2]
-        dof = 2 * np.bincount(kept_join, minlength=joins) - 3
-        factor = _segment_medians(_mahalanobis(residual, unscaled[keep]), kept_join, joins) / CHI2_2_MEDIAN
-        old, scale = scale, np.where(dof >= MIN_DOF, np.maximum(1.0, factor), 1.0)
-        link = posterior * (scale / old)[:, None, None]  # the posterior in the new scale's units
-        predicted = prior_prediction + shift[right_join] + lever * correction[right_join, 2]
+        posterior = np.linalg.inv(sum_m)
+        fresh = np.einsum("jab,jb->ja", posterior, sum_g)
+        shift = fresh[:, 0] + 1j * fresh[:, 1]
+        residual = r - shift[pair_join] - lever[j] * fresh[pair_join, 2]
+        dof = 2 * np.bincount(pair_join, minlength=joins) - 3
+        factor = _segment_medians(_mahalanobis(residual, unscaled), pair_join, joins) / CHI2_2_MEDIAN
+        fresh_scale = np.where(dof >= MIN_DOF, np.maximum(1.0, factor), 1.0)
+        fresh_link = posterior * (fresh_scale / scale)[:, None, None]  # the posterior in the new scale's units
+        if joins > 1 and round_number < ROUNDS - 1:  # a join whose state repeats would repeat its round: settled
+            repeats = live & (fresh_scale == scale) & (fresh == correction).all(axis=1) & (fresh_link == link).all(
+                axis=(1, 2))
+            if repeats.any():
+                settled.append(_settled_outcome(outcome, repeats, right_join))
+                live &= ~repeats
+                going = live[pair_join]
+                previous = (i[going], j[going])
+            fresh = np.where(live[:, None], fresh, correction)  # settled joins keep their state
+            fresh_scale = np.where(live, fresh_scale, scale)
+            fresh_link = np.where(live[:, None, None], fresh_link, link)
+        correction, scale, link = fresh, fresh_scale, fresh_link
+        predicted = prior_prediction + (correction[:, 0] + 1j * correction[:, 1])[right_join] \
+            + lever * correction[right_join, 2]
+    if settled:
+        outcome = _with_settled(outcome, settled, right_join)
     order = np.argsort(outcome[1], kind="stable")
     return Matches(outcome[0][order], outcome[1][order], *outcome[2:])
+
+
+def _settled_outcome(outcome: tuple, joins: np.ndarray, right_join: np.ndarray) -> tuple:
+    """The part of a round's ``outcome`` (left rows, right rows, ambiguous, rejected, undecided, correction) that
+    belongs to the ``joins`` (a mask over them)."""
+    i, j, ambiguous, rejected, undecided, _ = outcome
+    mine = joins[right_join[j]]
+    return i[mine], j[mine], joins, ambiguous, rejected, undecided[joins[right_join[undecided]]]
+
+
+def _with_settled(outcome: tuple, settled: list[tuple], right_join: np.ndarray) -> tuple:
+    """The last round's ``outcome`` of the live joins with the outcomes of the joins settled before it."""
+    i, j, ambiguous, rejected, undecided, correction = outcome
+    ambiguous, rejected = ambiguous.copy(), rejected.copy()
+    for _, _, joins, their_ambiguous, their_rejected, _ in settled:  # a few rounds at most
+        ambiguous[joins], rejected[joins] = their_ambiguous[joins], their_rejected[joins]
+    return (np.concatenate([i, *(part[0] for part in settled)]), np.concatenate([j, *(part[1] for part in settled)]),
+            ambiguous, rejected, np.sort(np.concatenate([undecided, *(part[5] for part in settled)])), correction)
 
 
 def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
@@ -576,8 +641,9 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
     """``found`` less the pairs :func:`mapjoin.association_strain.drift_rivals` names (``drift``: each pair's), whose
     right features are left new and counted ambiguous; the right features are predicted through each join's link
     as ``found`` corrected it."""
-    noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
-             + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
+    noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
+    if not (drift >= noise).any():  # no drifted pair (drift_rivals would drop none)
+        return found
     drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
                         drift, left_sightings)
     if not drop.any():
@@ -585,6 +651,13 @@ def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, 
     undecided = np.union1d(found.undecided, found.right[drop])
     return Matches(found.left[~drop], found.right[~drop], np.bincount(right_join[undecided], minlength=len(link_xy)),
                    found.rejected, undecided, found.correction)
+
+
+def _pair_noise(left_covariances: np.ndarray, right_covariances: np.ndarray, left_rows: np.ndarray,
+                right_rows: np.ndarray) -> np.ndarray:
+    """Each pair's isotropic noise without drift (steps 6 and 7): the half trace of its two features' covariances."""
+    return (left_covariances[left_rows, 0] + left_covariances[left_rows, 2]
+            + right_covariances[right_rows, 0] + right_covariances[right_rows, 2]) / 2
 
 
 def _unconfirmed(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
@@ -596,8 +669,7 @@ def _unconfirmed(found: Matches, left: np.ndarray, left_covariances: np.ndarray,
     second copy: :func:`mapjoin.association_strain.drift_rivals` without ``left_sightings``, margin
     :data:`mapjoin.association_lone.LONE_MARGIN`), and a rival seen with it within step 3's ``margin`` (the same
     function with the sightings; step 8); their right features are left new and counted ambiguous."""
-    noise = (left_covariances[found.left, 0] + left_covariances[found.left, 2]
-             + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
+    noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
     lone = lone_drifted(right_join[found.right], noise, drift, len(link_xy))
     if not lone.any():
         return found
@@ -655,8 +727,7 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     left_noise = (left_covariances[lefts, 0] + left_covariances[lefts, 2]) / 2
     right_noise = (right_covariances[rights, 0] + right_covariances[rights, 2]) / 2
     link_spread = link_variances[r_join, 0] + link_variances[r_join, 1] * np.abs(right[rights]) ** 2  # isotropic
-    widest = np.zeros(joins)
-    np.maximum.at(widest, left_join[lefts], left_noise + left_drift[lefts])
+    widest = _join_maxima(left_noise + left_drift[lefts], left_join[lefts], joins)
     radius = np.sqrt(g2 * (widest[r_join] + right_noise + right_drift[rights] + link_spread))
     a, b = _candidates(left[lefts], left_join[lefts], predicted, r_join, radius, joins)
     offsets = left[lefts[a]] - predicted[b]
@@ -714,9 +785,11 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
 
 
 def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
-                information: np.ndarray, gate: float, joins: int) -> np.ndarray:
+                information: np.ndarray, gate: float, joins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The pairs kept by the joint compatibility test of every join (a mask over the pairs, grouped by join):
-    each join's joint distance at once; a join that fails is searched alone by :func:`_jointly_compatible`."""
+    each join's joint distance at once; a join that fails is searched alone by :func:`_jointly_compatible`.
+    Also each join's ``sum H^T W r`` (joins x 3) and ``P_link^-1 + sum H^T W H`` (joins x 3 x 3) over all its
+    pairs: the link's correction when every pair is kept."""
     c, g, h = terms
     sizes = np.bincount(pair_join, minlength=joins)
     big_g = _segment_sums(g, pair_join, joins)
@@ -724,12 +797,29 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
     distance = np.bincount(pair_join, c, minlength=joins) - np.einsum(
         "ji,ji->j", big_g, np.linalg.solve(big_m, big_g[..., None])[..., 0])
     keep = np.ones(len(r), dtype=bool)
+    failing = (sizes > 0) & (distance > _threshold(gate, sizes))
+    if not failing.any():  # mostly every join's pairs are compatible
+        return keep, big_g, big_m
     starts = np.cumsum(sizes) - sizes
-    for join in np.flatnonzero((sizes > 0) & (distance > _threshold(gate, sizes))).tolist():
-        rows = slice(starts[join], starts[join] + sizes[join])
+    for failed in np.flatnonzero(failing).tolist():
+        rows = slice(starts[failed], starts[failed] + sizes[failed])
         keep[rows] = _jointly_compatible((c[rows], g[rows], h[rows]), r[rows], w[rows], u[rows],
-                                         information[join], gate)
-    return keep
+                                         information[failed], gate)
+    return keep, big_g, big_m
+
+
+def _asked_once(pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray]
+                ) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``pair_drift`` remembering its last pairs and answer: step 7 asks it for a join's pairs, the chain's ties ask
+    it again after step 6, which mostly changed no pair."""
+    last: list = []
+
+    def remembered(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        if not (last and np.array_equal(last[0], i) and np.array_equal(last[1], j)):
+            last[:] = [i, j, pair_drift(i, j)]
+        return last[2]
+
+    return remembered
 
 
 class _Associator:
@@ -769,13 +859,14 @@ class _Associator:
         self.drift = self.drift.grown(self.count)
         return ids
 
-    def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray) -> None:
+    def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray | slice,
+                 new: np.ndarray | slice) -> None:
         """Features ``ids`` seen with ``covariances`` (in their frame) by maps ``sightings``: fused into the
-        ``matched`` ones, the others new."""
+        ``matched`` ones, the ``new`` ones (the others; a mask and its negation, or two slices) new."""
         self.covariances[ids[matched]] = fused(self.covariances[ids[matched]], covariances[matched])
-        self.covariances[ids[~matched]] = covariances[~matched]
+        self.covariances[ids[new]] = covariances[new]
         self.sightings[ids[matched]] |= sightings[matched]
-        self.sightings[ids[~matched]] = sightings[~matched]
+        self.sightings[ids[new]] = sightings[new]
 
     # sequential strategy -----------------------------------------------------------------
     def first(self, size: int) -> np.ndarray:
@@ -789,7 +880,7 @@ class _Associator:
 
     def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
         """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums)."""
-        self.drift.placed(np.array([k]), np.array([t_variance]), np.array([phi_variance]))
+        self.drift.placed(k, t_variance, phi_variance)
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
@@ -801,16 +892,18 @@ class _Associator:
         rows = slice(self.offsets[k], self.offsets[k + 1])
         right_covariances = rotated(self.row_covariances[rows], link_phi)
         nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
-        drift = (*self.drift.before(np.arange(used), np.full(used, k - 1)), nothing, nothing)
+        drift = (*self.drift.before(slice(None, used), k - 1), nothing, nothing)
+        pair_drift = _asked_once(lambda i, j: self.drift.settled(
+            i, k - 1, level=_pair_noise(self.covariances, right_covariances, i, j)))
+
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
                                  right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
-                                 self.sightings[:used], self.row_sightings[rows],
-                                 lambda i, j: self.drift.settled(i, k - 1))
+                                 self.sightings[:used], self.row_sightings[rows], pair_drift)
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         left_ids = found.left
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
-                           np.zeros(len(z), np.intp), right_covariances, self.drift.settled(left_ids, k - 1),
+                           np.zeros(len(z), np.intp), right_covariances, pair_drift(left_ids, found.right),
                            np.array([k]))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
@@ -818,11 +911,12 @@ class _Associator:
         ids = np.empty(len(z), dtype=np.int64)
         ids[:len(found.right)] = found.left
         ids[len(found.right):] = self._fresh(len(z) - len(found.right))
-        self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], np.arange(len(z)) < len(found.right))
+        self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], slice(None, len(found.right)),
+                      slice(len(found.right), None))
         self.row_ids[self.offsets[k] + order] = ids
-        points, maps, matched_count = self.row_points[rows][order], np.full(len(z), k), len(found.right)
-        self.drift.seen_again(ids[:matched_count], maps[:matched_count], points[:matched_count], strain)
-        self.drift.seen(ids[matched_count:], maps[matched_count:], points[matched_count:])
+        points, matched_count = self.row_points[rows][order], len(found.right)
+        self.drift.seen_again(ids[:matched_count], k, points[:matched_count], strain)
+        self.drift.seen(ids[matched_count:], k, points[matched_count:])
         return order, ids, len(found.right)
 
     def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
@@ -835,9 +929,7 @@ class _Associator:
         the median), strained by their strains' median (:meth:`mapjoin.association_drift.SightingDrift.tie`)."""
         pair_join = right_join[found.right]
         strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
-        noise = (self.covariances[left_ids, 0] + self.covariances[left_ids, 2]
-                 + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
-        drifted = drift >= noise
+        drifted = drift >= _pair_noise(self.covariances, right_covariances, left_ids, found.right)
         for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= LOOP_SUPPORT).tolist():
             pairs = drifted & (pair_join == tying)
             self.drift.tie(int(np.median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),
@@ -872,9 +964,17 @@ class _Associator:
         end = pieces.last[1:2 * count:2]  # each join's right piece's last map
         right_ids = pieces.feature_ids[right]
 
+        @_asked_once
         def pair_drift(i: np.ndarray, j: np.ndarray) -> np.ndarray:
-            return (self.drift.settled(left_ids[i], link_map[left_join[i]], start[left_join[i]])
-                    + self.drift.settled_after(right_ids[j], link_map[right_join[j]], end[right_join[j]]))
+            # compared with the pairs' noise only: the ties are searched for the pairs whose direct ways reach it
+            left_way = (left_ids[i], link_map[left_join[i]], start[left_join[i]])
+            right_way = (right_ids[j], link_map[right_join[j]], end[right_join[j]])
+            drift = self.drift.settled(*left_way, level=np.inf) + self.drift.settled_after(*right_way, level=np.inf)
+            reach = np.flatnonzero(drift >= _pair_noise(self.covariances, right_covariances, left_ids[i], j))
+            if len(reach):
+                drift[reach] = (self.drift.settled(*(part[reach] for part in left_way))
+                                + self.drift.settled_after(*(part[reach] for part in right_way)))
+            return drift
 
         found = match_with_drift(pieces.features[left], self.covariances[left_ids], left_join,
                                  pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
@@ -890,7 +990,7 @@ class _Associator:
         ids[right] = renamed
         matched = np.zeros(len(right), dtype=bool)
         matched[found.right] = True
-        self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched)
+        self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched, ~matched)
         # a match's last sighting is its right feature's; a new id has its old one's sightings
         self.drift.merged(renamed[matched], pieces.feature_ids[right][matched])
         self.drift.strain[renamed[found.right]] = strain
@@ -940,8 +1040,7 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     order = np.argsort(relabelled, kind="stable")
     global_map = dataclasses.replace(global_map, feature_ids=relabelled[order], features=global_map.features[order],
                                      feature_variances=global_map.feature_variances[order])
-    report = tuple(AssociatedJoinRecord(**{f.name: getattr(record, f.name) for f in dataclasses.fields(record)},
-                                        ambiguous=ambiguous, rejected=rejected)
+    report = tuple(AssociatedJoinRecord(**vars(record), ambiguous=ambiguous, rejected=rejected)
                    for record, (ambiguous, rejected) in zip(result.report, associator.counts))
     offsets = associator.offsets.tolist()
     per_map = []

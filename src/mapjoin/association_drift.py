@@ -51,6 +51,9 @@ class SightingDrift:
     strain: np.ndarray
     #: the chain's ties (old map, junction, strain), in the order they were made (:meth:`tie`)
     ties: list[tuple[int, int, float]] = field(default_factory=list)
+    #: the ties as arrays (old maps, junctions, strains), made again once ties were added (:meth:`tie_arrays`)
+    made_ties: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list, repr=False,
+                                                                       compare=False)
 
     @classmethod
     def of(cls, end_poses: np.ndarray, capacity: int) -> SightingDrift:
@@ -71,9 +74,16 @@ class SightingDrift:
                                                        (self.first_map, self.first_point, self.last_map,
                                                         self.last_point, self.strain)), self.ties)
 
-    def placed(self, junctions: np.ndarray, t_variance: np.ndarray, phi_variance: np.ndarray) -> None:
+    def placed(self, junctions: np.ndarray | int, t_variance: np.ndarray | float, phi_variance: np.ndarray | float
+               ) -> None:
         """Joins placed these ``junctions`` (pose indices, each once) with these posterior variances: the prefix
-        sums from the lowest of them on gain their terms (in place)."""
+        sums from the lowest of them on gain their terms (in place). One junction (an int, the sequential join's)
+        is one row of terms, in floats."""
+        if isinstance(junctions, (int, np.integer)):
+            x, p = complex(self.chain.poses[junctions]), float(phi_variance)
+            self.sums[junctions + 1:] += (float(t_variance), p, p * x.real, p * x.imag,
+                                          p * (x.real * x.real + x.imag * x.imag))
+            return
         junctions = np.atleast_1d(np.asarray(junctions, dtype=np.intp))
         if not len(junctions):
             return
@@ -88,15 +98,16 @@ class SightingDrift:
         np.add.at(terms, junctions + 1, rows)
         self.sums[:] += np.cumsum(terms, axis=0)
 
-    def seen(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray) -> None:
-        """New features ``ids`` seen by ``maps`` at ``points`` (each in its map's frame): first and last sighting."""
+    def seen(self, ids: np.ndarray, maps: np.ndarray | int, points: np.ndarray) -> None:
+        """New features ``ids`` seen by ``maps`` (one each, or one for all) at ``points`` (each in its map's frame):
+        first and last sighting."""
         reckoned = self.chain.dead_reckoned(maps, points)
         self.first_map[ids], self.first_point[ids] = maps, reckoned
         self.last_map[ids], self.last_point[ids] = maps, reckoned
         self.strain[ids] = 0.0
 
-    def seen_again(self, ids: np.ndarray, maps: np.ndarray, points: np.ndarray, strain: np.ndarray | float = 0.0
-                   ) -> None:
+    def seen_again(self, ids: np.ndarray, maps: np.ndarray | int, points: np.ndarray,
+                   strain: np.ndarray | float = 0.0) -> None:
         """Features ``ids`` seen again by later ``maps`` at ``points``, ``strain`` from their estimates (squared
         distances): their last sighting."""
         self.last_map[ids], self.last_point[ids] = maps, self.chain.dead_reckoned(maps, points)
@@ -112,9 +123,9 @@ class SightingDrift:
         for array in (self.first_map, self.first_point, self.last_map, self.last_point, self.strain):
             array[ids] = array[others]
 
-    def before(self, ids: np.ndarray, link_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``D`` of left features ``ids`` relative to the end of map ``link_map`` (their piece's last map, one per
-        feature), over the junctions after their last sighting up to that map's start, and the heading variance
+    def before(self, ids: np.ndarray | slice, link_map: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
+        """``D`` of left features ``ids`` relative to the end of map ``link_map`` (their piece's last map: one, or one
+        per feature), over the junctions after their last sighting up to that map's start, and the heading variance
         those junctions add (the sum of their ``p``)."""
         sums = self.sums[link_map + 1] - self.sums[self.last_map[ids] + 1]
         return drift_variance(sums, self.last_point[ids]), sums[:, 1]
@@ -126,58 +137,82 @@ class SightingDrift:
         sums = self.sums[self.first_map[ids] + 1] - self.sums[link_map + 2]
         return drift_variance(sums, self.first_point[ids]), sums[:, 1]
 
+    def tie_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The chain's ties as arrays: old maps, junctions, strains (made once per new tie, not per join)."""
+        if not self.made_ties or len(self.made_ties[0][0]) != len(self.ties):
+            ties = np.array(self.ties, dtype=float).reshape(-1, 3)
+            self.made_ties[:] = [(ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2])]
+        return self.made_ties[0]
+
     def tie(self, old_map: int, junction: int, strain: float) -> None:
         """A join placed map ``junction`` (its start) by matching features last seen around map ``old_map``, whose
         estimates disagreed by ``strain`` (a variance: the join fused them partway and placed the map between):
         from then on, the link is also known through that map, up to the strain (in place)."""
         self.ties.append((int(old_map), int(junction), float(strain)))
 
-    def settled(self, ids: np.ndarray, link_map: np.ndarray | int, start: np.ndarray | int = 0) -> np.ndarray:
+    def settled(self, ids: np.ndarray, link_map: np.ndarray | int, start: np.ndarray | int = 0,
+                level: np.ndarray | float | None = None) -> np.ndarray:
         """``D`` of left features ``ids`` relative to the end of map ``link_map`` (one, or one per feature) over the
         shorter way: the junctions since their last sighting (:meth:`before`), or, through a tie ``(m, c)`` made
         between map ``start`` and the link (the left piece's maps: the sequential join's start at 0), the junctions
         between their last sighting and map ``m`` (either way along the chain) and those from ``c`` up to the link
         (the feature moved with map ``m``'s place to map ``c``'s, a translation) plus the tie's strain; and, either
-        way, the feature's own :attr:`strain`. O(ties) per feature: the callers ask it for a join's pairs only."""
+        way, the feature's own :attr:`strain`. O(ties) per feature: the callers ask it for a join's pairs only.
+
+        The callers only compare ``D`` with a ``level`` (a pair's noise): given it, the ties are searched only for
+        the features whose direct ``D`` plus strain reaches it (the shorter way is no longer); the others' direct
+        ``D`` plus strain is below it, as is their ``D`` (``level=np.inf``: the direct way plus strain for all, an upper
+        bound)."""
         ids = np.asarray(ids, dtype=np.intp)
-        link_map = np.broadcast_to(np.asarray(link_map, dtype=np.intp), ids.shape)
-        start = np.broadcast_to(np.asarray(start, dtype=np.intp), ids.shape)
         seen, point = self.last_map[ids], self.last_point[ids]
-        best = drift_variance(self.sums[link_map + 1] - self.sums[seen + 1], point)
-        ties = np.array(self.ties, dtype=float).reshape(-1, 3)
-        drifted = np.flatnonzero(best > 0)  # a feature seen by the link's map has no shorter way
-        if len(ties) and len(drifted):  # every (drifted feature, tie) at once
-            old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+        best = drift_variance(self.sums[np.asarray(link_map, dtype=np.intp) + 1] - self.sums[seen + 1], point)
+        strain = self.strain[ids]
+        drifted = best > 0  # a feature seen by the link's map has no shorter way
+        if level is not None:
+            drifted &= best + strain >= level
+        drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
+        if len(drifted):  # every (drifted feature, tie) at once
+            old_map, junction, tie_strain = self.tie_arrays()
+            link_map = np.broadcast_to(np.asarray(link_map, dtype=np.intp), ids.shape)
+            start = np.broadcast_to(np.asarray(start, dtype=np.intp), ids.shape)
             seen, point, link, first = seen[drifted], point[drifted], link_map[drifted], start[drifted]
             low, high = np.minimum(seen[:, None], old_map), np.maximum(seen[:, None], old_map)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
-                                   np.repeat(point, len(ties))).reshape(len(seen), len(ties))
+                                   np.repeat(point, len(old_map))).reshape(len(seen), len(old_map))
             moved = point[:, None] - self.chain.poses[old_map] + self.chain.poses[junction]
             since = self.sums[link + 1][:, None, :] - self.sums[junction + 1][None, :, :]
-            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(seen), len(ties))
+            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(
+                len(seen), len(old_map))
             inside = (junction <= link[:, None]) & (junction >= first[:, None]) & (old_map >= first[:, None])
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
-        return best + self.strain[ids]
+        return best + strain
 
-    def settled_after(self, ids: np.ndarray, link_map: np.ndarray, end: np.ndarray) -> np.ndarray:
+    def settled_after(self, ids: np.ndarray, link_map: np.ndarray, end: np.ndarray,
+                      level: np.ndarray | float | None = None) -> np.ndarray:
         """``D`` of right features ``ids`` of a tree join (:meth:`after`) over the shorter way: directly, or through a
         tie ``(m, c)`` inside the right piece (maps ``link_map + 1`` to ``end``), the junctions from the piece's start
         to map ``m`` (at the feature moved by map ``c``'s place to map ``m``'s), the tie's strain, and the junctions
-        between map ``c`` and the feature's first sighting (either way); plus the feature's own :attr:`strain`."""
+        between map ``c`` and the feature's first sighting (either way); plus the feature's own :attr:`strain`. As
+        :meth:`settled`, with a ``level`` the ties are searched only where the direct way reaches it (``np.inf``:
+        nowhere, the direct way plus strain, an upper bound)."""
         ids = np.asarray(ids, dtype=np.intp)
         first, point = self.first_map[ids], self.first_point[ids]
         best = drift_variance(self.sums[first + 1] - self.sums[link_map + 2], point)
-        ties = np.array(self.ties, dtype=float).reshape(-1, 3)
-        drifted = np.flatnonzero(best > 0)
-        if len(ties) and len(drifted):
-            old_map, junction, strain = ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2]
+        strain = self.strain[ids]
+        drifted = best > 0
+        if level is not None:
+            drifted &= best + strain >= level
+        drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
+        if len(drifted):
+            old_map, junction, tie_strain = self.tie_arrays()
             first, point, link, last = first[drifted], point[drifted], link_map[drifted], end[drifted]
             low, high = np.minimum(first[:, None], junction), np.maximum(first[:, None], junction)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
-                                   np.repeat(point, len(ties))).reshape(len(first), len(ties))
+                                   np.repeat(point, len(old_map))).reshape(len(first), len(old_map))
             moved = point[:, None] - self.chain.poses[junction] + self.chain.poses[old_map]
             since = self.sums[old_map + 1][None, :, :] - self.sums[link + 2][:, None, :]  # masked below unless inside
-            through = strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(len(first), len(ties))
+            through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(
+                len(first), len(old_map))
             inside = (old_map >= link[:, None] + 1) & (junction <= last[:, None])
             best[drifted] = np.minimum(best[drifted], np.where(inside, through, np.inf).min(axis=1))
-        return best + self.strain[ids]
+        return best + strain

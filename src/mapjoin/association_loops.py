@@ -51,22 +51,28 @@ def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The occupied cells (``cells``: integer coordinates per vote, a vote being two pairs of right features
     ``first`` < ``second``) with their join, their distinct right features and their distinct right pairs.
-    Cells are numbered by one integer key (each column's values made compact), so that every count is a sort of
-    integers."""
+    Cells are numbered by one integer key, lexicographic in (join, cell), so that every count is a sort of
+    integers: each column offset by its least value, or, were the key too large for that, its values made compact
+    (a sort per column)."""
+    columns = [join, *cells.T]
+    low = [int(column.min(initial=0)) for column in columns]
+    spans = [int(column.max(initial=0)) - least + 1 for column, least in zip(columns, low)]
+    compact = float(np.prod(np.array(spans, dtype=float))) >= 2.0 ** 62
     key = np.zeros(len(join), np.int64)
-    for column in (join, *cells.T):
-        values, compact = np.unique(column, return_inverse=True)
-        key = key * len(values) + compact
-    cell, number = np.unique(key, return_inverse=True)
+    for column, least, span in zip(columns, low, spans):
+        if compact:
+            values, offset = np.unique(column, return_inverse=True)
+            key = key * len(values) + offset
+        else:
+            key = key * span + (column - least)
+    cell, row, number = np.unique(key, return_index=True, return_inverse=True)  # row: each cell's first vote
     size = np.int64(max(int(first.max(initial=0)), int(second.max(initial=0))) + 1)
     pairs = np.unique((number * size + first) * size + second)  # one vote per right pair and cell
     agreement = np.bincount(pairs // (size * size), minlength=len(cell))
     ends = np.unique(np.concatenate([pairs // (size * size) * size + pairs % (size * size) // size,
                                      pairs // (size * size) * size + pairs % size]))
     support = np.bincount(ends // size, minlength=len(cell))
-    where = np.searchsorted(key, cell, sorter=np.argsort(key, kind="stable"))
-    row = np.argsort(key, kind="stable")[where]  # a vote of each cell: its join and coordinates
-    return join[row], cells[row], support, agreement
+    return join[row], cells[row], support, agreement  # a vote of each cell: its join and coordinates
 
 
 def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,16 +118,24 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
         total = int(per.sum())
         if not total:
             continue
-        which = np.repeat(np.arange(len(u)), per)
-        k = np.arange(total) - np.repeat(np.cumsum(per) - per, per)
-        p = rows[first[u[which]] + k // size[v[which]]]
-        q = rows[first[v[which]] + k % size[v[which]]]
-        distinct = a[p] != a[q]
-        p, q = p[distinct], q[distinct]
-        span_left, span_right = left[a[p]] - left[a[q]], right_points[b[p]] - right_points[b[q]]
-        agree = (np.abs(span_left) - np.abs(span_right)) ** 2 <= g2 * (noise[p] + noise[q])
-        p, q, span_left, span_right = p[agree], q[agree], span_left[agree], span_right[agree]
-        dphi = np.angle(span_left / span_right)
+        # positions in rows: for each pair (u, v), each of u's rows (p) with each of v's (q), row by row; as ranges
+        # (u's rows, then one run of v's rows per row of u) repeated and shifted, without dividing vote indices
+        runs, run_first = np.repeat(size[v], size[u]), np.repeat(first[v], size[u])
+        own = np.arange(int(size[u].sum())) + np.repeat(first[u] - (np.cumsum(size[u]) - size[u]), size[u])
+        q = np.arange(total) + np.repeat(run_first - (np.cumsum(runs) - runs), runs)
+        # two different left features whose distance agrees with their right features' (one per pair u, v); the
+        # rows' left features, points and noise gathered once, each vote reading them by position (u's side
+        # repeated along its runs), the distinct left features checked among the votes that agree
+        row_left, row_noise = a[rows], noise[rows]
+        row_point = left[row_left]
+        span_left = np.repeat(row_point[own], runs) - row_point[q]
+        span = np.abs(right_points[features[u]] - right_points[features[v]])
+        agree = np.flatnonzero((np.abs(span_left) - np.repeat(span, per)) ** 2
+                               <= g2 * (np.repeat(row_noise[own], runs) + row_noise[q]))
+        p, q, span_left = np.repeat(own, runs)[agree], q[agree], span_left[agree]
+        distinct = row_left[p] != row_left[q]
+        p, q, span_left = rows[p[distinct]], rows[q[distinct]], span_left[distinct]
+        dphi = np.angle(span_left / (right_points[b[p]] - right_points[b[q]]))
         allowed = np.abs(dphi) <= np.minimum(turning[p], turning[q])
         p, q, dphi = p[allowed], q[allowed], dphi[allowed]
         o = left[a[p]] + np.exp(1j * dphi) * (centre[join] - right_points[b[p]]) - centre[join]

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .association_grid import pairs_within
+
 __all__ = ["DRIFT_MARGIN", "drift_rivals"]
 
 #: a drifted pair keeps its left feature when every rival is at least this much farther, in squared distance
@@ -23,8 +25,6 @@ __all__ = ["DRIFT_MARGIN", "drift_rivals"]
 #: VicPark's true drifted pairs, 2.7 and more; 0.3 already lets a false link through on DLR: benchmarks/README.md,
 #: "Data association")
 DRIFT_MARGIN = 1.0
-#: flagged pairs are compared with the left features this many (pairs x left features) at a time
-_CHUNK = 1 << 18
 
 
 def drift_rivals(left: np.ndarray, left_join: np.ndarray, pair_left: np.ndarray, predicted: np.ndarray,
@@ -42,18 +42,14 @@ def drift_rivals(left: np.ndarray, left_join: np.ndarray, pair_left: np.ndarray,
     flagged = np.flatnonzero(drift >= noise)
     if not len(flagged) or not len(left):
         return drop
-    own = np.abs(left[pair_left[flagged]] - predicted[flagged]) ** 2
+    chosen = pair_left[flagged]
+    own = np.abs(left[chosen] - predicted[flagged]) ** 2
     reach = own + margin * (noise[flagged] + drift[flagged])
-    step = max(1, _CHUNK // len(left))
-    for start in range(0, len(flagged), step):
-        rows = slice(start, start + step)
-        chosen = pair_left[flagged[rows]]
-        near = np.abs(left[None, :] - predicted[flagged[rows], None]) ** 2 < reach[rows, None]
-        near &= left_join[None, :] == left_join[chosen][:, None]
-        near[np.arange(len(chosen)), chosen] = False
-        if left_sightings is not None:
-            p, r = np.nonzero(near)
-            together = (left_sightings[r] & left_sightings[chosen[p]]).any(axis=1)
-            near[p[~together], r[~together]] = False
-        drop[flagged[rows]] = near.any(axis=1)
+    # the left features of each flagged pair's join within its reach (a grid; a hair wider, then the exact test)
+    r, p = pairs_within(left, left_join, predicted[flagged], left_join[chosen], np.sqrt(reach) * (1 + 1e-9),
+                        int(left_join.max()) + 1)
+    near = (np.abs(left[r] - predicted[flagged[p]]) ** 2 < reach[p]) & (r != chosen[p])
+    if left_sightings is not None:
+        near &= (left_sightings[r] & left_sightings[chosen[p]]).any(axis=1)
+    drop[flagged[p[near]]] = True
     return drop
