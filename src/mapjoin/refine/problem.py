@@ -431,7 +431,7 @@ class ExactProblem:
             data = data.copy()
             data[self._pattern.diagonal] *= 1.0 + damping
         if self.backend == "dense":
-            return dense.factorise(self._pattern, self._pattern.mirrored(data))
+            return dense.factorise(self._pattern, data)
         return factorise(self.normal_matrix(data))
 
     def solve(self, factor: Factor, rhs: np.ndarray) -> np.ndarray:
@@ -449,7 +449,8 @@ class ExactProblem:
     def marginals(self, factor: Factor) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariances ``(poses (N, 3, 3), features (n, 2, 2))``, the diagonal blocks
         of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise`,
-        which it uses up (:func:`.sparse.diagonal_blocks`; the dense backend: from the whole inverse)."""
+        which it uses up (:func:`.sparse.diagonal_blocks`; the dense backend: from the inverse of its Cholesky
+        factor, :func:`.dense.diagonal_blocks`)."""
         N, n = self.n_maps, self.n_features
         poses = np.arange(3 * N).reshape(N, 3)
         features = 3 * N + np.arange(2 * n).reshape(n, 2)

@@ -1,0 +1,117 @@
+"""The dense backend's linear algebra (mapjoin.refine.dense, mapjoin.refine.triangular) against numpy's general
+LU solve and inverse of the whole matrix, built from the Jacobian (not from the assembled normal equations)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapjoin import io as mapio
+from mapjoin.joining import join
+from mapjoin.refine.problem import ExactProblem
+from mapjoin.refine.solver import minimise
+from mapjoin.refine.triangular import LEAF, lower_inverse, solve_lower, solve_lower_transposed
+from mapjoin.simulation import simulate
+
+
+def lower_triangular(n: int, seed: int, spread: float) -> np.ndarray:
+    """A random lower triangular matrix whose diagonal spans ``spread`` decades (condition grows with it)."""
+    rng = np.random.default_rng(seed)
+    L = np.tril(rng.normal(size=(n, n))) / np.sqrt(n)
+    L[np.diag_indices(n)] = rng.choice([-1.0, 1.0], n) * 10.0 ** rng.uniform(0, spread, n)
+    return L
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.one_of(st.integers(1, 2 * LEAF + 3), st.integers(2 * LEAF, 5 * LEAF)), seed=st.integers(0, 10**6),
+       spread=st.floats(0.0, 3.0), columns=st.sampled_from([None, 1, 3]))
+def test_triangular_solves_and_inverse_equal_numpys_general_ones(n, seed, spread, columns):
+    """Across the leaf size (halving at every depth), one right-hand side or several: L^-1 b, L^-T b and L^-1
+    equal numpy's LU solve and inverse; the inverse is exactly zero above the diagonal."""
+    L = lower_triangular(n, seed, spread)
+    b = np.random.default_rng(seed + 1).normal(size=n if columns is None else (n, columns))
+    scale = np.linalg.cond(L)
+    for got, expected in ((solve_lower(L, b), np.linalg.solve(L, b)),
+                          (solve_lower_transposed(L, b), np.linalg.solve(L.T, b))):
+        assert got.shape == expected.shape
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13 * scale * np.abs(expected).max())
+    inverse = lower_inverse(L)
+    expected = np.linalg.inv(L)
+    np.testing.assert_allclose(inverse, expected, rtol=0, atol=1e-13 * scale * np.abs(expected).max())
+    assert not np.triu(inverse, 1).any()
+
+
+@pytest.fixture(scope="module")
+def vicpark_optimum(data_dir):
+    """VicPark 200 at its optimum, dense backend: the problem, x, and J^T J from the Jacobian."""
+    maps = mapio.read_maps([str(data_dir / "VicPark_200_local_maps")])
+    problem = ExactProblem(maps, backend="dense")
+    found = minimise(problem, problem.pack(join(maps, strategy="tree").global_map))
+    J = problem.jacobian(found.x).toarray()
+    return problem, found, J.T @ J
+
+
+def assert_blocks_of(inverse, problem, poses, features, rtol):
+    N, n = problem.n_maps, problem.n_features
+    for got, first, count, size in ((poses, 0, N, 3), (features, 3 * N, n, 2)):
+        index = first + np.arange(count * size).reshape(count, size)
+        expected = inverse[index[:, :, None], index[:, None, :]]
+        np.testing.assert_allclose(got, expected, rtol=0, atol=rtol * np.abs(expected).max())
+        assert np.array_equal(got, got.transpose(0, 2, 1))
+
+
+def test_the_dense_factor_solves_and_inverts_as_numpys_lu_of_the_jacobians_normal_matrix(vicpark_optimum):
+    """Brute force on real data (1198 unknowns): the Cholesky solve equals numpy's LU solve of J^T J (J from
+    problem.jacobian), the marginal blocks the blocks of its whole inverse."""
+    problem, found, A = vicpark_optimum
+    factor = problem.factorise(found.data)
+    assert factor.cholesky is not None
+    rhs = np.random.default_rng(0).normal(size=problem.n_unknowns)
+    expected = np.linalg.solve(A, rhs)
+    np.testing.assert_allclose(problem.solve(factor, rhs), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    poses, features = problem.marginals(factor)
+    assert_blocks_of(np.linalg.inv(A), problem, poses, features, 1e-9)
+
+
+def test_an_indefinite_matrix_is_solved_and_inverted_by_lu(vicpark_optimum):
+    """Cholesky refuses a matrix that is not positive definite (a Newton step's may not be): the factor solves
+    it by LU and inverts it whole, as numpy does."""
+    problem, found, A = vicpark_optimum
+    data = found.data.copy()
+    data[problem._pattern.diagonal[:3]] *= -1.0           # the first pose's diagonal negated: indefinite
+    factor = problem.factorise(data)
+    assert factor.cholesky is None
+    B = A.copy()
+    B[np.arange(3), np.arange(3)] *= -1.0
+    rhs = np.arange(problem.n_unknowns, dtype=float)
+    expected = np.linalg.solve(B, rhs)
+    np.testing.assert_allclose(problem.solve(factor, rhs), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    poses, features = problem.marginals(factor)
+    assert_blocks_of(np.linalg.inv(B), problem, poses, features, 1e-9)
+
+
+def test_the_dense_factor_reads_the_lower_triangle_only():
+    """The slots above the diagonal (zeros from linearise) are not read: values put there change nothing."""
+    maps = list(simulate(6, seed=3).maps)
+    problem = ExactProblem(maps, backend="dense")
+    data = problem.linearise(problem.pack(join(maps).global_map))[0]
+    pattern = problem._pattern
+    columns = np.repeat(np.arange(pattern.n), np.diff(pattern.indptr))
+    above = pattern.indices < columns
+    assert above.any() and not data[above].any()
+    noisy = data.copy()
+    noisy[above] = 1e6
+    rhs = np.ones(problem.n_unknowns)
+    assert np.array_equal(problem.solve(problem.factorise(noisy), rhs), problem.solve(problem.factorise(data), rhs))
+
+
+def test_damping_scales_the_diagonal_the_dense_factor_solves(vicpark_optimum):
+    """A Levenberg-Marquardt factor: (A + lambda diag A)^-1 g, against numpy's LU of that matrix."""
+    problem, found, A = vicpark_optimum
+    damped = A + 0.3 * np.diag(np.diag(A))
+    expected = np.linalg.solve(damped, found.gradient)
+    got = problem.solve(problem.factorise(found.data, 0.3), found.gradient)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
