@@ -67,7 +67,7 @@ def test_the_dense_factor_solves_and_inverts_as_numpys_lu_of_the_jacobians_norma
     problem.jacobian), the marginal blocks the blocks of its whole inverse."""
     problem, found, A = vicpark_optimum
     factor = problem.factorise(found.data)
-    assert factor.cholesky is not None
+    assert factor.cholesky and factor.partition.segments > 1      # the blockwise factor, not the whole one
     rhs = np.random.default_rng(0).normal(size=problem.n_unknowns)
     expected = np.linalg.solve(A, rhs)
     np.testing.assert_allclose(problem.solve(factor, rhs), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
@@ -82,7 +82,7 @@ def test_an_indefinite_matrix_is_solved_and_inverted_by_lu(vicpark_optimum):
     data = found.data.copy()
     data[problem._pattern.diagonal[:3]] *= -1.0           # the first pose's diagonal negated: indefinite
     factor = problem.factorise(data)
-    assert factor.cholesky is None
+    assert not factor.cholesky
     B = A.copy()
     B[np.arange(3), np.arange(3)] *= -1.0
     rhs = np.arange(problem.n_unknowns, dtype=float)
@@ -115,3 +115,42 @@ def test_damping_scales_the_diagonal_the_dense_factor_solves(vicpark_optimum):
     got = problem.solve(problem.factorise(found.data, 0.3), found.gradient)
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
 
+
+
+@pytest.mark.parametrize("name", ["VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps"])
+def test_interiors_of_different_segments_do_not_couple(name, data_dir):
+    """The partition's premise, on J^T J from the Jacobian: no entry couples two different interiors, and each
+    node's unknowns are together in one part; the real datasets are cut (the least work is not the whole)."""
+    maps = mapio.read_maps([str(data_dir / name)])
+    problem = ExactProblem(maps, backend="dense")
+    x = problem.pack(join(maps, strategy="tree").global_map)
+    problem.factorise(problem.linearise(x)[0])
+    partition = problem._partition
+    segments = partition.segments
+    assert segments > 1
+    J = problem.jacobian(x).toarray()
+    A = (J.T @ J)[np.ix_(partition.order, partition.order)]
+    bounds = partition.bounds
+    for i in range(segments):
+        for j in range(segments):
+            if i != j:
+                assert not A[bounds[i]:bounds[i + 1], bounds[j]:bounds[j + 1]].any()
+    part = np.searchsorted(bounds, partition.position, side="right") - 1
+    N = problem.n_maps
+    assert (part[:3 * N].reshape(N, 3) == part[:3 * N:3, None]).all()
+    assert (part[3 * N:].reshape(-1, 2) == part[3 * N::2, None]).all()
+
+
+def test_a_single_map_and_a_map_without_features_take_the_whole_matrix():
+    """One segment (no separator) and tiny problems: the dense solve equals numpy's LU of J^T J."""
+    for maps in (list(simulate(1, seed=2).maps), list(simulate(2, seed=4).maps)):
+        problem = ExactProblem(maps, backend="dense")
+        x = problem.pack(join(maps).global_map)
+        data, gradient, _ = problem.linearise(x)
+        factor = problem.factorise(data)
+        J = problem.jacobian(x).toarray()
+        expected = np.linalg.solve(J.T @ J, gradient)
+        np.testing.assert_allclose(problem.solve(factor, gradient), expected, rtol=0,
+                                   atol=1e-9 * np.abs(expected).max())
+        poses, features = problem.marginals(factor)
+        assert_blocks_of(np.linalg.inv(J.T @ J), problem, poses, features, 1e-9)

@@ -5,24 +5,32 @@ than on its arithmetic; numpy, already loaded, solves such a system densely in
 milliseconds. :data:`DENSE_UNKNOWNS` is the crossover, measured on whole commands
 (benchmarks/README.md, "Start-up"); :func:`backend_for` chooses by it.
 
-The normal matrix is assembled once, as the CSC data of :class:`.sparse.BlockPattern`
-(taken in the natural node order for this backend); :func:`factorise` scatters its lower
-triangle into a dense matrix. The Gauss-Newton and Levenberg-Marquardt steps of
-docs/method.md#solver solve it by Cholesky, ``A = L L^T`` (LAPACK's ``potrf``, which reads
-the lower triangle only), and two triangular solves (:mod:`.triangular`: numpy has none, so
-they are matrix products by halves); the marginal covariances
-(docs/method.md#marginal-covariances) are the diagonal blocks of ``A^-1 = L^-T L^-1``, the
-column blocks of ``L^-1`` (:func:`.triangular.lower_inverse`) multiplied with themselves, never
-the whole inverse. A matrix Cholesky refuses (a Newton step's, which may be indefinite) is
-solved by LU with partial pivoting (``numpy.linalg.solve``) as before. Measured at VicPark 200's
-1198 unknowns (one OpenBLAS thread): a step 21 ms against the LU solve's 32 ms, the marginals
-48 ms against the whole inverse's 146 ms.
+The structure used (docs/method.md#exact-joining): a local map's information couples its end
+pose, its base pose and all its features (a full covariance couples every pair of them), and
+nothing else. So the chain of maps cut into K runs ("segments", :class:`Partition`), the
+unknowns that only maps of one segment touch (its interior) couple with nothing of another
+segment: they couple only with the separator, the unknowns that maps of several segments touch
+(the poses at the cuts, features seen on both sides of one). In the order [interior 1, ...,
+interior K, separator] the normal matrix is a block arrow,
 
-The Schur complement onto the poses (features eliminated first) is no cheaper here: the feature
-block is not block-diagonal, because a local map's full covariance couples all its features
-(VicPark 200: a feature couples with 51 others on average, DLR 200 with 18), so eliminating the
-features is a dense factorisation of that block: measured as fast as the whole Cholesky, not
-faster (benchmarks/README.md, "Start-up").
+    A = [[A_1, 0, ..., C_1^T], ..., [C_1, ..., C_K, A_S]]   (C_i: separator rows, interior i columns),
+
+and its Cholesky factor keeps that pattern: ``A_i = L_i L_i^T``, ``B_i = C_i L_i^-T``, and the
+separator's Schur complement ``S = A_S - sum_i B_i B_i^T = L_S L_S^T`` (the interiors
+eliminated). The feature block is not block-diagonal (a map's full covariance couples its
+features: VicPark 200's features couple with 51 others on average, DLR 200's with 18), so
+features are eliminated a segment at a time, not one by one. K is chosen once per problem by
+the dense work it leaves (:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes
+K = 8 (separator 525 of 1198 unknowns, ~0.47 of the whole Cholesky's flops), DLR 200 K = 4 (315
+of 1698, ~0.22).
+
+A step solves ``A x = b`` by the triangular solves of that factor (:mod:`.triangular`: numpy
+has none, so they are matrix products by halves). The marginal covariances
+(docs/method.md#marginal-covariances) are the diagonal blocks of ``A^-1 = L^-T L^-1``: the
+column blocks of ``L^-1`` multiplied with themselves, where ``L^-1``'s columns of interior i
+are ``L_i^-1`` over ``-L_S^-1 B_i L_i^-1`` and the separator's ``L_S^-1``; never the whole
+inverse. A matrix Cholesky refuses (a Newton step's, which may be indefinite) is solved by LU
+with partial pivoting (``numpy.linalg.solve``) and inverted whole.
 """
 
 from __future__ import annotations
@@ -61,27 +69,123 @@ def backend_for(backend: Backend, unknowns: int) -> Literal["dense", "sparse"]:
     return backend
 
 
-class DenseFactor:
-    """The normal matrix ``A`` of a step, dense (natural order), factorised: its Cholesky factor ``L``
-    (lower), or None where Cholesky refused (``A`` not positive definite, as a Newton step's may be) and
-    :meth:`solve` takes LU with partial pivoting instead. ``matrix``: ``A``'s lower triangle (zeros above)."""
+class Partition:
+    """The dense backend's order of the unknowns: the interiors of K segments of the chain, then the
+    separator (see the module docstring). ``order``: the unknowns in that order; ``position[u]``: where
+    unknown u is; ``bounds``: where each interior starts, the separator's start last but one and the end
+    last (K + 2 entries); ``segments``: K."""
 
-    def __init__(self, matrix: np.ndarray):
-        self.matrix = matrix
+    def __init__(self, order: np.ndarray, bounds: np.ndarray):
+        self.order, self.bounds = order, bounds
+        self.position = np.empty_like(order)
+        self.position[order] = np.arange(len(order))
+        self.segments = len(bounds) - 2
+        self._targets: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, touched: list[tuple[np.ndarray, np.ndarray, np.ndarray]], n_maps: int, n_features: int
+           ) -> Partition:
+        """The partition of the least dense work for the maps' nodes: ``touched`` holds, per group of maps,
+        the map indices (G,), their nodes (G, w) and which of those are real (G, w). Node k < n_maps is pose
+        k (3 unknowns), node n_maps + f feature f (2). A node belongs to the interior of segment ``k * K //
+        n_maps`` if every map touching it lies there, else to the separator."""
+        n_nodes = n_maps + n_features
+        first, last = np.full(n_nodes, n_maps), np.full(n_nodes, -1)
+        for maps, nodes, real in touched:
+            owner = np.broadcast_to(maps[:, None], nodes.shape)[real]
+            np.minimum.at(first, nodes[real], owner)
+            np.maximum.at(last, nodes[real], owner)
+        size = np.where(np.arange(n_nodes) < n_maps, 3, 2)
+        best = None
+        for K in sorted({k for k in _SEGMENT_COUNTS if k <= n_maps} | {1}):
+            part = np.where((first * K // n_maps == last * K // n_maps) & (last >= 0), first * K // n_maps, K)
+            sizes = np.bincount(part, weights=size, minlength=K + 1)
+            inner, s = sizes[:K], sizes[K]
+            work = float(np.sum(inner ** 3 / 3 + inner ** 2 * s + inner * s ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
+            if best is None or work < best[0]:
+                best = work, K, part, sizes
+        _, K, part, sizes = best
+        nodes = np.argsort(part, kind="stable")
+        start = np.where(nodes < n_maps, 3 * nodes, 3 * n_maps + 2 * (nodes - n_maps))
+        order = np.repeat(start, size[nodes]) + (np.arange(int(size.sum())) - np.repeat(
+            np.cumsum(size[nodes]) - size[nodes], size[nodes]))
+        return cls(order, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+
+    def scatter(self, pattern: BlockPattern, data: np.ndarray) -> np.ndarray:
+        """The dense matrix, in this order, holding on and below its diagonal the symmetric matrix whose lower
+        triangle is the CSC ``data`` of ``pattern`` (natural order; the slots above its diagonal are not
+        read): what the blockwise Cholesky reads."""
+        n = pattern.n
+        if self._targets is None:
+            columns = np.repeat(np.arange(n), np.diff(pattern.indptr))
+            self._lower = pattern.indices >= columns
+            row, col = self.position[pattern.indices[self._lower]], self.position[columns[self._lower]]
+            self._targets = np.maximum(row, col) * n + np.minimum(row, col)
+        matrix = np.zeros(n * n)
+        matrix[self._targets] = data[self._lower]
+        return matrix.reshape(n, n)
+
+
+#: the segment counts :meth:`Partition.of` weighs (each no more than the maps)
+_SEGMENT_COUNTS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
+#: flops worth one segment's numpy calls (a few dozen, ~0.3 ms at this machine's ~25 GFlop/s)
+_SEGMENT_WORK = 1e7
+
+
+class DenseFactor:
+    """The blockwise Cholesky factor of a normal matrix ``A`` in a :class:`Partition`'s order (see the module
+    docstring): per interior ``L_i`` and ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
+    (``A`` not positive definite, as a Newton step's may be), ``cholesky`` False and :meth:`solve` takes LU
+    with partial pivoting of the whole matrix instead. ``matrix``: ``A`` in that order, lower triangle."""
+
+    def __init__(self, matrix: np.ndarray, partition: Partition):
+        self.matrix, self.partition = matrix, partition
+        bounds = partition.bounds
+        s0 = bounds[-2]
+        self.interiors: list[tuple[np.ndarray, np.ndarray]] = []
+        schur = matrix[s0:, s0:].copy()
         try:
-            self.cholesky: np.ndarray | None = np.linalg.cholesky(matrix)
+            for a, b in zip(bounds[:-2], bounds[1:-1]):
+                L = np.linalg.cholesky(matrix[a:b, a:b])
+                B = solve_lower(L, matrix[s0:, a:b].T).T      # C_i L_i^-T: (separator, interior)
+                schur -= B @ B.T
+                self.interiors.append((L, B))
+            self.separator = np.linalg.cholesky(schur)
+            self.cholesky = True
         except np.linalg.LinAlgError:
-            self.cholesky = None
+            self.interiors, self.cholesky = [], False
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """``A^-1 rhs``; RuntimeError if ``A`` is exactly singular (as SuperLU's factor raises)."""
-        L = self.cholesky
-        if L is not None:
-            return solve_lower_transposed(L, solve_lower(L, rhs))
-        try:
-            return np.linalg.solve(_mirrored(self.matrix), rhs)
-        except np.linalg.LinAlgError:
-            raise RuntimeError("the normal matrix is exactly singular") from None
+        """``A^-1 rhs`` (``rhs`` and the result in the natural order); RuntimeError if ``A`` is exactly
+        singular (as SuperLU's factor raises)."""
+        partition = self.partition
+        b = rhs[partition.order]
+        if not self.cholesky:
+            try:
+                x = np.linalg.solve(_mirrored(self.matrix), b)
+            except np.linalg.LinAlgError:
+                raise RuntimeError("the normal matrix is exactly singular") from None
+        else:
+            bounds = partition.bounds
+            s0 = bounds[-2]
+            y = [solve_lower(L, b[a:c]) for (L, _), a, c in zip(self.interiors, bounds[:-2], bounds[1:-1])]
+            ys = b[s0:] - sum((B @ yi for (_, B), yi in zip(self.interiors, y)), np.zeros(len(b) - s0))
+            xs = solve_lower_transposed(self.separator, solve_lower(self.separator, ys))
+            x = np.concatenate([solve_lower_transposed(L, yi - B.T @ xs) for (L, B), yi in zip(self.interiors, y)]
+                               + [xs])
+        return x[partition.position]
+
+    def inverse_columns(self) -> list[tuple[int, np.ndarray]]:
+        """``L^-1`` by column blocks: ``(first, Z)`` per interior and the separator, Z holding the non-zero rows
+        (the interior's, then the separator's) of the columns ``first ..`` (in the partition's order)."""
+        bounds = self.partition.bounds
+        separator_inverse = lower_inverse(self.separator)
+        blocks = []
+        for (L, B), a in zip(self.interiors, bounds[:-2]):
+            W = lower_inverse(L)
+            blocks.append((int(a), np.concatenate([W, -separator_inverse @ (B @ W)])))
+        blocks.append((int(bounds[-2]), separator_inverse))
+        return blocks
 
 
 def _mirrored(lower: np.ndarray) -> np.ndarray:
@@ -89,30 +193,32 @@ def _mirrored(lower: np.ndarray) -> np.ndarray:
     return np.tril(lower) + np.tril(lower, -1).T
 
 
-def factorise(pattern: BlockPattern, data: np.ndarray) -> DenseFactor:
-    """The dense factor of the symmetric matrix whose lower triangle is the CSC ``data`` of ``pattern`` (built in
-    the natural node order, so that ``pattern.position`` is the identity; the slots above the diagonal are
-    not read)."""
-    n = pattern.n
-    columns = np.repeat(np.arange(n), np.diff(pattern.indptr))
-    lower = pattern.indices >= columns
-    matrix = np.zeros((n, n))
-    matrix[pattern.indices[lower], columns[lower]] = data[lower]
-    return DenseFactor(matrix)
+def factorise(pattern: BlockPattern, partition: Partition, data: np.ndarray) -> DenseFactor:
+    """The dense factor, in ``partition``'s order, of the symmetric matrix whose lower triangle is the CSC
+    ``data`` of ``pattern`` (built in the natural node order; the slots above the diagonal are not read)."""
+    return DenseFactor(partition.scatter(pattern, data), partition)
 
 
 def diagonal_blocks(factor: DenseFactor, blocks: list[np.ndarray]) -> list[np.ndarray]:
-    """Diagonal blocks of ``A^-1`` for each (k, s) array of unknowns in ``blocks``: (k, s, s) each. With the
-    Cholesky factor, block ``b`` is ``L^-1[:, b]^T L^-1[:, b]`` (``A^-1 = L^-T L^-1``); else (``A`` not
-    positive definite) from the whole inverse. Symmetrised: a covariance written as its upper triangle (CSV)
-    must read back equal to one written whole (JSON, YAML)."""
-    if factor.cholesky is None:
+    """Diagonal blocks of ``A^-1`` for each (k, s) array of unknowns (natural order) in ``blocks``: (k, s, s)
+    each, a node's unknowns (a pose's, a feature's) per row. With the Cholesky factor, block ``b`` is
+    ``L^-1[:, b]^T L^-1[:, b]`` (``A^-1 = L^-T L^-1``), its columns taken from the part holding the node
+    (:meth:`DenseFactor.inverse_columns`); else (``A`` not positive definite) from the whole inverse.
+    Symmetrised: a covariance written as its upper triangle (CSV) must read back equal to one written
+    whole (JSON, YAML)."""
+    position = factor.partition.position
+    if not factor.cholesky:
         inverse = np.linalg.inv(_mirrored(factor.matrix))
-        found = [inverse[b[:, :, None], b[:, None, :]] for b in blocks]
+        found = [inverse[position[b][:, :, None], position[b][:, None, :]] for b in blocks]
     else:
-        inverse = lower_inverse(factor.cholesky)
-        found = []
-        for b in blocks:
-            columns = inverse[:, b]                  # (n, k, s)
-            found.append(np.einsum("rki,rkj->kij", columns, columns))
+        parts = factor.inverse_columns()
+        found = [np.empty((len(b), b.shape[1], b.shape[1])) for b in blocks]
+        for b, out in zip(blocks, found):
+            at = position[b]                                         # (k, s): a node's unknowns stay together
+            part = np.searchsorted(factor.partition.bounds, at[:, 0], side="right") - 1
+            for p, (first, Z) in enumerate(parts):
+                mine = part == p
+                if mine.any():
+                    columns = Z[:, at[mine] - first]                 # (rows, k', s)
+                    out[mine] = np.einsum("rki,rkj->kij", columns, columns)
     return [(f + f.transpose(0, 2, 1)) / 2 for f in found]

@@ -297,7 +297,8 @@ class ExactProblem:
     # ---- normal equations ---------------------------------------------------------------
 
     def _prepare(self) -> None:
-        """Once: the fill-reducing node order (the natural one for the dense backend), the CSC
+        """Once: the fill-reducing node order (the natural one for the dense backend, which factorises in
+        its own order, :class:`.dense.Partition`), the CSC
         pattern of J^T J in it (with the closed node pattern for the sparse marginal
         covariances), and where each map block's entries go."""
         if self._pattern is not None:
@@ -315,6 +316,8 @@ class ExactProblem:
         col, row = natural // n_nodes, natural % n_nodes
         if self.backend == "dense":
             order, self._closed = np.arange(n_nodes), None
+            self._partition = dense.Partition.of([(g.maps, g.nodes, np.diagonal(g.coupled, axis1=1, axis2=2))
+                                                  for g in self.groups], N, n)
         else:
             order, self._closed = fill_reducing_order(row, col, n_nodes)
         self._pattern = BlockPattern(col, row, order, np.concatenate([np.full(N, 3), np.full(n, 2)]))
@@ -431,7 +434,7 @@ class ExactProblem:
             data = data.copy()
             data[self._pattern.diagonal] *= 1.0 + damping
         if self.backend == "dense":
-            return dense.factorise(self._pattern, data)
+            return dense.factorise(self._pattern, self._partition, data)
         return factorise(self.normal_matrix(data))
 
     def solve(self, factor: Factor, rhs: np.ndarray) -> np.ndarray:
