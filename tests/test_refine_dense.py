@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from mapjoin import io as mapio
 from mapjoin.joining import join
+from mapjoin.refine import dense
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.solver import minimise
 from mapjoin.refine.triangular import LEAF, lower_inverse, solve_lower, solve_lower_transposed
@@ -154,3 +155,30 @@ def test_a_single_map_and_a_map_without_features_take_the_whole_matrix():
                                    atol=1e-9 * np.abs(expected).max())
         poses, features = problem.marginals(factor)
         assert_blocks_of(np.linalg.inv(J.T @ J), problem, poses, features, 1e-9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(count=st.integers(2, 12), seed=st.integers(0, 10_000), full=st.booleans(), noise=st.floats(0.0, 0.3),
+       segments=st.integers(2, 12))
+def test_the_segmented_solve_equals_the_sparse_one_on_small_simulations(count, seed, full, noise, segments):
+    """Small chains cut into a given number of segments (the work model would keep them whole), full or
+    spherical covariances, started off the fast join by noise: the same steps, chi^2 after each (1e-9), the
+    same optimum and marginal covariances (1e-9) as SuperLU's."""
+    maps = list(simulate(count, seed=seed, full_covariance=full).maps)
+    start = join(maps).global_map
+    solved = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(dense, "_SEGMENT_COUNTS", (min(segments, count),))
+        patch.setattr(dense, "_SEGMENT_WORK", -1e12)         # a segment's "gain" outweighs any work: the most
+        for backend in ("dense", "sparse"):
+            problem = ExactProblem(maps, backend=backend)
+            x = problem.pack(start)
+            found = minimise(problem, x + np.random.default_rng(seed).normal(0, noise, x.size))
+            solved[backend] = problem, found, problem.marginals(found.final_factor(problem))
+    (problem, a, (pa, fa)), (_, b, (pb, fb)) = solved["dense"], solved["sparse"]
+    assert problem._partition.segments == min(segments, count)
+    assert a.iterations == b.iterations and a.converged and b.converged
+    np.testing.assert_allclose(a.costs, b.costs, rtol=1e-9, atol=1e-14 * b.costs[0])
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9 * (1.0 + np.max(np.abs(b.x))))
+    for got, expected in ((pa, pb), (fa, fb)):
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())

@@ -21,8 +21,10 @@ eliminated). The feature block is not block-diagonal (a map's full covariance co
 features: VicPark 200's features couple with 51 others on average, DLR 200's with 18), so
 features are eliminated a segment at a time, not one by one. K is chosen once per problem by
 the dense work it leaves (:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes
-K = 8 (separator 525 of 1198 unknowns, ~0.47 of the whole Cholesky's flops), DLR 200 K = 4 (315
-of 1698, ~0.22).
+K = 3 (separator 406 of 1198 unknowns; 297 MFlop a factorisation against the whole Cholesky's
+573), DLR 200 K = 4 (315 of 1698; 397 against 1632), 8240 K = 8 (109 of 1374; 138 against 865).
+Measured in-process (one OpenBLAS thread): a step and the marginals of VicPark 200 16 and 16 ms
+against the whole matrix's 34 and 42 ms, DLR 200 23 and 22 ms against 70 and 91 ms.
 
 A step solves ``A x = b`` by the triangular solves of that factor (:mod:`.triangular`: numpy
 has none, so they are matrix products by halves). The marginal covariances
@@ -35,6 +37,7 @@ with partial pivoting (``numpy.linalg.solve``) and inverted whole.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -44,29 +47,40 @@ from .triangular import lower_inverse, solve_lower, solve_lower_transposed
 if TYPE_CHECKING:
     from .sparse import BlockPattern
 
-__all__ = ["BACKENDS", "DENSE_UNKNOWNS", "Backend", "DenseFactor", "backend_for", "diagonal_blocks", "factorise"]
+__all__ = ["BACKENDS", "DENSE_UNKNOWNS", "DENSE_WORK", "Backend", "DenseFactor", "Partition", "backend_for",
+           "diagonal_blocks", "factorise"]
 
 Backend = Literal["auto", "dense", "sparse"]
 BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse")
 
-#: problems with at most this many unknowns are solved densely under ``auto``: on whole refines of the first
-#: maps of VicPark 200 and DLR 200 (benchmarks/startup.py --crossover, OpenBLAS on one thread as the command
-#: runs it) the dense backend took 0.43-0.65 of the sparse one's wall time up to 592 unknowns, 0.72-0.91 from
-#: 652 to 762, as long at 958-988 and longer from 1128 (1.16 at VicPark 200's 1198, 2.8 at DLR 200's 1698):
-#: below that, importing scipy costs more than the dense arithmetic. (The first measurement, 150, had
-#: OpenBLAS's two threads contending with a loaded machine.) A confirmation's solves take the whole chain's
-#: backend (:func:`mapjoin.confirmation.chain_backend`).
-DENSE_UNKNOWNS = 800
+#: no problem of more unknowns is solved densely under ``auto`` (its dense matrix, 8 n^2 bytes, is not even
+#: partitioned): 4000 unknowns, 128 MB
+DENSE_UNKNOWNS = 4000
+#: under ``auto``, problems whose factorisation in their :class:`Partition` costs at most this many flops
+#: (:attr:`Partition.work`) are solved densely. Measured on whole refines of the first maps of VicPark 200 and
+#: DLR 200 and of 8240 (benchmarks/startup.py --crossover, 2026-11-26, load 3.5, OpenBLAS on one thread as the
+#: command runs it): dense took 0.37-0.63 of the sparse backend's wall time up to 138 MFlop (8240: 1374
+#: unknowns), 0.70-0.80 from 191 to 297 (VicPark 200: 1198 unknowns) and 1.05 (CPU 1.02) at DLR 200's 397
+#: (1698 unknowns); ``join`` of DLR 200, whose confirmation solves the first ~182 maps, took 0.55 s wall with
+#: its solves dense against 0.63 s sparse (medians of 7, load 2.5): the scipy import they spare outweighs the
+#: dense work up to about there. A confirmation's solves take the whole chain's backend
+#: (:func:`mapjoin.confirmation.chain_backend`).
+DENSE_WORK = 4.5e8
 
 
-def backend_for(backend: Backend, unknowns: int) -> Literal["dense", "sparse"]:
-    """The linear algebra of a problem of ``unknowns`` unknowns: ``backend`` itself, or under ``auto``
-    dense up to :data:`DENSE_UNKNOWNS` and sparse beyond."""
+def backend_for(backend: Backend, unknowns: int, partition: Callable[[], Partition]
+                ) -> tuple[Literal["dense", "sparse"], Partition | None]:
+    """The linear algebra of a problem of ``unknowns`` unknowns, and for the dense backend its
+    :class:`Partition` (``partition()`` makes it): ``backend`` itself, or under ``auto`` dense if it has at
+    most :data:`DENSE_UNKNOWNS` unknowns and its partition's work is at most :data:`DENSE_WORK` flops."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    if backend == "auto":
-        return "dense" if unknowns <= DENSE_UNKNOWNS else "sparse"
-    return backend
+    if backend == "sparse" or (backend == "auto" and unknowns > DENSE_UNKNOWNS):
+        return "sparse", None
+    found = partition()
+    if backend == "auto" and found.work > DENSE_WORK:
+        return "sparse", None
+    return "dense", found
 
 
 class Partition:
@@ -75,41 +89,45 @@ class Partition:
     unknown u is; ``bounds``: where each interior starts, the separator's start last but one and the end
     last (K + 2 entries); ``segments``: K."""
 
-    def __init__(self, order: np.ndarray, bounds: np.ndarray):
-        self.order, self.bounds = order, bounds
+    def __init__(self, order: np.ndarray, bounds: np.ndarray, work: float):
+        self.order, self.bounds, self.work = order, bounds, work
         self.position = np.empty_like(order)
         self.position[order] = np.arange(len(order))
         self.segments = len(bounds) - 2
         self._targets: np.ndarray | None = None
 
     @classmethod
-    def of(cls, touched: list[tuple[np.ndarray, np.ndarray, np.ndarray]], n_maps: int, n_features: int
-           ) -> Partition:
-        """The partition of the least dense work for the maps' nodes: ``touched`` holds, per group of maps,
-        the map indices (G,), their nodes (G, w) and which of those are real (G, w). Node k < n_maps is pose
-        k (3 unknowns), node n_maps + f feature f (2). A node belongs to the interior of segment ``k * K //
-        n_maps`` if every map touching it lies there, else to the separator."""
+    def of(cls, owner: np.ndarray, compact: np.ndarray, base: np.ndarray, n_features: int) -> Partition:
+        """The partition of the least dense work for a chain of ``len(base)`` maps: map ``owner[o]`` saw
+        feature ``compact[o]`` (observation o), map k's base pose is that of map ``base[k]`` (-1: the fixed
+        origin). A map touches its own pose, its base pose and the features it saw; an unknown belongs to
+        the interior of segment ``k * K // maps`` if every map k touching it lies there, else to the
+        separator. ``work``: the flops of one factorisation in it (with :data:`_SEGMENT_WORK` per segment)."""
+        n_maps = len(base)
         n_nodes = n_maps + n_features
+        maps = np.arange(n_maps)
+        based = base >= 0
+        touching = np.concatenate([maps, base[based], n_maps + compact])        # node of each (map, node) pair
+        toucher = np.concatenate([maps, maps[based], owner])
         first, last = np.full(n_nodes, n_maps), np.full(n_nodes, -1)
-        for maps, nodes, real in touched:
-            owner = np.broadcast_to(maps[:, None], nodes.shape)[real]
-            np.minimum.at(first, nodes[real], owner)
-            np.maximum.at(last, nodes[real], owner)
+        np.minimum.at(first, touching, toucher)
+        np.maximum.at(last, touching, toucher)
         size = np.where(np.arange(n_nodes) < n_maps, 3, 2)
         best = None
         for K in sorted({k for k in _SEGMENT_COUNTS if k <= n_maps} | {1}):
-            part = np.where((first * K // n_maps == last * K // n_maps) & (last >= 0), first * K // n_maps, K)
+            segment = first * K // n_maps
+            part = np.where(segment == last * K // n_maps, segment, K)
             sizes = np.bincount(part, weights=size, minlength=K + 1)
             inner, s = sizes[:K], sizes[K]
             work = float(np.sum(inner ** 3 / 3 + inner ** 2 * s + inner * s ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
             if best is None or work < best[0]:
-                best = work, K, part, sizes
-        _, K, part, sizes = best
+                best = work, part, sizes
+        work, part, sizes = best
         nodes = np.argsort(part, kind="stable")
         start = np.where(nodes < n_maps, 3 * nodes, 3 * n_maps + 2 * (nodes - n_maps))
         order = np.repeat(start, size[nodes]) + (np.arange(int(size.sum())) - np.repeat(
             np.cumsum(size[nodes]) - size[nodes], size[nodes]))
-        return cls(order, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+        return cls(order, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64), work)
 
     def scatter(self, pattern: BlockPattern, data: np.ndarray) -> np.ndarray:
         """The dense matrix, in this order, holding on and below its diagonal the symmetric matrix whose lower

@@ -114,10 +114,11 @@ class ExactProblem:
         self.feature_ids, compact = np.unique(blocks.feature_ids, return_inverse=True)
         self.n_features = n = len(self.feature_ids)
         self.n_unknowns = 3 * N + 2 * n
-        self.backend = backend_for(backend, self.n_unknowns)
         self.row0 = np.concatenate([[0], np.cumsum(3 + 2 * sizes)])
         self.n_residuals = int(self.row0[-1])
         chain = _Chain(base, compact.ravel(), np.concatenate([[0], np.cumsum(sizes)]), sizes)
+        self.backend, self._partition = backend_for(backend, self.n_unknowns, lambda: dense.Partition.of(
+            np.repeat(np.arange(N), sizes), chain.compact, base, n))
         measurement = self._measurement(blocks, chain)
         covariances, independent = _covariances_by_size(blocks, sizes)
         self.groups: list[Group] = [self._group(ks, chain, measurement, covariances, bool(independent[ks[0]]))
@@ -316,8 +317,6 @@ class ExactProblem:
         col, row = natural // n_nodes, natural % n_nodes
         if self.backend == "dense":
             order, self._closed = np.arange(n_nodes), None
-            self._partition = dense.Partition.of([(g.maps, g.nodes, np.diagonal(g.coupled, axis1=1, axis2=2))
-                                                  for g in self.groups], N, n)
         else:
             order, self._closed = fill_reducing_order(row, col, n_nodes)
         self._pattern = BlockPattern(col, row, order, np.concatenate([np.full(N, 3), np.full(n, 2)]))
