@@ -60,12 +60,11 @@ DENSE_UNKNOWNS = 4000
 #: (:attr:`Partition.work`) are solved densely. Measured on whole refines of the first maps of VicPark 200 and
 #: DLR 200 and of 8240 (benchmarks/startup.py --crossover, 2026-11-26, load 3.5, OpenBLAS on one thread as the
 #: command runs it): dense took 0.37-0.63 of the sparse backend's wall time up to 138 MFlop (8240: 1374
-#: unknowns), 0.70-0.80 from 191 to 297 (VicPark 200: 1198 unknowns) and 1.05 (CPU 1.02) at DLR 200's 397
-#: (1698 unknowns); ``join`` of DLR 200, whose confirmation solves the first ~182 maps, took 0.55 s wall with
-#: its solves dense against 0.63 s sparse (medians of 7, load 2.5): the scipy import they spare outweighs the
-#: dense work up to about there. A confirmation's solves take the whole chain's backend
+#: unknowns), 0.70-0.80 from 191 to 297 (VicPark 200: 1198 unknowns) and 1.05 at DLR 200's 397 (1698
+#: unknowns), where the whole ``refine`` command, whose chi^2 warning imports scipy.special anyway, took 1.20
+#: times the sparse one's CPU. A confirmation's solves take the whole chain's backend
 #: (:func:`mapjoin.confirmation.chain_backend`).
-DENSE_WORK = 4.5e8
+DENSE_WORK = 3.5e8
 
 
 def backend_for(backend: Backend, unknowns: int, partition: Callable[[], Partition]
