@@ -13,7 +13,12 @@ from mapjoin.joining import join
 from mapjoin.refine import dense
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.solver import minimise
-from mapjoin.refine.triangular import LEAF, lower_inverse, solve_lower, solve_lower_transposed
+from mapjoin.refine.triangular import (
+    LEAF,
+    lower_inverse,
+    solve_lower,
+    solve_lower_transposed,
+)
 from mapjoin.simulation import simulate
 
 

@@ -19,7 +19,6 @@ from mapjoin.__main__ import BLAS_THREAD_VARIABLES, one_blas_thread
 from mapjoin.cli import COMMAND_MODULES, main
 from mapjoin.evaluation import CHI2_LEVEL, chi2_interval, chi2_surely_inside
 from mapjoin.joining import join
-from mapjoin.refine import dense
 from mapjoin.refine.dense import DENSE_UNKNOWNS, DENSE_WORK, backend_for
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.solver import minimise

@@ -37,6 +37,7 @@ with partial pivoting (``numpy.linalg.solve``) and inverted whole.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal
 
@@ -93,7 +94,8 @@ class Partition:
         self.position = np.empty_like(order)
         self.position[order] = np.arange(len(order))
         self.segments = len(bounds) - 2
-        self._targets: np.ndarray | None = None
+        self._lower: np.ndarray | None = None       # which CSC entries are on or below the diagonal
+        self._targets: np.ndarray | None = None     # where they go in the dense matrix (flat)
 
     @classmethod
     def of(cls, owner: np.ndarray, compact: np.ndarray, base: np.ndarray, n_features: int) -> Partition:
@@ -162,7 +164,7 @@ class DenseFactor:
         self.interiors: list[tuple[np.ndarray, np.ndarray]] = []
         schur = matrix[s0:, s0:].copy()
         try:
-            for a, b in zip(bounds[:-2], bounds[1:-1]):
+            for a, b in itertools.pairwise(bounds[:-1]):
                 L = np.linalg.cholesky(matrix[a:b, a:b])
                 B = solve_lower(L, matrix[s0:, a:b].T).T      # C_i L_i^-T: (separator, interior)
                 schur -= B @ B.T
