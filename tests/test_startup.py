@@ -59,7 +59,7 @@ def test_dense_and_sparse_backends_solve_the_real_datasets_alike(name, data_dir)
     backend reaches the known optima (1e-6 relative)."""
     maps = mapio.read_maps([str(data_dir / name)])
     solved = solve_both(maps, join(maps, strategy="tree").global_map)
-    assert_same_solve(solved, rtol=1e-7)
+    assert_same_solve(solved, rtol=1e-9)
     if name in KNOWN_OPTIMA:
         assert solved["dense"][1].cost == pytest.approx(KNOWN_OPTIMA[name], rel=1e-6)
 
@@ -69,7 +69,7 @@ def test_dense_and_sparse_backends_solve_the_real_datasets_alike(name, data_dir)
 def test_dense_and_sparse_backends_solve_small_simulations_alike(count, seed, full, noise):
     """Small simulated chains (full or spherical covariances), started off the fast join by noise."""
     maps = list(simulate(count, seed=seed, full_covariance=full).maps)
-    assert_same_solve(solve_both(maps, join(maps).global_map, noise, seed), rtol=1e-6)
+    assert_same_solve(solve_both(maps, join(maps).global_map, noise, seed), rtol=1e-9)
 
 
 def test_dense_backend_equals_the_sparse_one_on_a_singular_problem():
@@ -89,7 +89,7 @@ def test_auto_takes_the_dense_backend_for_real_prefixes_below_the_crossover_and_
     the dense solve equals the sparse one (every chi^2 to 1e-9, the optimum, the marginal covariances)."""
     maps = mapio.read_maps([str(data_dir / name)])[:count]
     assert ExactProblem(maps).backend == "dense"
-    assert_same_solve(solve_both(maps, join(maps, strategy="tree").global_map), rtol=1e-7)
+    assert_same_solve(solve_both(maps, join(maps, strategy="tree").global_map), rtol=1e-9)
 
 
 class _Partition:
