@@ -125,8 +125,9 @@ def test_damping_scales_the_diagonal_the_dense_factor_solves(vicpark_optimum):
 
 @pytest.mark.parametrize("name", ["VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps"])
 def test_interiors_of_different_segments_do_not_couple(name, data_dir):
-    """The partition's premise, on J^T J from the Jacobian: no entry couples two different interiors, and each
-    node's unknowns are together in one part; the real datasets are cut (the least work is not the whole)."""
+    """The partition's premise, on J^T J from the Jacobian: no entry couples two different interiors, the
+    separator meets only each interior's trailing unknowns, and each node's unknowns are together in one
+    part; the real datasets are cut (the least work is not the whole)."""
     maps = mapio.read_maps([str(data_dir / name)])
     problem = ExactProblem(maps, backend="dense")
     x = problem.pack(join(maps, strategy="tree").global_map)
@@ -141,6 +142,9 @@ def test_interiors_of_different_segments_do_not_couple(name, data_dir):
         for j in range(segments):
             if i != j:
                 assert not A[bounds[i]:bounds[i + 1], bounds[j]:bounds[j + 1]].any()
+        # only the interior's last unknowns (coupled[i] of them) meet the separator's rows
+        assert not A[bounds[-2]:, bounds[i]:bounds[i + 1] - partition.coupled[i]].any()
+    assert partition.coupled.sum() < bounds[-2]        # some interior unknowns never meet the separator
     part = np.searchsorted(bounds, partition.position, side="right") - 1
     N = problem.n_maps
     assert (part[:3 * N].reshape(N, 3) == part[:3 * N:3, None]).all()

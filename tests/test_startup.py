@@ -181,15 +181,16 @@ def test_joins_default_association_gate_is_the_librarys():
 
 def test_dense_refines_and_confirmations_import_no_scipy(data_dir, tmp_path):
     """Problems within DENSE_WORK import no scipy: a small refine, 8240's (its chi^2, 458.15, certified inside
-    its interval, needs no scipy.special either) and VicPark 200's quiet refine (the issue's target command);
-    DLR 200 (397 MFlop) is beyond it, and so is its join's confirmation (the whole chain's backend)."""
+    its interval, needs no scipy.special either), VicPark 200's and DLR 200's quiet refines (the issue's
+    target command) and DLR 200's join, whose confirmation solves its first ~182 maps."""
     def scipy_modules(*args: str) -> set[str]:
         return {m for m in imported(*args, "-o", str(tmp_path / "out.csv")) if m.split(".")[0] == "scipy"}
 
     assert not scipy_modules("refine", str(data_dir / "535_data_5_local_maps"))
     assert not scipy_modules("refine", str(data_dir / "8240_data_50_local_maps"))
     assert not scipy_modules("-q", "refine", str(data_dir / "VicPark_200_local_maps"))
-    assert "scipy.sparse.linalg" in scipy_modules("-q", "refine", str(data_dir / "DLR_200_local_maps"))
+    assert not scipy_modules("-q", "refine", str(data_dir / "DLR_200_local_maps"))
+    assert not scipy_modules("-q", "join", str(data_dir / "DLR_200_local_maps"))
     # VicPark 200's chi^2/dof of 0.51 is outside its interval: the warning's bounds need scipy.special alone
     loud = scipy_modules("refine", str(data_dir / "VicPark_200_local_maps"))
     assert "scipy.special" in loud and "scipy.sparse" not in loud

@@ -19,12 +19,15 @@ and its Cholesky factor keeps that pattern: ``A_i = L_i L_i^T``, ``B_i = C_i L_i
 separator's Schur complement ``S = A_S - sum_i B_i B_i^T = L_S L_S^T`` (the interiors
 eliminated). The feature block is not block-diagonal (a map's full covariance couples its
 features: VicPark 200's features couple with 51 others on average, DLR 200's with 18), so
-features are eliminated a segment at a time, not one by one. K is chosen once per problem by
-the dense work it leaves (:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes
-K = 3 (separator 406 of 1198 unknowns; 297 MFlop a factorisation against the whole Cholesky's
-573), DLR 200 K = 4 (315 of 1698; 397 against 1632), 8240 K = 8 (109 of 1374; 138 against 865).
-Measured in-process (one OpenBLAS thread): a step and the marginals of VicPark 200 16 and 16 ms
-against the whole matrix's 34 and 42 ms, DLR 200 23 and 22 ms against 70 and 91 ms.
+features are eliminated a segment at a time, not one by one. Within an interior, the unknowns
+that a map touching the separator also touches come last: ``C_i`` is zero before them, and so is
+``B_i``, so only they enter the Schur complement. K is chosen once per problem by the dense work it
+leaves (:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes K = 2 (separator 337 of
+1198 unknowns, 569 of the 861 interior ones coupled to it; 217 MFlop a factorisation with the
+per-segment allowance, against the whole Cholesky's 573), DLR 200 K = 4 (315 of 1698, 679 of 1383;
+214 against 1632), 8240 K = 6 (141 of 1374; 100 against 865). Measured in-process (one OpenBLAS
+thread, load 2-3): a step and the marginals of VicPark 200 16-19 and 16-18 ms against the whole
+matrix's 34 and 42 ms, DLR 200 17 and 22 ms against 70 and 91 ms.
 
 A step solves ``A x = b`` by the triangular solves of that factor (:mod:`.triangular`: numpy
 has none, so they are matrix products by halves). The marginal covariances
@@ -59,13 +62,12 @@ BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse")
 DENSE_UNKNOWNS = 4000
 #: under ``auto``, problems whose factorisation in their :class:`Partition` costs at most this many flops
 #: (:attr:`Partition.work`) are solved densely. Measured on whole refines of the first maps of VicPark 200 and
-#: DLR 200 and of 8240 (benchmarks/startup.py --crossover, 2026-11-26, load 3.5, OpenBLAS on one thread as the
-#: command runs it): dense took 0.37-0.63 of the sparse backend's wall time up to 138 MFlop (8240: 1374
-#: unknowns), 0.70-0.80 from 191 to 297 (VicPark 200: 1198 unknowns) and 1.05 at DLR 200's 397 (1698
-#: unknowns), where the whole ``refine`` command, whose chi^2 warning imports scipy.special anyway, took 1.20
-#: times the sparse one's CPU. A confirmation's solves take the whole chain's backend
-#: (:func:`mapjoin.confirmation.chain_backend`).
-DENSE_WORK = 3.5e8
+#: DLR 200 and of 8240 (benchmarks/startup.py --crossover, 2026-11-26, load 3, OpenBLAS on one thread as the
+#: command runs it): dense took 0.33-0.63 of the sparse backend's wall time up to 163 MFlop and 0.69-0.80 at
+#: DLR 200's 214 (1698 unknowns) and VicPark 200's 217 (1198), the largest measured; a first partition without
+#: the interiors' trailing blocks reached parity at 1.3 times that work. A confirmation's solves take the whole
+#: chain's backend (:func:`mapjoin.confirmation.chain_backend`).
+DENSE_WORK = 2.5e8
 
 
 def backend_for(backend: Backend, unknowns: int, partition: Callable[[], Partition]
@@ -87,10 +89,12 @@ class Partition:
     """The dense backend's order of the unknowns: the interiors of K segments of the chain, then the
     separator (see the module docstring). ``order``: the unknowns in that order; ``position[u]``: where
     unknown u is; ``bounds``: where each interior starts, the separator's start last but one and the end
-    last (K + 2 entries); ``segments``: K."""
+    last (K + 2 entries); ``segments``: K; ``coupled[i]``: how many unknowns at the end of interior i a map
+    touching the separator touches (the others' rows of the separator are zero); ``work``: the flops of
+    one factorisation in this order (with :data:`_SEGMENT_WORK` per segment)."""
 
-    def __init__(self, order: np.ndarray, bounds: np.ndarray, work: float):
-        self.order, self.bounds, self.work = order, bounds, work
+    def __init__(self, order: np.ndarray, bounds: np.ndarray, coupled: np.ndarray, work: float):
+        self.order, self.bounds, self.coupled, self.work = order, bounds, coupled, work
         self.position = np.empty_like(order)
         self.position[order] = np.arange(len(order))
         self.segments = len(bounds) - 2
@@ -103,7 +107,8 @@ class Partition:
         feature ``compact[o]`` (observation o), map k's base pose is that of map ``base[k]`` (-1: the fixed
         origin). A map touches its own pose, its base pose and the features it saw; an unknown belongs to
         the interior of segment ``k * K // maps`` if every map k touching it lies there, else to the
-        separator. ``work``: the flops of one factorisation in it (with :data:`_SEGMENT_WORK` per segment)."""
+        separator. Within an interior, the unknowns a map touching the separator also touches come last:
+        only their columns of the separator's rows are non-zero, so only they enter its Schur complement."""
         n_maps = len(base)
         n_nodes = n_maps + n_features
         maps = np.arange(n_maps)
@@ -118,17 +123,21 @@ class Partition:
         for K in sorted({k for k in _SEGMENT_COUNTS if k <= n_maps} | {1}):
             segment = first * K // n_maps
             part = np.where(segment == last * K // n_maps, segment, K)
+            separator = part == K
+            at_separator = np.bincount(toucher[separator[touching]], minlength=n_maps) > 0     # per map
+            near = (np.bincount(touching[at_separator[toucher]], minlength=n_nodes) > 0) & ~separator
             sizes = np.bincount(part, weights=size, minlength=K + 1)
+            t = np.bincount(part[near], weights=size[near], minlength=K + 1)[:K]
             inner, s = sizes[:K], sizes[K]
-            work = float(np.sum(inner ** 3 / 3 + inner ** 2 * s + inner * s ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
+            work = float(np.sum(inner ** 3 / 3 + t ** 2 * s + t * s ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
             if best is None or work < best[0]:
-                best = work, part, sizes
-        work, part, sizes = best
-        nodes = np.argsort(part, kind="stable")
+                best = work, 2 * part + near, sizes, t
+        work, key, sizes, t = best
+        nodes = np.argsort(key, kind="stable")
         start = np.where(nodes < n_maps, 3 * nodes, 3 * n_maps + 2 * (nodes - n_maps))
         order = np.repeat(start, size[nodes]) + (np.arange(int(size.sum())) - np.repeat(
             np.cumsum(size[nodes]) - size[nodes], size[nodes]))
-        return cls(order, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64), work)
+        return cls(order, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64), t.astype(np.int64), work)
 
     def scatter(self, pattern: BlockPattern, data: np.ndarray) -> np.ndarray:
         """The dense matrix, in this order, holding on and below its diagonal the symmetric matrix whose lower
@@ -153,7 +162,7 @@ _SEGMENT_WORK = 1e7
 
 class DenseFactor:
     """The blockwise Cholesky factor of a normal matrix ``A`` in a :class:`Partition`'s order (see the module
-    docstring): per interior ``L_i`` and ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
+    docstring): per interior ``L_i`` and the non-zero trailing columns of ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
     (``A`` not positive definite, as a Newton step's may be), ``cholesky`` False and :meth:`solve` takes LU
     with partial pivoting of the whole matrix instead. ``matrix``: ``A`` in that order, lower triangle."""
 
@@ -164,10 +173,11 @@ class DenseFactor:
         self.interiors: list[tuple[np.ndarray, np.ndarray]] = []
         schur = matrix[s0:, s0:].copy()
         try:
-            for a, b in itertools.pairwise(bounds[:-1]):
+            for (a, b), t in zip(itertools.pairwise(bounds[:-1]), partition.coupled):
                 L = np.linalg.cholesky(matrix[a:b, a:b])
-                B = solve_lower(L, matrix[s0:, a:b].T).T      # C_i L_i^-T: (separator, interior)
-                schur -= B @ B.T
+                c = b - a - t                                   # the interior's first unknown a map at the
+                B = solve_lower(L[c:, c:], matrix[s0:, a + c:b].T).T   # separator touches: C_i L_i^-T's columns
+                schur -= B @ B.T                                # from there (before it they are zero)
                 self.interiors.append((L, B))
             self.separator = np.linalg.cholesky(schur)
             self.cholesky = True
@@ -188,10 +198,12 @@ class DenseFactor:
             bounds = partition.bounds
             s0 = bounds[-2]
             y = [solve_lower(L, b[a:c]) for (L, _), a, c in zip(self.interiors, bounds[:-2], bounds[1:-1])]
-            ys = b[s0:] - sum((B @ yi for (_, B), yi in zip(self.interiors, y)), np.zeros(len(b) - s0))
+            ys = b[s0:] - sum((B @ yi[len(yi) - B.shape[1]:] for (_, B), yi in zip(self.interiors, y)),
+                              np.zeros(len(b) - s0))
             xs = solve_lower_transposed(self.separator, solve_lower(self.separator, ys))
-            x = np.concatenate([solve_lower_transposed(L, yi - B.T @ xs) for (L, B), yi in zip(self.interiors, y)]
-                               + [xs])
+            for (_, B), yi in zip(self.interiors, y):
+                yi[len(yi) - B.shape[1]:] -= B.T @ xs
+            x = np.concatenate([solve_lower_transposed(L, yi) for (L, _), yi in zip(self.interiors, y)] + [xs])
         return x[partition.position]
 
     def inverse_columns(self) -> list[tuple[int, np.ndarray]]:
@@ -202,7 +214,7 @@ class DenseFactor:
         blocks = []
         for (L, B), a in zip(self.interiors, bounds[:-2]):
             W = lower_inverse(L)
-            blocks.append((int(a), np.concatenate([W, -separator_inverse @ (B @ W)])))
+            blocks.append((int(a), np.concatenate([W, -separator_inverse @ (B @ W[len(W) - B.shape[1]:])])))
         blocks.append((int(bounds[-2]), separator_inverse))
         return blocks
 
