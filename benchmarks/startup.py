@@ -15,10 +15,11 @@ Linear SLAM's times are shown as measured there and scaled by this machine's spe
 relative to that one (here / there, for the scipy import and for ``--help``).
 
 ``--crossover``: where the dense backend of the exact solve (refine/dense.py) stops paying
-for itself: the first K maps of VicPark 200 (and of DLR 200) refined in a fresh interpreter
-(reading, fast join, solve, marginal covariances) with each backend forced, OpenBLAS's threads
-as the command sets them (``mapjoin.__main__.one_blas_thread``); median wall times by the
-problem's unknowns.
+for itself: the first K maps of VicPark 200 and of DLR 200 (and 8240's 50) refined in a fresh
+interpreter (reading, fast join, solve, marginal covariances) with each backend forced, OpenBLAS's
+threads as the command sets them (``mapjoin.__main__.one_blas_thread``); median wall times by the
+dense work of one factorisation in the problem's partition (``refine.dense.Partition.work``, what
+``DENSE_WORK`` bounds).
 """
 
 from __future__ import annotations
@@ -39,6 +40,8 @@ from common import DATA, ROOT, write_section
 from mapjoin.__main__ import BLAS_THREAD_VARIABLES
 
 DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps", "VicPark_6898_local_maps")
+#: the issue's refine target, also run quiet (``-q``: no chi^2 warning, whose bounds import scipy.special)
+QUIET = "VicPark_200_local_maps"
 TINY = "535_data_5_local_maps"  # not in the issue's table: a refine small enough for the dense backend
 #: the issue's table (same run there): Linear SLAM C++, mapjoin join, mapjoin refine; whole commands, seconds
 ISSUE = {"VicPark_200_local_maps": (0.50, 0.40, 1.03), "DLR_200_local_maps": (0.27, 0.50, 1.17),
@@ -60,7 +63,7 @@ maps = io.read_maps([folder])[:count]
 problem = ExactProblem(maps, backend=backend)
 found = minimise(problem, problem.pack(join(maps, strategy="tree").global_map))
 problem.marginals(found.final_factor(problem))
-print(problem.n_unknowns)
+print(problem.n_unknowns, problem._partition.work if backend == "dense" else 0)
 """
 
 
@@ -119,9 +122,10 @@ def commands(args: argparse.Namespace) -> str:
             [python, "-c", "import os; os.environ['OPENBLAS_NUM_THREADS'] = '1'; import numpy"], None)}
     for tree, src in trees.items():
         cases[f"--help ({tree})"] = ([python, "-m", "mapjoin", "--help"], src)
-        runs = [(name, command) for name in DATASETS for command in ("join", "refine")] + [(TINY, "refine")]
+        runs = ([(name, command) for name in DATASETS for command in ("join", "refine")]
+                + [(QUIET, "-q refine"), (TINY, "refine")])
         for name, command in runs:
-            cases[f"{command} {name} ({tree})"] = ([python, "-m", "mapjoin", command, str(args.data / name),
+            cases[f"{command} {name} ({tree})"] = ([python, "-m", "mapjoin", *command.split(), str(args.data / name),
                                                     "-o", os.path.join(scratch, f"{tree}.csv")], src)
     load = os.getloadavg()
     medians = run_rounds(cases, args.rounds, scratch)
@@ -158,6 +162,10 @@ def commands(args: argparse.Namespace) -> str:
             lines.append(f"| `{command} {name}` | " + " | ".join(cell(f"{key} ({tree})") for tree in columns)
                          + f" | {linear:.2f} | {linear * scipy_ratio:.2f} | {linear * help_ratio:.2f} | "
                            f"{there:.2f} |")
+    key = f"-q refine {QUIET}"
+    linear, _, refine_there = ISSUE[QUIET]
+    lines.append(f"| `{key}` | " + " | ".join(cell(f"{key} ({tree})") for tree in columns)
+                 + f" | {linear:.2f} | {linear * scipy_ratio:.2f} | {linear * help_ratio:.2f} | {refine_there:.2f} |")
     lines.append(f"| `refine {TINY}` | " + " | ".join(cell(f"refine {TINY} ({tree})") for tree in columns)
                  + " | | | | |")
     return "\n".join(lines)
@@ -170,12 +178,14 @@ def crossover(args: argparse.Namespace) -> str:
     cases, unknowns = {}, {}
     for name, counts in (("535_data_5_local_maps", (5,)),
                          ("VicPark_200_local_maps", (2, 4, 8, 16, 25, 40, 80, 100, 120, 150, 200)),
-                         ("DLR_200_local_maps", (5, 10, 20, 30, 60, 80, 100, 120, 200))):
+                         ("DLR_200_local_maps", (5, 10, 20, 30, 60, 80, 100, 120, 140, 160, 180, 200)),
+                         ("8240_data_50_local_maps", (50,))):
         for count in counts:
             for backend in ("dense", "sparse"):
                 cases[f"{name} {count} {backend}"] = ([sys.executable, "-c", _CROSSOVER_CHILD, str(args.data / name),
                                                        str(count), backend], ROOT / "src")
-            unknowns[(name, count)] = int(timed(*cases[f"{name} {count} dense"], scratch)[2])
+            n, work = timed(*cases[f"{name} {count} dense"], scratch)[2].split()
+            unknowns[(name, count)] = int(n), float(work)
     load = os.getloadavg()
     medians = run_rounds(cases, args.rounds, scratch)
     load_end = os.getloadavg()
@@ -184,10 +194,11 @@ def crossover(args: argparse.Namespace) -> str:
               "(CPU seconds in brackets) of a fresh interpreter reading the maps, joining them (tree), solving and "
               "computing the marginal covariances with the backend forced, OpenBLAS on one thread as in the "
               "command:"), "",
-             "| maps | unknowns | dense | sparse | dense / sparse (wall) |", "|---|---:|---:|---:|---:|"]
-    for (name, count), n in sorted(unknowns.items(), key=lambda item: item[1]):
+             "| maps | unknowns | dense work (MFlop) | dense | sparse | dense / sparse (wall) |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for (name, count), (n, work) in sorted(unknowns.items(), key=lambda item: item[1][1]):
         dense, sparse = medians[f"{name} {count} dense"], medians[f"{name} {count} sparse"]
-        lines.append(f"| first {count} of {name} | {n} | {dense[0]:.3f} ({dense[1]:.3f}) | "
+        lines.append(f"| first {count} of {name} | {n} | {work / 1e6:.0f} | {dense[0]:.3f} ({dense[1]:.3f}) | "
                      f"{sparse[0]:.3f} ({sparse[1]:.3f}) | {dense[0] / sparse[0]:.2f} |")
     return "\n".join(lines)
 

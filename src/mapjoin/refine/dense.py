@@ -5,81 +5,251 @@ than on its arithmetic; numpy, already loaded, solves such a system densely in
 milliseconds. :data:`DENSE_UNKNOWNS` is the crossover, measured on whole commands
 (benchmarks/README.md, "Start-up"); :func:`backend_for` chooses by it.
 
-The normal matrix is assembled once, as the CSC data of :class:`.sparse.BlockPattern`
-(taken in the natural node order for this backend); :func:`factorise` scatters it into a
-dense matrix. The Gauss-Newton, Levenberg-Marquardt and Newton steps of
-docs/method.md#solver solve it by LU with partial pivoting (``numpy.linalg.solve``: the
-matrix of a Newton step may be indefinite), and the marginal covariances
-(docs/method.md#marginal-covariances) are the diagonal blocks of its inverse. Cholesky would not
-save time here: numpy has no triangular solve, so a Cholesky solve or inverse needs general LU
-solves with the factor on top of the factorisation (measured slower at 300-1198 unknowns,
-benchmarks/README.md, "Start-up").
+The structure used (docs/method.md#exact-joining): a local map's information couples its end
+pose, its base pose and all its features (a full covariance couples every pair of them), and
+nothing else. So the chain of maps cut into K runs ("segments", :class:`Partition`), the
+unknowns that only maps of one segment touch (its interior) couple with nothing of another
+segment: they couple only with the separator, the unknowns that maps of several segments touch
+(the poses at the cuts, features seen on both sides of one). In the order [interior 1, ...,
+interior K, separator] the normal matrix is a block arrow,
+
+    A = [[A_1, 0, ..., C_1^T], ..., [C_1, ..., C_K, A_S]]   (C_i: separator rows, interior i columns),
+
+and its Cholesky factor keeps that pattern: ``A_i = L_i L_i^T``, ``B_i = C_i L_i^-T``, and the
+separator's Schur complement ``S = A_S - sum_i B_i B_i^T = L_S L_S^T`` (the interiors
+eliminated). The feature block is not block-diagonal (a map's full covariance couples its
+features: VicPark 200's features couple with 51 others on average, DLR 200's with 18), so
+features are eliminated a segment at a time, not one by one. Within an interior, the unknowns
+that a map touching the separator also touches come last: ``C_i`` is zero before them, and so is
+``B_i``, so only they enter the Schur complement. K is chosen once per problem by the dense work it
+leaves (:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes K = 2 (separator 337 of
+1198 unknowns, 569 of the 861 interior ones coupled to it; 217 MFlop a factorisation with the
+per-segment allowance, against the whole Cholesky's 573), DLR 200 K = 4 (315 of 1698, 679 of 1383;
+214 against 1632), 8240 K = 6 (141 of 1374; 100 against 865). Measured in-process (one OpenBLAS
+thread, load 2-3): a step and the marginals of VicPark 200 16-19 and 16-18 ms against the whole
+matrix's 34 and 42 ms, DLR 200 17 and 22 ms against 70 and 91 ms.
+
+A step solves ``A x = b`` by the triangular solves of that factor (:mod:`.triangular`: numpy
+has none, so they are matrix products by halves). The marginal covariances
+(docs/method.md#marginal-covariances) are the diagonal blocks of ``A^-1 = L^-T L^-1``: the
+column blocks of ``L^-1`` multiplied with themselves, where ``L^-1``'s columns of interior i
+are ``L_i^-1`` over ``-L_S^-1 B_i L_i^-1`` and the separator's ``L_S^-1``; never the whole
+inverse. A matrix Cholesky refuses (a Newton step's, which may be indefinite) is solved by LU
+with partial pivoting (``numpy.linalg.solve``) and inverted whole.
 """
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from .triangular import lower_inverse, solve_lower, solve_lower_transposed
+
 if TYPE_CHECKING:
     from .sparse import BlockPattern
 
-__all__ = ["BACKENDS", "DENSE_UNKNOWNS", "Backend", "DenseFactor", "backend_for", "diagonal_blocks", "factorise"]
+__all__ = ["BACKENDS", "DENSE_UNKNOWNS", "DENSE_WORK", "Backend", "DenseFactor", "Partition", "backend_for",
+           "diagonal_blocks", "factorise"]
 
 Backend = Literal["auto", "dense", "sparse"]
 BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse")
 
-#: problems with at most this many unknowns are solved densely under ``auto``: on whole refines of the first
-#: maps of VicPark 200 and DLR 200 (benchmarks/startup.py --crossover, OpenBLAS on one thread as the command
-#: runs it) the dense backend took 0.43-0.65 of the sparse one's wall time up to 592 unknowns, 0.72-0.91 from
-#: 652 to 762, as long at 958-988 and longer from 1128 (1.16 at VicPark 200's 1198, 2.8 at DLR 200's 1698):
-#: below that, importing scipy costs more than the dense arithmetic. (The first measurement, 150, had
-#: OpenBLAS's two threads contending with a loaded machine.) A confirmation's solves take the whole chain's
-#: backend (:func:`mapjoin.confirmation.chain_backend`).
-DENSE_UNKNOWNS = 800
+#: no problem of more unknowns is solved densely under ``auto`` (its dense matrix, 8 n^2 bytes, is not even
+#: partitioned): 4000 unknowns, 128 MB
+DENSE_UNKNOWNS = 4000
+#: under ``auto``, problems whose factorisation in their :class:`Partition` costs at most this many flops
+#: (:attr:`Partition.work`) are solved densely. Measured on whole refines of the first maps of VicPark 200 and
+#: DLR 200 and of 8240 (benchmarks/startup.py --crossover, 2026-11-26, load 3, OpenBLAS on one thread as the
+#: command runs it): dense took 0.33-0.63 of the sparse backend's wall time up to 163 MFlop and 0.69-0.80 at
+#: DLR 200's 214 (1698 unknowns) and VicPark 200's 217 (1198), the largest measured; a first partition without
+#: the interiors' trailing blocks reached parity at 1.3 times that work. A confirmation's solves take the whole
+#: chain's backend (:func:`mapjoin.confirmation.chain_backend`).
+DENSE_WORK = 2.5e8
 
 
-def backend_for(backend: Backend, unknowns: int) -> Literal["dense", "sparse"]:
-    """The linear algebra of a problem of ``unknowns`` unknowns: ``backend`` itself, or under ``auto``
-    dense up to :data:`DENSE_UNKNOWNS` and sparse beyond."""
+def backend_for(backend: Backend, unknowns: int, partition: Callable[[], Partition]
+                ) -> tuple[Literal["dense", "sparse"], Partition | None]:
+    """The linear algebra of a problem of ``unknowns`` unknowns, and for the dense backend its
+    :class:`Partition` (``partition()`` makes it): ``backend`` itself, or under ``auto`` dense if it has at
+    most :data:`DENSE_UNKNOWNS` unknowns and its partition's work is at most :data:`DENSE_WORK` flops."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    if backend == "auto":
-        return "dense" if unknowns <= DENSE_UNKNOWNS else "sparse"
-    return backend
+    if backend == "sparse" or (backend == "auto" and unknowns > DENSE_UNKNOWNS):
+        return "sparse", None
+    found = partition()
+    if backend == "auto" and found.work > DENSE_WORK:
+        return "sparse", None
+    return "dense", found
+
+
+class Partition:
+    """The dense backend's order of the unknowns: the interiors of K segments of the chain, then the
+    separator (see the module docstring). ``order``: the unknowns in that order; ``position[u]``: where
+    unknown u is; ``bounds``: where each interior starts, the separator's start last but one and the end
+    last (K + 2 entries); ``segments``: K; ``coupled[i]``: how many unknowns at the end of interior i a map
+    touching the separator touches (the others' rows of the separator are zero); ``work``: the flops of
+    one factorisation in this order (with :data:`_SEGMENT_WORK` per segment)."""
+
+    def __init__(self, order: np.ndarray, bounds: np.ndarray, coupled: np.ndarray, work: float):
+        self.order, self.bounds, self.coupled, self.work = order, bounds, coupled, work
+        self.position = np.empty_like(order)
+        self.position[order] = np.arange(len(order))
+        self.segments = len(bounds) - 2
+        self._lower: np.ndarray | None = None       # which CSC entries are on or below the diagonal
+        self._targets: np.ndarray | None = None     # where they go in the dense matrix (flat)
+
+    @classmethod
+    def of(cls, owner: np.ndarray, compact: np.ndarray, base: np.ndarray, n_features: int) -> Partition:
+        """The partition of the least dense work for a chain of ``len(base)`` maps: map ``owner[o]`` saw
+        feature ``compact[o]`` (observation o), map k's base pose is that of map ``base[k]`` (-1: the fixed
+        origin). A map touches its own pose, its base pose and the features it saw; an unknown belongs to
+        the interior of segment ``k * K // maps`` if every map k touching it lies there, else to the
+        separator. Within an interior, the unknowns a map touching the separator also touches come last:
+        only their columns of the separator's rows are non-zero, so only they enter its Schur complement."""
+        n_maps = len(base)
+        n_nodes = n_maps + n_features
+        maps = np.arange(n_maps)
+        based = base >= 0
+        touching = np.concatenate([maps, base[based], n_maps + compact])        # node of each (map, node) pair
+        toucher = np.concatenate([maps, maps[based], owner])
+        first, last = np.full(n_nodes, n_maps), np.full(n_nodes, -1)
+        np.minimum.at(first, touching, toucher)
+        np.maximum.at(last, touching, toucher)
+        size = np.where(np.arange(n_nodes) < n_maps, 3, 2)
+        best = None
+        for K in sorted({k for k in _SEGMENT_COUNTS if k <= n_maps} | {1}):
+            segment = first * K // n_maps
+            part = np.where(segment == last * K // n_maps, segment, K)
+            separator = part == K
+            at_separator = np.bincount(toucher[separator[touching]], minlength=n_maps) > 0     # per map
+            near = (np.bincount(touching[at_separator[toucher]], minlength=n_nodes) > 0) & ~separator
+            sizes = np.bincount(part, weights=size, minlength=K + 1)
+            t = np.bincount(part[near], weights=size[near], minlength=K + 1)[:K]
+            inner, s = sizes[:K], sizes[K]
+            work = float(np.sum(inner ** 3 / 3 + t ** 2 * s + t * s ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
+            if best is None or work < best[0]:
+                best = work, 2 * part + near, sizes, t
+        work, key, sizes, t = best
+        nodes = np.argsort(key, kind="stable")
+        start = np.where(nodes < n_maps, 3 * nodes, 3 * n_maps + 2 * (nodes - n_maps))
+        order = np.repeat(start, size[nodes]) + (np.arange(int(size.sum())) - np.repeat(
+            np.cumsum(size[nodes]) - size[nodes], size[nodes]))
+        return cls(order, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64), t.astype(np.int64), work)
+
+    def scatter(self, pattern: BlockPattern, data: np.ndarray) -> np.ndarray:
+        """The dense matrix, in this order, holding on and below its diagonal the symmetric matrix whose lower
+        triangle is the CSC ``data`` of ``pattern`` (natural order; the slots above its diagonal are not
+        read): what the blockwise Cholesky reads."""
+        n = pattern.n
+        if self._targets is None:
+            columns = np.repeat(np.arange(n), np.diff(pattern.indptr))
+            self._lower = pattern.indices >= columns
+            row, col = self.position[pattern.indices[self._lower]], self.position[columns[self._lower]]
+            self._targets = np.maximum(row, col) * n + np.minimum(row, col)
+        matrix = np.zeros(n * n)
+        matrix[self._targets] = data[self._lower]
+        return matrix.reshape(n, n)
+
+
+#: the segment counts :meth:`Partition.of` weighs (each no more than the maps)
+_SEGMENT_COUNTS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
+#: flops worth one segment's numpy calls (a few dozen, ~0.3 ms at this machine's ~25 GFlop/s)
+_SEGMENT_WORK = 1e7
 
 
 class DenseFactor:
-    """The normal matrix ``A`` of a step, dense (natural order): :meth:`solve` factorises and solves
-    it in one LAPACK call, which is all a step needs (one right-hand side)."""
+    """The blockwise Cholesky factor of a normal matrix ``A`` in a :class:`Partition`'s order (see the module
+    docstring): per interior ``L_i`` and the non-zero trailing columns of ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
+    (``A`` not positive definite, as a Newton step's may be), ``cholesky`` False and :meth:`solve` takes LU
+    with partial pivoting of the whole matrix instead. ``matrix``: ``A`` in that order, lower triangle."""
 
-    def __init__(self, matrix: np.ndarray):
-        self.matrix = matrix
+    def __init__(self, matrix: np.ndarray, partition: Partition):
+        self.matrix, self.partition = matrix, partition
+        bounds = partition.bounds
+        s0 = bounds[-2]
+        self.interiors: list[tuple[np.ndarray, np.ndarray]] = []
+        schur = matrix[s0:, s0:].copy()
+        try:
+            for (a, b), t in zip(itertools.pairwise(bounds[:-1]), partition.coupled):
+                L = np.linalg.cholesky(matrix[a:b, a:b])
+                c = b - a - t                                   # the interior's first unknown a map at the
+                B = solve_lower(L[c:, c:], matrix[s0:, a + c:b].T).T   # separator touches: C_i L_i^-T's columns
+                schur -= B @ B.T                                # from there (before it they are zero)
+                self.interiors.append((L, B))
+            self.separator = np.linalg.cholesky(schur)
+            self.cholesky = True
+        except np.linalg.LinAlgError:
+            self.interiors, self.cholesky = [], False
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """``A^-1 rhs``; RuntimeError if ``A`` is exactly singular (as SuperLU's factor raises)."""
-        try:
-            return np.linalg.solve(self.matrix, rhs)
-        except np.linalg.LinAlgError:
-            raise RuntimeError("the normal matrix is exactly singular") from None
+        """``A^-1 rhs`` (``rhs`` and the result in the natural order); RuntimeError if ``A`` is exactly
+        singular (as SuperLU's factor raises)."""
+        partition = self.partition
+        b = rhs[partition.order]
+        if not self.cholesky:
+            try:
+                x = np.linalg.solve(_mirrored(self.matrix), b)
+            except np.linalg.LinAlgError:
+                raise RuntimeError("the normal matrix is exactly singular") from None
+        else:
+            bounds = partition.bounds
+            s0 = bounds[-2]
+            y = [solve_lower(L, b[a:c]) for (L, _), a, c in zip(self.interiors, bounds[:-2], bounds[1:-1])]
+            ys = b[s0:] - sum((B @ yi[len(yi) - B.shape[1]:] for (_, B), yi in zip(self.interiors, y)),
+                              np.zeros(len(b) - s0))
+            xs = solve_lower_transposed(self.separator, solve_lower(self.separator, ys))
+            for (_, B), yi in zip(self.interiors, y):
+                yi[len(yi) - B.shape[1]:] -= B.T @ xs
+            x = np.concatenate([solve_lower_transposed(L, yi) for (L, _), yi in zip(self.interiors, y)] + [xs])
+        return x[partition.position]
+
+    def inverse_columns(self) -> list[tuple[int, np.ndarray]]:
+        """``L^-1`` by column blocks: ``(first, Z)`` per interior and the separator, Z holding the non-zero rows
+        (the interior's, then the separator's) of the columns ``first ..`` (in the partition's order)."""
+        bounds = self.partition.bounds
+        separator_inverse = lower_inverse(self.separator)
+        blocks = []
+        for (L, B), a in zip(self.interiors, bounds[:-2]):
+            W = lower_inverse(L)
+            blocks.append((int(a), np.concatenate([W, -separator_inverse @ (B @ W[len(W) - B.shape[1]:])])))
+        blocks.append((int(bounds[-2]), separator_inverse))
+        return blocks
 
 
-def factorise(pattern: BlockPattern, data: np.ndarray) -> DenseFactor:
-    """The dense factor of the matrix whose CSC ``data`` has ``pattern`` (built in the natural node order,
-    so that ``pattern.position`` is the identity)."""
-    n = pattern.n
-    columns = np.repeat(np.arange(n), np.diff(pattern.indptr))
-    matrix = np.zeros((n, n))
-    matrix[pattern.indices, columns] = data
-    return DenseFactor(matrix)
+def _mirrored(lower: np.ndarray) -> np.ndarray:
+    """The symmetric matrix whose lower triangle is ``lower``'s."""
+    return np.tril(lower) + np.tril(lower, -1).T
+
+
+def factorise(pattern: BlockPattern, partition: Partition, data: np.ndarray) -> DenseFactor:
+    """The dense factor, in ``partition``'s order, of the symmetric matrix whose lower triangle is the CSC
+    ``data`` of ``pattern`` (built in the natural node order; the slots above the diagonal are not read)."""
+    return DenseFactor(partition.scatter(pattern, data), partition)
 
 
 def diagonal_blocks(factor: DenseFactor, blocks: list[np.ndarray]) -> list[np.ndarray]:
-    """Diagonal blocks of ``A^-1`` for each (k, s) array of unknowns in ``blocks``: (k, s, s) each, from the
-    whole inverse (what a selected inversion avoids for large problems costs little here), symmetrised: an
-    LU inverse is symmetric only to rounding, and a covariance written as its upper triangle (CSV) must read
-    back equal to one written whole (JSON, YAML)."""
-    inverse = np.linalg.inv(factor.matrix)
-    inverse = (inverse + inverse.T) / 2
-    return [inverse[b[:, :, None], b[:, None, :]] for b in blocks]
+    """Diagonal blocks of ``A^-1`` for each (k, s) array of unknowns (natural order) in ``blocks``: (k, s, s)
+    each, a node's unknowns (a pose's, a feature's) per row. With the Cholesky factor, block ``b`` is
+    ``L^-1[:, b]^T L^-1[:, b]`` (``A^-1 = L^-T L^-1``), its columns taken from the part holding the node
+    (:meth:`DenseFactor.inverse_columns`); else (``A`` not positive definite) from the whole inverse.
+    Symmetrised: a covariance written as its upper triangle (CSV) must read back equal to one written
+    whole (JSON, YAML)."""
+    position = factor.partition.position
+    if not factor.cholesky:
+        inverse = np.linalg.inv(_mirrored(factor.matrix))
+        found = [inverse[position[b][:, :, None], position[b][:, None, :]] for b in blocks]
+    else:
+        parts = factor.inverse_columns()
+        found = [np.empty((len(b), b.shape[1], b.shape[1])) for b in blocks]
+        for b, out in zip(blocks, found):
+            at = position[b]                                         # (k, s): a node's unknowns stay together
+            part = np.searchsorted(factor.partition.bounds, at[:, 0], side="right") - 1
+            for p, (first, Z) in enumerate(parts):
+                mine = part == p
+                if mine.any():
+                    columns = Z[:, at[mine] - first]                 # (rows, k', s)
+                    out[mine] = np.einsum("rki,rkj->kij", columns, columns)
+    return [(f + f.transpose(0, 2, 1)) / 2 for f in found]

@@ -114,10 +114,11 @@ class ExactProblem:
         self.feature_ids, compact = np.unique(blocks.feature_ids, return_inverse=True)
         self.n_features = n = len(self.feature_ids)
         self.n_unknowns = 3 * N + 2 * n
-        self.backend = backend_for(backend, self.n_unknowns)
         self.row0 = np.concatenate([[0], np.cumsum(3 + 2 * sizes)])
         self.n_residuals = int(self.row0[-1])
         chain = _Chain(base, compact.ravel(), np.concatenate([[0], np.cumsum(sizes)]), sizes)
+        self.backend, self._partition = backend_for(backend, self.n_unknowns, lambda: dense.Partition.of(
+            np.repeat(np.arange(N), sizes), chain.compact, base, n))
         measurement = self._measurement(blocks, chain)
         covariances, independent = _covariances_by_size(blocks, sizes)
         self.groups: list[Group] = [self._group(ks, chain, measurement, covariances, bool(independent[ks[0]]))
@@ -297,7 +298,8 @@ class ExactProblem:
     # ---- normal equations ---------------------------------------------------------------
 
     def _prepare(self) -> None:
-        """Once: the fill-reducing node order (the natural one for the dense backend), the CSC
+        """Once: the fill-reducing node order (the natural one for the dense backend, which factorises in
+        its own order, :class:`.dense.Partition`), the CSC
         pattern of J^T J in it (with the closed node pattern for the sparse marginal
         covariances), and where each map block's entries go."""
         if self._pattern is not None:
@@ -431,7 +433,7 @@ class ExactProblem:
             data = data.copy()
             data[self._pattern.diagonal] *= 1.0 + damping
         if self.backend == "dense":
-            return dense.factorise(self._pattern, self._pattern.mirrored(data))
+            return dense.factorise(self._pattern, self._partition, data)
         return factorise(self.normal_matrix(data))
 
     def solve(self, factor: Factor, rhs: np.ndarray) -> np.ndarray:
@@ -449,7 +451,8 @@ class ExactProblem:
     def marginals(self, factor: Factor) -> tuple[np.ndarray, np.ndarray]:
         """Marginal covariances ``(poses (N, 3, 3), features (n, 2, 2))``, the diagonal blocks
         of ``(J^T J)^-1``, by selected inversion of an undamped factor from :meth:`factorise`,
-        which it uses up (:func:`.sparse.diagonal_blocks`; the dense backend: from the whole inverse)."""
+        which it uses up (:func:`.sparse.diagonal_blocks`; the dense backend: from the inverse of its Cholesky
+        factor, :func:`.dense.diagonal_blocks`)."""
         N, n = self.n_maps, self.n_features
         poses = np.arange(3 * N).reshape(N, 3)
         features = 3 * N + np.arange(2 * n).reshape(n, 2)

@@ -1,0 +1,193 @@
+"""The dense backend's linear algebra (mapjoin.refine.dense, mapjoin.refine.triangular) against numpy's general
+LU solve and inverse of the whole matrix, built from the Jacobian (not from the assembled normal equations)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapjoin import io as mapio
+from mapjoin.joining import join
+from mapjoin.refine import dense
+from mapjoin.refine.problem import ExactProblem
+from mapjoin.refine.solver import minimise
+from mapjoin.refine.triangular import (
+    LEAF,
+    lower_inverse,
+    solve_lower,
+    solve_lower_transposed,
+)
+from mapjoin.simulation import simulate
+
+
+def lower_triangular(n: int, seed: int, spread: float) -> np.ndarray:
+    """A random lower triangular matrix whose diagonal spans ``spread`` decades (condition grows with it)."""
+    rng = np.random.default_rng(seed)
+    L = np.tril(rng.normal(size=(n, n))) / np.sqrt(n)
+    L[np.diag_indices(n)] = rng.choice([-1.0, 1.0], n) * 10.0 ** rng.uniform(0, spread, n)
+    return L
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.one_of(st.integers(1, 2 * LEAF + 3), st.integers(2 * LEAF, 5 * LEAF)), seed=st.integers(0, 10**6),
+       spread=st.floats(0.0, 3.0), columns=st.sampled_from([None, 1, 3]))
+def test_triangular_solves_and_inverse_equal_numpys_general_ones(n, seed, spread, columns):
+    """Across the leaf size (halving at every depth), one right-hand side or several: L^-1 b, L^-T b and L^-1
+    equal numpy's LU solve and inverse; the inverse is exactly zero above the diagonal."""
+    L = lower_triangular(n, seed, spread)
+    b = np.random.default_rng(seed + 1).normal(size=n if columns is None else (n, columns))
+    scale = np.linalg.cond(L)
+    for got, expected in ((solve_lower(L, b), np.linalg.solve(L, b)),
+                          (solve_lower_transposed(L, b), np.linalg.solve(L.T, b))):
+        assert got.shape == expected.shape
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13 * scale * np.abs(expected).max())
+    inverse = lower_inverse(L)
+    expected = np.linalg.inv(L)
+    np.testing.assert_allclose(inverse, expected, rtol=0, atol=1e-13 * scale * np.abs(expected).max())
+    assert not np.triu(inverse, 1).any()
+
+
+@pytest.fixture(scope="module")
+def vicpark_optimum(data_dir):
+    """VicPark 200 at its optimum, dense backend: the problem, x, and J^T J from the Jacobian."""
+    maps = mapio.read_maps([str(data_dir / "VicPark_200_local_maps")])
+    problem = ExactProblem(maps, backend="dense")
+    found = minimise(problem, problem.pack(join(maps, strategy="tree").global_map))
+    J = problem.jacobian(found.x).toarray()
+    return problem, found, J.T @ J
+
+
+def assert_blocks_of(inverse, problem, poses, features, rtol):
+    N, n = problem.n_maps, problem.n_features
+    for got, first, count, size in ((poses, 0, N, 3), (features, 3 * N, n, 2)):
+        index = first + np.arange(count * size).reshape(count, size)
+        expected = inverse[index[:, :, None], index[:, None, :]]
+        np.testing.assert_allclose(got, expected, rtol=0, atol=rtol * np.abs(expected).max())
+        assert np.array_equal(got, got.transpose(0, 2, 1))
+
+
+def test_the_dense_factor_solves_and_inverts_as_numpys_lu_of_the_jacobians_normal_matrix(vicpark_optimum):
+    """Brute force on real data (1198 unknowns): the Cholesky solve equals numpy's LU solve of J^T J (J from
+    problem.jacobian), the marginal blocks the blocks of its whole inverse."""
+    problem, found, A = vicpark_optimum
+    factor = problem.factorise(found.data)
+    assert factor.cholesky and factor.partition.segments > 1      # the blockwise factor, not the whole one
+    rhs = np.random.default_rng(0).normal(size=problem.n_unknowns)
+    expected = np.linalg.solve(A, rhs)
+    np.testing.assert_allclose(problem.solve(factor, rhs), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    poses, features = problem.marginals(factor)
+    assert_blocks_of(np.linalg.inv(A), problem, poses, features, 1e-9)
+
+
+def test_an_indefinite_matrix_is_solved_and_inverted_by_lu(vicpark_optimum):
+    """Cholesky refuses a matrix that is not positive definite (a Newton step's may not be): the factor solves
+    it by LU and inverts it whole, as numpy does."""
+    problem, found, A = vicpark_optimum
+    data = found.data.copy()
+    data[problem._pattern.diagonal[:3]] *= -1.0           # the first pose's diagonal negated: indefinite
+    factor = problem.factorise(data)
+    assert not factor.cholesky
+    B = A.copy()
+    B[np.arange(3), np.arange(3)] *= -1.0
+    rhs = np.arange(problem.n_unknowns, dtype=float)
+    expected = np.linalg.solve(B, rhs)
+    np.testing.assert_allclose(problem.solve(factor, rhs), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    poses, features = problem.marginals(factor)
+    assert_blocks_of(np.linalg.inv(B), problem, poses, features, 1e-9)
+
+
+def test_the_dense_factor_reads_the_lower_triangle_only():
+    """The slots above the diagonal (zeros from linearise) are not read: values put there change nothing."""
+    maps = list(simulate(6, seed=3).maps)
+    problem = ExactProblem(maps, backend="dense")
+    data = problem.linearise(problem.pack(join(maps).global_map))[0]
+    pattern = problem._pattern
+    columns = np.repeat(np.arange(pattern.n), np.diff(pattern.indptr))
+    above = pattern.indices < columns
+    assert above.any() and not data[above].any()
+    noisy = data.copy()
+    noisy[above] = 1e6
+    rhs = np.ones(problem.n_unknowns)
+    assert np.array_equal(problem.solve(problem.factorise(noisy), rhs), problem.solve(problem.factorise(data), rhs))
+
+
+def test_damping_scales_the_diagonal_the_dense_factor_solves(vicpark_optimum):
+    """A Levenberg-Marquardt factor: (A + lambda diag A)^-1 g, against numpy's LU of that matrix."""
+    problem, found, A = vicpark_optimum
+    damped = A + 0.3 * np.diag(np.diag(A))
+    expected = np.linalg.solve(damped, found.gradient)
+    got = problem.solve(problem.factorise(found.data, 0.3), found.gradient)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+
+@pytest.mark.parametrize("name", ["VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps"])
+def test_interiors_of_different_segments_do_not_couple(name, data_dir):
+    """The partition's premise, on J^T J from the Jacobian: no entry couples two different interiors, the
+    separator meets only each interior's trailing unknowns, and each node's unknowns are together in one
+    part; the real datasets are cut (the least work is not the whole)."""
+    maps = mapio.read_maps([str(data_dir / name)])
+    problem = ExactProblem(maps, backend="dense")
+    x = problem.pack(join(maps, strategy="tree").global_map)
+    problem.factorise(problem.linearise(x)[0])
+    partition = problem._partition
+    segments = partition.segments
+    assert segments > 1
+    J = problem.jacobian(x).toarray()
+    A = (J.T @ J)[np.ix_(partition.order, partition.order)]
+    bounds = partition.bounds
+    for i in range(segments):
+        for j in range(segments):
+            if i != j:
+                assert not A[bounds[i]:bounds[i + 1], bounds[j]:bounds[j + 1]].any()
+        # only the interior's last unknowns (coupled[i] of them) meet the separator's rows
+        assert not A[bounds[-2]:, bounds[i]:bounds[i + 1] - partition.coupled[i]].any()
+    assert partition.coupled.sum() < bounds[-2]        # some interior unknowns never meet the separator
+    part = np.searchsorted(bounds, partition.position, side="right") - 1
+    N = problem.n_maps
+    assert (part[:3 * N].reshape(N, 3) == part[:3 * N:3, None]).all()
+    assert (part[3 * N:].reshape(-1, 2) == part[3 * N::2, None]).all()
+
+
+def test_a_single_map_and_a_map_without_features_take_the_whole_matrix():
+    """One segment (no separator) and tiny problems: the dense solve equals numpy's LU of J^T J."""
+    for maps in (list(simulate(1, seed=2).maps), list(simulate(2, seed=4).maps)):
+        problem = ExactProblem(maps, backend="dense")
+        x = problem.pack(join(maps).global_map)
+        data, gradient, _ = problem.linearise(x)
+        factor = problem.factorise(data)
+        J = problem.jacobian(x).toarray()
+        expected = np.linalg.solve(J.T @ J, gradient)
+        np.testing.assert_allclose(problem.solve(factor, gradient), expected, rtol=0,
+                                   atol=1e-9 * np.abs(expected).max())
+        poses, features = problem.marginals(factor)
+        assert_blocks_of(np.linalg.inv(J.T @ J), problem, poses, features, 1e-9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(count=st.integers(2, 12), seed=st.integers(0, 10_000), full=st.booleans(), noise=st.floats(0.0, 0.3),
+       segments=st.integers(2, 12))
+def test_the_segmented_solve_equals_the_sparse_one_on_small_simulations(count, seed, full, noise, segments):
+    """Small chains cut into a given number of segments (the work model would keep them whole), full or
+    spherical covariances, started off the fast join by noise: the same steps, chi^2 after each (1e-9), the
+    same optimum and marginal covariances (1e-9) as SuperLU's."""
+    maps = list(simulate(count, seed=seed, full_covariance=full).maps)
+    start = join(maps).global_map
+    solved = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(dense, "_SEGMENT_COUNTS", (min(segments, count),))
+        patch.setattr(dense, "_SEGMENT_WORK", -1e12)         # a segment's "gain" outweighs any work: the most
+        for backend in ("dense", "sparse"):
+            problem = ExactProblem(maps, backend=backend)
+            x = problem.pack(start)
+            found = minimise(problem, x + np.random.default_rng(seed).normal(0, noise, x.size))
+            solved[backend] = problem, found, problem.marginals(found.final_factor(problem))
+    (problem, a, (pa, fa)), (_, b, (pb, fb)) = solved["dense"], solved["sparse"]
+    assert problem._partition.segments == min(segments, count)
+    assert a.iterations == b.iterations and a.converged and b.converged
+    np.testing.assert_allclose(a.costs, b.costs, rtol=1e-9, atol=1e-14 * b.costs[0])
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9 * (1.0 + np.max(np.abs(b.x))))
+    for got, expected in ((pa, pb), (fa, fb)):
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
