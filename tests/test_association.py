@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
-from mapjoin.association import (_gate, _joint_distances, _joint_terms, chi2_quantile, correspondence_rows,
+from mapjoin.association import (_gate, _joint_distances, _joint_terms, correspondence_rows,
                                  feature_covariances, inverted,
                                  join_associated, link_errors, local_ids, match_features, rotated, sighting_bits)
 from mapjoin.joining import join
@@ -39,15 +39,6 @@ def test_link_errors_count_missed_and_false_links_by_hand():
     assert link_errors(local, truth, Found([0, 1], [0, 1, 2])) == (2, 0, 0)    # all right
     assert link_errors(local, truth, Found([0, 1], [0, 5, 2])) == (2, 1, 0)    # 11 seen anew: one missed
     assert link_errors(local, truth, Found([0, 1], [0, 1, 0])) == (2, 0, 1)    # 12 taken for 10: one false
-
-
-def test_chi2_quantiles_match_scipy():
-    from scipy.stats import chi2
-
-    dof = np.arange(2, 300, 2)
-    for level in (0.5, 0.9, 0.999, 0.999999):
-        assert np.allclose(chi2_quantile(level, dof), chi2.ppf(level, dof), rtol=1e-12)
-    assert math.isclose(chi2_quantile(0.999, 2), -2 * math.log(0.001), rel_tol=1e-14)
 
 
 def random_covariances(rng, count, low=0.01, high=1.0):

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
-from mapjoin.consistency import degrees_of_freedom, flags, p_values
+from mapjoin.consistency import chi2_quantile, degrees_of_freedom, flags, p_values
 from mapjoin.errors import JoinError
 from mapjoin.evaluation import compare
 from mapjoin.faults import corrupted as corrupt
@@ -123,6 +123,36 @@ def test_p_values_against_the_chi_square_survival_function(cases):
     expected = np.where(dof > 0, scipy.stats.chi2.sf(chi2, np.maximum(dof, 1)), 1.0)
     found = p_values(chi2, dof)
     assert np.allclose(found, expected, rtol=1e-9, atol=1e-300)
+
+
+def test_chi2_quantiles_match_scipy():
+    """The association's gates (even dof, upper quantiles) to 1e-12 of scipy's, as arrays; 2 dof in closed form."""
+    from scipy.special import chdtri
+
+    dof = np.arange(2, 300, 2)
+    for level in (0.5, 0.9, 0.999, 0.999999):
+        assert np.allclose(chi2_quantile(level, dof), chdtri(dof, 1 - level), rtol=1e-12)
+    assert math.isclose(chi2_quantile(0.999, 2), -2 * math.log(0.001), rel_tol=1e-14)
+
+
+@settings(max_examples=60, deadline=None)
+@given(dof=st.one_of(st.integers(1, 40), st.integers(41, 200_000)),
+       level=st.sampled_from([0.0005, 0.025, 0.5, 0.975, 0.9995, 0.001, 0.999]))
+def test_chi2_quantiles_of_any_dof_match_scipy(dof, level):
+    """Any integer dof, both tails (the refine's chi^2 interval): scipy's inverse survival function (a different
+    method) to 1e-11 in the upper half; the lower quantiles are 1 less an upper tail near 1, so to 1e-7 (the
+    interval prints six digits); and the quantile's own upper tail is 1 - level."""
+    from scipy.special import chdtri
+
+    found = chi2_quantile(level, dof)
+    assert found == pytest.approx(chdtri(dof, 1 - level), rel=1e-11 if level >= 0.5 else 1e-7)
+    assert p_values(np.array([found]), np.array([dof]))[0] == pytest.approx(1 - level, rel=1e-6)
+
+
+def test_chi2_quantile_refuses_what_has_none():
+    for level, dof in ((0.0, 3), (1.0, 3), (0.5, 0), (float("nan"), 2)):
+        with pytest.raises(ValueError):
+            chi2_quantile(level, dof)
 
 
 def test_p_values_at_the_edges():

@@ -89,6 +89,7 @@ from .association_grid import pairs_within
 from .association_lone import LONE_MARGIN, lone_drifted
 from .association_loops import rigid_votes
 from .association_strain import drift_rivals
+from .consistency import chi2_quantile
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
 from .joining import join
 from .joins import JoinRecord, Strategy
@@ -111,7 +112,6 @@ __all__ = [
     "FeatureAssociation",
     "Matches",
     "blocks",
-    "chi2_quantile",
     "correspondence_rows",
     "feature_covariances",
     "fused",
@@ -199,32 +199,6 @@ class AssociatedJoin:
         """The ``--associations`` table of the input ``maps``: one row per feature, by map then local id."""
         return [FeatureAssociation(k + 1, int(local), int(found)) for k, m in enumerate(maps)
                 for local, found in sorted(zip(m.feature_ids.tolist(), self.global_ids[k].tolist()))]
-
-
-def chi2_quantile(level: float, dof: np.ndarray | int) -> np.ndarray:
-    """The ``level`` quantile of a chi-square with an even number ``dof = 2k`` of degrees of freedom.
-
-    For even ``dof`` the survival function is closed-form, ``Q(x) = exp(-x/2) sum_{i<k} (x/2)^i / i!`` (a
-    Poisson tail), with derivative ``-exp(-x/2) (x/2)^(k-1) / (2 (k-1)!)``; Newton's method on it from the
-    Wilson-Hilferty approximation converges in a few steps (as arrays, without scipy). For 2 dof the
-    quantile is ``-2 ln(1 - level)``.
-    """
-    from statistics import NormalDist
-
-    k = np.atleast_1d(np.asarray(dof, dtype=np.int64)) // 2
-    n = 2.0 * k
-    x = n * (1 - 2 / (9 * n) + NormalDist().inv_cdf(level) * np.sqrt(2 / (9 * n))) ** 3
-    terms = np.arange(int(k.max(initial=1)))
-    log_factorial = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1, len(terms))))])
-    outside = terms[None, :] >= k[:, None]
-    for _ in range(12):
-        x = np.maximum(x, 1e-3 * n)  # Newton from above converges monotonically; keep it positive
-        half = x[:, None] / 2
-        log_terms = np.where(outside, -np.inf, terms * np.log(half) - log_factorial - half)
-        survival = np.exp(log_terms).sum(axis=1)
-        density = np.exp((k - 1) * np.log(x / 2) - log_factorial[k - 1] - x / 2) / 2
-        x = x + (survival - (1.0 - level)) / density
-    return x if np.ndim(dof) else x[0]
 
 
 _QUANTILES: dict[float, np.ndarray] = {}  # level -> chi2_quantile(level, 2k) for k = 0, 1, 2, ...

@@ -39,6 +39,7 @@ import heapq
 import logging
 import math
 from collections.abc import Callable
+from statistics import NormalDist
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -51,7 +52,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("mapjoin")
 
 __all__ = ["DEFAULT_GATE", "POLICIES", "WARM_UP", "Calibrated", "Policy", "VarianceFactors", "blame", "calibrated",
-           "chi2_median", "degrees_of_freedom", "describe", "enforce", "flags", "level_variance_factors", "p_values",
+           "chi2_median", "chi2_quantile", "degrees_of_freedom", "describe", "enforce", "flags", "level_variance_factors", "p_values",
            "variance_factors"]
 
 #: a join is flagged when its p-value is below this (docs/method.md#chi-square-check, measured)
@@ -98,6 +99,52 @@ def p_values(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
     terms = np.exp(exponent * log_y[join] - y[join] - log_gamma)
     p = base + np.bincount(join, terms, len(dof))
     return np.where(dof > 0, np.minimum(p, 1.0), 1.0)
+
+
+#: Newton's steps of :func:`chi2_quantile` at most (it needs 4-8 from its start; bisection's fall-backs more) ...
+_QUANTILE_STEPS = 100
+#: ... and the relative step below which a quantile has converged (Newton's next error is about its square)
+_QUANTILE_TOLERANCE = 1e-15
+
+
+def chi2_quantile(level: float, dof: np.ndarray | int) -> np.ndarray:
+    """The ``level`` quantile of a chi-square with ``dof`` (integer, at least 1) degrees of freedom: the ``x`` whose
+    upper tail :func:`p_values` is ``1 - level``, for an array of ``dof`` at once.
+
+    Newton's method on the tail, whose derivative is minus the density ``x^(k-1) e^(-x/2) / (2^k Gamma(k))``,
+    ``k = dof / 2``, from the Wilson-Hilferty approximation; a step that leaves the bracket the iterates have
+    established is replaced by bisection, so the iteration cannot diverge where the density is steep (few
+    degrees of freedom, small ``1 - level``). Numpy and :mod:`math` only: the association's gate and the
+    refine's chi^2 check need no scipy (checked against ``scipy.special.chdtri`` in the tests)."""
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    scalar = np.ndim(dof) == 0
+    dof = np.atleast_1d(np.asarray(dof, dtype=np.int64))
+    if (dof < 1).any():
+        raise ValueError("a chi-square quantile needs at least one degree of freedom")
+    tail, n = 1.0 - level, dof.astype(float)
+    k = n / 2
+    log_scale = -k * math.log(2.0) - np.array([math.lgamma(value) for value in k.tolist()])
+    shape = 1 - 2 / (9 * n) + NormalDist().inv_cdf(level) * np.sqrt(2 / (9 * n))
+    x = n * np.maximum(shape, 1e-3) ** 3
+    low, high = np.zeros_like(x), np.full_like(x, np.inf)
+    active = np.arange(len(x))  # the quantiles still moving
+    for _ in range(_QUANTILE_STEPS):
+        at = x[active]
+        upper = p_values(at, dof[active])
+        past = upper <= tail  # at or beyond the quantile
+        high[active] = np.where(past, np.minimum(high[active], at), high[active])
+        low[active] = np.where(past, low[active], np.maximum(low[active], at))
+        with np.errstate(divide="ignore", over="ignore"):
+            step = at + (upper - tail) / np.exp((k[active] - 1) * np.log(at) - at / 2 + log_scale[active])
+        bracket_low, bracket_high = low[active], high[active]
+        step = np.where((step > bracket_low) & (step < bracket_high), step,
+                        np.where(np.isfinite(bracket_high), (bracket_low + bracket_high) / 2, 2 * at))
+        x[active] = step
+        active = active[np.abs(step - at) > _QUANTILE_TOLERANCE * at]
+        if not len(active):
+            break
+    return x[0] if scalar else x
 
 
 def chi2_median(dof: np.ndarray) -> np.ndarray:
