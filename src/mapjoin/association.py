@@ -142,6 +142,8 @@ ROUNDS = 4
 LOOP_SUPPORT = 4
 #: ... and its pairs of right features agreeing on the correction at least this many times the runner-up's
 LOOP_CLEAR = 2
+#: a join ties its map to the map that last saw its drifted pairs' features when it has at least this many (step 7)
+TIE_SUPPORT = 1
 #: the median of a chi-square with 2 degrees of freedom, 2 ln 2: the robust variance factor's reference
 CHI2_2_MEDIAN = 2 * math.log(2)
 
@@ -838,7 +840,7 @@ class _Associator:
         noise = (self.covariances[left_ids, 0] + self.covariances[left_ids, 2]
                  + right_covariances[found.right, 0] + right_covariances[found.right, 2]) / 2
         drifted = drift >= noise
-        for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= LOOP_SUPPORT).tolist():
+        for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= TIE_SUPPORT).tolist():
             pairs = drifted & (pair_join == tying)
             self.drift.tie(int(np.median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),
                            float(np.median(strain[pairs])))
