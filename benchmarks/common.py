@@ -18,12 +18,16 @@ DATA = Path(os.environ.get("MAPJOIN_DATA", ROOT.parent / "shared" / "data"))
 README = ROOT / "benchmarks" / "README.md"
 
 
-def dataset_arguments(doc: str, datasets: tuple[str, ...]) -> argparse.Namespace:
-    """Command-line arguments of the scripts that run over real datasets: names, --repeat, --data."""
+def dataset_arguments(doc: str, datasets: tuple[str, ...],
+                      options: Callable[[argparse.ArgumentParser], object] | None = None) -> argparse.Namespace:
+    """Command-line arguments of the scripts that run over real datasets: names, --repeat, --data (and the
+    script's own ``options``, added to the parser)."""
     parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("datasets", nargs="*", default=datasets)
     parser.add_argument("--repeat", type=int, default=5, help="runs per measurement (medians)")
     parser.add_argument("--data", type=Path, default=DATA, help="folder of the datasets (default: %(default)s)")
+    if options is not None:
+        options(parser)
     args = parser.parse_args()
     logging.getLogger("mapjoin").setLevel(logging.ERROR)
     return args

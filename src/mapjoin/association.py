@@ -50,7 +50,7 @@ join (sequential and tree) which features of the right piece are features of the
    steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
    feature seen in one map with it lies within its drift (:data:`mapjoin.association_strain.DRIFT_MARGIN`): its
    small offset is no evidence then. ``D`` is taken the shorter way through the chain's ties (a join that matched
-   :data:`LOOP_SUPPORT` drifted features ties its map to theirs; a tree join's ties are those inside its pieces)
+   :data:`TIE_SUPPORT` drifted feature ties its map to theirs; a tree join's ties are those inside its pieces)
    plus the strain of the joins that fused features partway between two estimates (a quarter of each pair's
    squared residual, per feature and per tie; :meth:`mapjoin.association_drift.SightingDrift.settled`,
    :meth:`~mapjoin.association_drift.SightingDrift.settled_after`).
@@ -107,6 +107,7 @@ __all__ = [
     "LOOP_CLEAR",
     "LOOP_SUPPORT",
     "ROUNDS",
+    "TIE_SUPPORT",
     "AssociatedJoin",
     "AssociatedJoinRecord",
     "FeatureAssociation",
@@ -143,6 +144,10 @@ ROUNDS = 4
 LOOP_SUPPORT = 4
 #: ... and its pairs of right features agreeing on the correction at least this many times the runner-up's
 LOOP_CLEAR = 2
+#: a join ties its map to the map that last saw its drifted pairs' features when it has at least this many (step 7):
+#: one, since a chain of small maps meets its old features one to three a join (VicPark 6898: with 4, as a loop
+#: closure's support, the chain was tied almost nowhere and D summed every junction since; benchmarks/README.md)
+TIE_SUPPORT = 1
 #: the median of a chi-square with 2 degrees of freedom, 2 ln 2: the robust variance factor's reference
 CHI2_2_MEDIAN = 2 * math.log(2)
 
@@ -898,13 +903,13 @@ class _Associator:
              junctions: np.ndarray) -> np.ndarray:
         """The strain of each of ``found``'s pairs (a quarter of its squared residual around the link as the join's
         pairs corrected it: a fused feature sits about halfway), and the chain's ties: a join whose pairs include
-        :data:`LOOP_SUPPORT` drifted ones (``drift``, each pair's before the join, at least its noise) measured its
+        :data:`TIE_SUPPORT` drifted ones (``drift``, each pair's before the join, at least its noise) measured its
         link, at ``junctions[join]``, relative to the map that last saw their left features (``left_ids``, compact;
         the median), strained by their strains' median (:meth:`mapjoin.association_drift.SightingDrift.tie`)."""
         pair_join = right_join[found.right]
         strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
         drifted = drift >= _pair_noise(self.covariances, right_covariances, left_ids, found.right)
-        for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= LOOP_SUPPORT).tolist():
+        for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= TIE_SUPPORT).tolist():
             pairs = drifted & (pair_join == tying)
             self.drift.tie(int(np.median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),
                            float(np.median(strain[pairs])))
