@@ -2,8 +2,9 @@
 
 A whole ``mapjoin refine`` of a few hundred unknowns spends more on importing scipy.sparse
 than on its arithmetic; numpy, already loaded, solves such a system densely in
-milliseconds. :data:`DENSE_UNKNOWNS` is the crossover, measured on whole commands
-(benchmarks/README.md, "Start-up"); :func:`backend_for` chooses by it.
+milliseconds. :data:`DENSE_WORK` (flops of the partitioned factorisation) is the crossover, measured on whole
+commands (benchmarks/README.md, "Start-up"), :data:`DENSE_UNKNOWNS` a cap on the dense matrix's size;
+:func:`backend_for` chooses by them.
 
 The structure used (docs/method.md#exact-joining): a local map's information couples its end
 pose, its base pose and all its features (a full covariance couples every pair of them), and
