@@ -151,12 +151,13 @@ def test_chi2_quantiles_match_scipy():
        level=st.sampled_from([0.0005, 0.025, 0.5, 0.975, 0.9995, 0.001, 0.999]))
 def test_chi2_quantiles_of_any_dof_match_scipy(dof, level):
     """Any integer dof, both tails (the refine's chi^2 interval): scipy's inverse survival function (a different
-    method) to 1e-11 in the upper half; the lower quantiles are 1 less an upper tail near 1, so to 1e-7 (the
-    interval prints six digits); and the quantile's own upper tail is 1 - level."""
+    method) to 1e-9 in the upper half (p_values' own precision at 10^5 dof, its log-factorial table's running
+    sum); the lower quantiles are 1 less an upper tail near 1, so to 1e-7 (the interval prints six digits); and
+    the quantile's own upper tail is 1 - level."""
     from scipy.special import chdtri
 
     found = chi2_quantile(level, dof)
-    assert found == pytest.approx(chdtri(dof, 1 - level), rel=1e-11 if level >= 0.5 else 1e-7)
+    assert found == pytest.approx(chdtri(dof, 1 - level), rel=1e-9 if level >= 0.5 else 1e-7)
     assert p_values(np.array([found]), np.array([dof]))[0] == pytest.approx(1 - level, rel=1e-6)
 
 
