@@ -207,3 +207,39 @@ def test_cells_count_their_distinct_right_features_and_pairs_as_a_dictionary(see
     assert [(int(j), *c) for j, c in zip(owner, coordinates.tolist())] == keys
     assert support.tolist() == [len(expected[k][0]) for k in keys]
     assert agreement.tolist() == [len(expected[k][1]) for k in keys]
+
+
+def test_a_lattice_met_again_closes_no_loop():
+    """8240's last join in small (docs/method.md#data-association, limits): features on a 3 m lattice, the right map
+    a patch of 27 whose two top rows the map just before saw (no drift) and whose two bottom rows (7 features) meet
+    the two rows the chain saw first, drifted by metres. Counted by brute force over the lattice's translations,
+    several pair 8 right features with old ones where the true correction pairs 7: the data cannot tell them apart,
+    and the association closes no loop (no false pair), the recent features paired as without drift."""
+    rng = np.random.default_rng(5)
+    spacing, noise, drift_offset = 3.0, 0.02, -4.33 + 2.82j
+    right = np.array([complex(x, y) for y in range(0, 19, 3) for x in range(0, 10, 3) if (x, y) != (0, 0)])
+    recent = right[right.imag >= 15]
+    world_old = np.array([complex(x, y) for y in (0, 3) for x in range(-6, 10, 3)])  # the chain's first rows
+    old = world_old + drift_offset
+
+    def paired(correction):  # right features landing on an old one under a correction (brute force)
+        return int((np.abs(old[:, None] - (right[None, :] + correction)) < spacing / 4).any(axis=0).sum())
+
+    translations = [drift_offset + spacing * complex(i, j) for i in range(-4, 5) for j in range(-8, 3)]
+    assert paired(drift_offset) == 7 and max(paired(t) for t in translations) == 8
+    assert sum(paired(t) == 8 for t in translations) >= 3
+    left = np.concatenate([recent, old])
+    left = left + rng.normal(scale=noise, size=len(left)) + 1j * rng.normal(scale=noise, size=len(left))
+    observed = right + rng.normal(scale=noise, size=len(right)) + 1j * rng.normal(scale=noise, size=len(right))
+    left_drift = np.concatenate([np.zeros(len(recent)), np.full(len(old), 16.0)])  # sqrt(D) = 4 m
+    left_heading = np.concatenate([np.zeros(len(recent)), np.full(len(old), 0.003)])
+    covariance = np.tile([noise**2, 0.0, noise**2], (len(left), 1))
+    link = (np.zeros(1, complex), np.zeros(1), np.array([[1e-4, 1e-6]]))
+    zeros = np.zeros(len(right))
+    arguments = (left, covariance, np.zeros(len(left), np.intp), *link, observed,
+                 np.tile([noise**2, 0.0, noise**2], (len(right), 1)), np.zeros(len(right), np.intp))
+    plain = match_features(*arguments)
+    found = match_with_drift(*arguments, (left_drift, left_heading, zeros, zeros))
+    recent_pairs = {(k, int(np.flatnonzero(right == f)[0])) for k, f in enumerate(recent)}
+    assert set(zip(plain.left.tolist(), plain.right.tolist())) == recent_pairs
+    assert set(zip(found.left.tolist(), found.right.tolist())) == recent_pairs
