@@ -243,3 +243,73 @@ def test_a_lattice_met_again_closes_no_loop():
     recent_pairs = {(k, int(np.flatnonzero(right == f)[0])) for k, f in enumerate(recent)}
     assert set(zip(plain.left.tolist(), plain.right.tolist())) == recent_pairs
     assert set(zip(found.left.tolist(), found.right.tolist())) == recent_pairs
+
+
+def bent_join(rng, near=6, far=60, clutter=80, near_noise=0.05, far_noise=0.15, turn=0.015, offset=0.3 - 0.4j):
+    """A join whose right piece (link at the origin) sees ``near`` features of the map so far close to the link (no
+    drift: seen there by both pieces) and ``far`` ones 40-80 m away, last seen long ago and moved since by one rigid
+    correction (``turn`` about the link, then ``offset``; drift variance 1 m^2), among ``clutter`` other left
+    features at least 2 m from any of them. Bearings are spread so that no two features share a gate. The pairs
+    (left row, right row) ``(k, k)`` for the first ``near + far`` rows are the truth."""
+    def bearings(n):
+        return 2 * np.pi * (np.arange(n) + rng.uniform(-0.2, 0.2, n)) / n
+
+    def noise(sigma, n):
+        return sigma * (rng.normal(size=n) + 1j * rng.normal(size=n)) / np.sqrt(2)
+
+    close = rng.uniform(4, 15, near) * np.exp(1j * bearings(near))
+    away = rng.uniform(40, 80, far) * np.exp(1j * bearings(far))
+    seen = np.concatenate([close + noise(near_noise, near), offset + np.exp(1j * turn) * away + noise(far_noise, far)])
+    others = rng.uniform(-30, 30, clutter) + 1j * rng.uniform(-30, 30, clutter)
+    others = others[np.abs(others[:, None] - seen[None, :]).min(axis=1) > 2]
+
+    def covariances(sigma, n):
+        return np.tile([sigma**2 / 2, 0.0, sigma**2 / 2], (n, 1))
+
+    left = np.concatenate([seen, others])
+    left_cov = np.concatenate([covariances(near_noise, near), covariances(far_noise, far),
+                               covariances(near_noise, len(others))])
+    right_cov = np.concatenate([covariances(near_noise, near), covariances(far_noise, far)])
+    left_drift = np.concatenate([np.zeros(near), np.full(far, 1.0), np.zeros(len(others))])
+    left_heading = np.concatenate([np.zeros(near), np.full(far, 1e-4), np.zeros(len(others))])
+    return left, left_cov, np.concatenate([close, away]), right_cov, left_drift, left_heading
+
+
+BENT_LINK = (np.zeros(1, complex), np.zeros(1), np.array([[0.1, 1e-4]]))  # sd 0.32 m, 0.01 rad: all in the gate
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_undrifted_features_the_correction_moved_are_found_again(seed):
+    """The far pairs, many, set the link's correction (0.5 m and 0.015 rad) that moves the near features' predictions
+    out of their gate (noise 0.05 m), so match_features pairs the far ones and at most two near ones; the second
+    vote of step 6 (their spread: how far the correction moved them) finds the near ones again, with no false pair."""
+    rng = np.random.default_rng(seed)
+    left, left_cov, right, right_cov, left_drift, left_heading = bent_join(rng)
+    arguments = (left, left_cov, np.zeros(len(left), np.intp), *BENT_LINK, right, right_cov,
+                 np.zeros(len(right), np.intp))
+    plain = match_features(*arguments)
+    pairs = set(zip(plain.left.tolist(), plain.right.tolist()))
+    assert set(zip(range(6, 66), range(6, 66))) <= pairs <= set(zip(range(66), range(66)))
+    assert len(pairs) <= 62  # at least LOOP_SUPPORT near features left for the vote
+    zeros = np.zeros(len(right))
+    found = match_with_drift(*arguments, (left_drift, left_heading, zeros, zeros))
+    assert np.array_equal(found.left, np.arange(66)) and np.array_equal(found.right, np.arange(66))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), near=st.integers(0, LOOP_SUPPORT - 1), present=st.booleans())
+def test_too_few_moved_features_or_none_in_the_map_make_no_loop_closure(seed, near, present):
+    """Fewer than LOOP_SUPPORT near features (a loop closure's support), or six whose partners are missing from the
+    map so far (clutter alone near the link): the pairs are match_features' own, all true."""
+    rng = np.random.default_rng(seed)
+    left, left_cov, right, right_cov, left_drift, left_heading = bent_join(rng, near=near if present else 6)
+    keep = np.arange(len(left)) if present else np.arange(6, len(left))
+    arguments = (left[keep], left_cov[keep], np.zeros(len(keep), np.intp), *BENT_LINK, right, right_cov,
+                 np.zeros(len(right), np.intp))
+    plain = match_features(*arguments)
+    zeros = np.zeros(len(right))
+    found = match_with_drift(*arguments, (left_drift[keep], left_heading[keep], zeros, zeros))
+    pairs = set(zip(keep[found.left].tolist(), found.right.tolist()))
+    assert pairs == set(zip(keep[plain.left].tolist(), plain.right.tolist()))
+    assert all(k == j for k, j in pairs)

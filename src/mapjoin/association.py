@@ -46,6 +46,9 @@ join (sequential and tree) which features of the right piece are features of the
    the one rigid correction of the link that the drift made (:mod:`mapjoin.association_loops`); a join whose
    best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other
    correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link.
+   Then the undrifted features the link's correction moved by more than their noise vote once more, the same way,
+   each with the squared distance it moved its prediction as its spread: a correction set by drifted pairs is a
+   drift of its own for the features near the link.
 7. **A strained map so far** (:mod:`mapjoin.association_strain`). Before step 6, a pair of
    steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
    feature seen in one map with it lies within its drift (:data:`mapjoin.association_strain.DRIFT_MARGIN`): its
@@ -594,7 +597,8 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
     right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the associator's, through
     the chain's ties) and the lone drifted pairs beside a second copy and a rival (:func:`_unconfirmed`, step 8),
-    then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6):
+    then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6), then those among the
+    undrifted features still unpaired that the link's correction moved (``moved=True``):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
     (:mod:`mapjoin.association_drift`), or None for none."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
@@ -611,6 +615,10 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                              left_sightings, margin)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
+    found = found if closed is None else closed
+    closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
+                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings,
+                           moved=True)
     return found if closed is None else closed
 
 
@@ -677,8 +685,8 @@ def _corrected(found: Matches, link_xy: np.ndarray, link_phi: np.ndarray, right:
 def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
                   link_xy: np.ndarray, link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
                   right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...], gate: float,
-                  margin: float, left_sightings: np.ndarray | None, right_sightings: np.ndarray | None
-                  ) -> Matches | None:
+                  margin: float, left_sightings: np.ndarray | None, right_sightings: np.ndarray | None,
+                  moved: bool = False) -> Matches | None:
     """``found`` with the pairs of the loop closures among the features it left unpaired, or None when there are
     none. Candidate pairs within the drift's gate (the noise, ``D`` of both features and the link's spread)
     whose drift is at least their noise vote for rigid corrections of the link as ``found`` corrected it
@@ -686,7 +694,12 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     the free right features' extent); a join whose best correction has :data:`LOOP_SUPPORT` right features and
     :data:`LOOP_CLEAR` times the runner-up's agreement is associated again, its unpaired features only, around
     its link so corrected (:func:`match_features`: the gate, the clear nearest neighbour, the joint test, the
-    rounds); a loop closure of fewer than :data:`LOOP_SUPPORT` pairs is dropped."""
+    rounds); a loop closure of fewer than :data:`LOOP_SUPPORT` pairs is dropped.
+
+    ``moved``: the same for the *undrifted* pairs (``D`` of both features below their noise) whose prediction the
+    correction of steps 2 to 5 moved, with the squared distance it moved them as their spread in place of ``D`` and
+    the square of its turn as their heading variance (docs/method.md#data-association, step 6: a correction set by
+    drifted pairs is, for the features near the link, a drift of its own)."""
     left_drift, left_heading, right_drift, right_heading = drift
     joins = len(link_xy)
     free = np.ones(len(left), dtype=bool)
@@ -707,16 +720,22 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     right_noise = (right_covariances[rights, 0] + right_covariances[rights, 2]) / 2
     link_spread = link_variances[r_join, 0] + link_variances[r_join, 1] * np.abs(right[rights]) ** 2  # isotropic
     widest = _join_maxima(left_noise + left_drift[lefts], left_join[lefts], joins)
-    radius = np.sqrt(g2 * (widest[r_join] + right_noise + right_drift[rights] + link_spread))
+    # how far each free right feature's spread reaches: its drift, or how far the correction moved its prediction
+    reach = np.abs(predicted - link_xy[r_join] - np.exp(1j * link_phi[r_join]) * right[rights]) ** 2 if moved \
+        else right_drift[rights]
+    radius = np.sqrt(g2 * (widest[r_join] + right_noise + reach + link_spread))
     a, b = _candidates(left[lefts], left_join[lefts], predicted, r_join, radius, joins)
     offsets = left[lefts[a]] - predicted[b]
     noise = left_noise[a] + right_noise[b]
     spread = left_drift[lefts[a]] + right_drift[rights[b]]
+    if moved:  # the undrifted pairs only, spread by the correction's move
+        spread = np.where(spread < noise, reach[b], 0.0)
     closeness = np.abs(offsets) ** 2 / (noise + spread + link_spread[b])  # in the drift's gate's units
     voting = (closeness <= g2) & (spread >= noise)
     order = np.flatnonzero(voting)[np.argsort(r_join[b[voting]], kind="stable")]
     a, b, noise, closeness = a[order], b[order], noise[order], closeness[order]
-    turning = np.sqrt(g2 * (left_heading[lefts[a]] + right_heading[rights[b]] + link_variances[r_join[b], 1]))
+    heading = correction[r_join[b], 2] ** 2 if moved else left_heading[lefts[a]] + right_heading[rights[b]]
+    turning = np.sqrt(g2 * (heading + link_variances[r_join[b], 1]))
     pair_join = r_join[b]
     voters = np.bincount(r_join[np.unique(b)], minlength=joins)  # right features with a candidate in the drift's gate
     if not (voters >= LOOP_SUPPORT).any():
