@@ -16,6 +16,8 @@ join (sequential and tree) which features of the right piece are features of the
    ``r = f - x`` has covariance ``S = s (C0 + C1) + H P_link H^T``. A pair is a candidate when
    ``r^T S^-1 r`` is within the ``gate`` quantile of a chi-square with 2 degrees of freedom
    (default 0.999: a true pair is refused once in a thousand).
+   A tree join also associates its undrifted features alone, under the link's variance relative to its own map,
+   and adds the pairs of features left unpaired (the junction rule, :mod:`mapjoin.association_junction`).
 3. **Nearest neighbour, when clear.** A pair is taken when each of its features is the other's nearest
    candidate and each one's nearest *rival* is at least ``margin`` farther (squared Mahalanobis distance;
    default 9.2 = 2 ln 100: the nearest is a hundred times likelier). A rival is a candidate that is a
@@ -45,7 +47,9 @@ join (sequential and tree) which features of the right piece are features of the
    features steps 2 to 5 left unpaired, the candidates within the drift's gate vote, two pairs at a time, for
    the one rigid correction of the link that the drift made (:mod:`mapjoin.association_loops`); a join whose
    best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other
-   correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link.
+   correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link, and keeps
+   a pair where it is clear under the correction with its drift relative to the voters, or under the link with its
+   drift (:mod:`mapjoin.association_scope`).
 7. **A strained map so far** (:mod:`mapjoin.association_strain`). Before step 6, a pair of
    steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
    feature seen in one map with it lies within its drift (:data:`mapjoin.association_strain.DRIFT_MARGIN`): its
