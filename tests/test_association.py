@@ -338,16 +338,16 @@ def unmet(name, strategy, measured):
 
 @pytest.mark.parametrize("name, strategy", [
     ("VicPark_200_local_maps", "sequential"),
-    unmet("VicPark_200_local_maps", "tree", "recall 99.0 % (35 missed), 1 false link (a new feature 2.5 m from another, no rival)"),
+    unmet("VicPark_200_local_maps", "tree", "recall 99.0 % (36 missed, 35 allowed), 1 false link (a new feature 2.5 m "
+          "from another, no rival)"),
     unmet("DLR_200_local_maps", "sequential", "recall 92.9 %, no false link (misses at ordinary joins, beyond the gate "
           "or jointly rejected, and at the returns to old ground, maps 69-73 and 178-199)"),
-    unmet("DLR_200_local_maps", "tree", "recall 76.2 %, no false link (pieces bent against each other)"),
+    unmet("DLR_200_local_maps", "tree", "recall 77.9 %, no false link (pieces bent against each other)"),
     unmet("8240_data_50_local_maps", "sequential", "recall 97.4 %, no false link (the last join's 7 links: a lattice "
           "whose translations tie with the true correction, genuinely; docs/method.md#data-association)"),
-    unmet("8240_data_50_local_maps", "tree", "recall 90.8 %, no false link (18 junction links at levels 5-6, ambiguous "
-          "under the piece's link variance; 7 at the lattice's tie)"),
+    unmet("8240_data_50_local_maps", "tree", "recall 97.4 %, no false link (the 7 links of the lattice's tie at map 49)"),
     unmet("simulation", "sequential", "recall 75.6 %, 10 false links (features closer than the noise)"),
-    unmet("simulation", "tree", "recall 59.9 %, 6 false links")])
+    unmet("simulation", "tree", "recall 61.0 %, 6 false links")])
 def test_target_recall_99_percent_without_false_links(data_dir, name, strategy, caplog):
     """Issue 13's target: at least 99 % of the true links recovered, no false one; then the global map equals
     the known-id join (compared numerically)."""

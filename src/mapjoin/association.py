@@ -16,6 +16,8 @@ join (sequential and tree) which features of the right piece are features of the
    ``r = f - x`` has covariance ``S = s (C0 + C1) + H P_link H^T``. A pair is a candidate when
    ``r^T S^-1 r`` is within the ``gate`` quantile of a chi-square with 2 degrees of freedom
    (default 0.999: a true pair is refused once in a thousand).
+   A tree join also associates its undrifted features alone, under the link's variance relative to its own map,
+   and adds the pairs of features left unpaired (the junction rule, :mod:`mapjoin.association_junction`).
 3. **Nearest neighbour, when clear.** A pair is taken when each of its features is the other's nearest
    candidate and each one's nearest *rival* is at least ``margin`` farther (squared Mahalanobis distance;
    default 9.2 = 2 ln 100: the nearest is a hundred times likelier). A rival is a candidate that is a
@@ -45,10 +47,11 @@ join (sequential and tree) which features of the right piece are features of the
    features steps 2 to 5 left unpaired, the candidates within the drift's gate vote, two pairs at a time, for
    the one rigid correction of the link that the drift made (:mod:`mapjoin.association_loops`); a join whose
    best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other
-   correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link.
-   Then the undrifted features the link's correction moved by more than their noise vote once more, the same way,
-   each with the squared distance it moved its prediction as its spread: a correction set by drifted pairs is a
-   drift of its own for the features near the link.
+   correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link, and keeps
+   a pair where it is clear under the correction with its drift relative to the voters, or under the link with its
+   drift (:mod:`mapjoin.association_scope`). Then the undrifted features the link's correction moved by more than
+   their noise vote once more, the same way, each with the squared distance it moved its prediction as its spread:
+   a correction set by drifted pairs is a drift of its own for the features near the link.
 7. **A strained map so far** (:mod:`mapjoin.association_strain`). Before step 6, a pair of
    steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
    feature seen in one map with it lies within its drift (:data:`mapjoin.association_strain.DRIFT_MARGIN`): its
@@ -89,8 +92,10 @@ import numpy as np
 
 from .association_drift import SightingDrift
 from .association_grid import pairs_within
+from .association_junction import free_pairs, own_link_variances, undrifted
 from .association_lone import LONE_MARGIN, lone_drifted
 from .association_loops import rigid_votes
+from .association_scope import VoterDrift, beyond_voters, voters_drift
 from .association_strain import drift_rivals
 from .consistency import chi2_quantile
 from .covariance import DEFAULT_COVARIANCE, CovarianceMode
@@ -593,14 +598,16 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...] | None,
                      gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
                      left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
-                     pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Matches:
+                     pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                     scope: VoterDrift | None = None) -> Matches:
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
     right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the associator's, through
     the chain's ties) and the lone drifted pairs beside a second copy and a rival (:func:`_unconfirmed`, step 8),
     then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6), then those among the
     undrifted features still unpaired that the link's correction moved (``moved=True``):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
-    (:mod:`mapjoin.association_drift`), or None for none."""
+    (:mod:`mapjoin.association_drift`), or None for none; ``scope`` gives a loop closure's pairs their drift relative
+    to its voters (:mod:`mapjoin.association_scope`; None: the correction holds for every pair)."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
     found = match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, gate, margin, left_sightings, right_sightings)
@@ -614,10 +621,10 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                              right_covariances, right_join, drifts[np.isin(found.right, unstrained.right)],
                              left_sightings, margin)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
-                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings)
+                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, scope)
     found = found if closed is None else closed
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
-                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings,
+                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, scope,
                            moved=True)
     return found if closed is None else closed
 
@@ -686,7 +693,7 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
                   link_xy: np.ndarray, link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
                   right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...], gate: float,
                   margin: float, left_sightings: np.ndarray | None, right_sightings: np.ndarray | None,
-                  moved: bool = False) -> Matches | None:
+                  scope: VoterDrift | None = None, moved: bool = False) -> Matches | None:
     """``found`` with the pairs of the loop closures among the features it left unpaired, or None when there are
     none. Candidate pairs within the drift's gate (the noise, ``D`` of both features and the link's spread)
     whose drift is at least their noise vote for rigid corrections of the link as ``found`` corrected it
@@ -694,7 +701,10 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     the free right features' extent); a join whose best correction has :data:`LOOP_SUPPORT` right features and
     :data:`LOOP_CLEAR` times the runner-up's agreement is associated again, its unpaired features only, around
     its link so corrected (:func:`match_features`: the gate, the clear nearest neighbour, the joint test, the
-    rounds); a loop closure of fewer than :data:`LOOP_SUPPORT` pairs is dropped.
+    rounds); a pair so found is kept when it is clear under the correction with its drift relative to the voters
+    (``scope``: the votes within a cell of the correction) or under the link with its drift
+    (:func:`mapjoin.association_scope.beyond_voters`), else counted rejected; a loop closure of fewer than
+    :data:`LOOP_SUPPORT` pairs is dropped.
 
     ``moved``: the same for the *undrifted* pairs (``D`` of both features below their noise) whose prediction the
     correction of steps 2 to 5 moved, with the squared distance it moved them as their spread in place of ``D`` and
@@ -753,6 +763,17 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
         return None
     number = np.full(joins, -1)
     number[closing] = np.arange(len(closing))
+
+    def under_correction(rows: np.ndarray, join: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # free right features (positions in ``predicted``) as the votes' correction predicts them, and its variance
+        lever = predicted[rows] - centre[join]
+        return (centre[join] + votes.offset[join] + np.exp(1j * votes.turn[join]) * lever,
+                offset_cell[join] ** 2 + turn_cell[join] ** 2 * np.abs(lever) ** 2)
+
+    if scope is not None:  # the voters: the pairs whose votes made the correction, where it is exact
+        voters = (lefts[a[votes.voters]], rights[b[votes.voters]], votes.voter_join)
+        place = np.full(len(right), -1)
+        place[rights] = np.arange(len(rights))  # each free right row's position in ``predicted``
     lefts, rights = lefts[number[left_join[lefts]] >= 0], rights[number[right_join[rights]] >= 0]
     # the link corrected, moved to the free right features' centroid (their mean z_c in right's frame, at c in
     # left's): there the correction's turn moves them least. Right's features, relative to it, are predicted at
@@ -769,6 +790,19 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
                            gate, margin, None if left_sightings is None else left_sightings[lefts],
                            None if right_sightings is None else right_sightings[rights])
     closed = number[right_join[rights[again.right]]]
+    outside = np.zeros(len(closing), np.int64)
+    if scope is not None and len(again.right):
+        pair_left, pair_right = lefts[again.left], rights[again.right]
+        pair_join_again = right_join[pair_right]
+        position, variance = under_correction(place[pair_right], pair_join_again)
+        noise = _pair_noise(left_covariances, right_covariances, pair_left, pair_right)
+        held = ~beyond_voters(left, left_join, pair_left, left_sightings,
+                              (position, noise + variance, scope(pair_left, pair_right, pair_join_again, *voters)),
+                              (predicted[place[pair_right]], noise, left_drift[pair_left] + right_drift[pair_right]))
+        outside = np.bincount(closed[~held], minlength=len(closing))
+        again = Matches(again.left[held], again.right[held], again.ambiguous, again.rejected, again.undecided,
+                        again.correction)
+        closed = closed[held]
     taken = (np.bincount(closed, minlength=len(closing)) >= LOOP_SUPPORT)[closed]
     if not taken.any():
         return None
@@ -777,7 +811,7 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     order = np.argsort(pairs_right, kind="stable")
     undecided = np.setdiff1d(np.union1d(found.undecided, rights[again.undecided]), pairs_right)
     rejected = found.rejected.copy()
-    rejected[closing] += again.rejected
+    rejected[closing] += again.rejected + outside
     return Matches(pairs_left[order], pairs_right[order], np.bincount(right_join[undecided], minlength=joins),
                    rejected, undecided, correction)
 
@@ -839,6 +873,8 @@ class _Associator:
         self.drift = SightingDrift.of(end_poses, len(self.row_ids))
         self.row_points = np.concatenate([np.zeros(0, complex), *points])
         self.links = np.zeros(0, np.intp)  # the tree's last level's junctions (left pieces' end pose rows)
+        self.end_points = end_poses[:, 0] + 1j * end_poses[:, 1]  # each map's end position in its frame
+        self.own_pose_variances = np.zeros((0, 2))  # each map's end-pose variance in its frame (the tree's first level)
         self.count = 0
         # each compact id's 2 x 2 covariance relative to the maps that saw it (rows [xx, xy, yy]), in its piece's
         # frame: the sightings' marginal covariances fused as independent (their common drift is the link's error)
@@ -897,7 +933,8 @@ class _Associator:
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
                                  right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
-                                 self.sightings[:used], self.row_sightings[rows], pair_drift)
+                                 self.sightings[:used], self.row_sightings[rows], pair_drift,
+                                 voters_drift(self.drift, None, None))
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         left_ids = found.left
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
@@ -942,6 +979,7 @@ class _Associator:
             ids = self.first(len(pieces.feature_ids))
             self.row_ids[:] = ids
             pieces = dataclasses.replace(pieces, feature_ids=ids)
+            self.own_pose_variances = pieces.pose_variances.copy()
         count = pieces.count // 2
         ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1
         link = ends[0:2 * count:2]  # each left piece's end pose
@@ -977,7 +1015,12 @@ class _Associator:
         found = match_with_drift(pieces.features[left], self.covariances[left_ids], left_join,
                                  pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
                                  pieces.features[right], right_covariances, right_join, drift, self.gate, self.margin,
-                                 self.sightings[left_ids], self.sightings[pieces.feature_ids[right]], pair_drift)
+                                 self.sightings[left_ids], self.sightings[pieces.feature_ids[right]], pair_drift,
+                                 voters_drift(self.drift, left_ids, right_ids))
+        if level > 1:  # the junction's own features, under the link's variance relative to its own map (step 2)
+            found = self._junction_pairs(found, pieces.features[left], left_ids, left_join, pieces.pose_xy[link],
+                                         pieces.pose_phi[link], link_map, pieces.features[right], right_ids,
+                                         right_covariances, right_join)
         self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
         strain = self._tie(found, pieces.features[left], left_ids[found.left], pieces.pose_xy[link],
                            pieces.pose_phi[link], pieces.features[right], right_join, right_covariances,
@@ -1003,6 +1046,31 @@ class _Associator:
         assert found_all.all()
         self.row_ids[moved] = ids[position]
         return dataclasses.replace(pieces, feature_ids=ids)
+
+    def _junction_pairs(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, left_join: np.ndarray,
+                        link_xy: np.ndarray, link_phi: np.ndarray, link_map: np.ndarray, right: np.ndarray,
+                        right_ids: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray) -> Matches:
+        """``found`` (a tree level's association) with the pairs of its joins' undrifted features
+        (:mod:`mapjoin.association_junction`): steps 2-5 among them under each link's variance relative to its own
+        map, a pair kept when ``found`` left both its features unpaired."""
+        lefts, rights = undrifted(self.drift.last_map[left_ids], link_map[left_join], self.drift.first_map[right_ids],
+                                  link_map[right_join])
+        if not len(lefts) or not len(rights):
+            return found
+        junction = self.drift.sums[link_map + 1] - self.drift.sums[link_map]
+        own = own_link_variances(self.own_pose_variances[link_map], junction, self.end_points[link_map])
+        near = match_features(left[lefts], self.covariances[left_ids[lefts]], left_join[lefts], link_xy, link_phi,
+                              own, right[rights], right_covariances[rights], right_join[rights], self.gate,
+                              self.margin, self.sightings[left_ids[lefts]], self.sightings[right_ids[rights]])
+        added = free_pairs(found.left, found.right, lefts[near.left], rights[near.right])
+        if not added.any():
+            return found
+        pairs_left = np.concatenate([found.left, lefts[near.left[added]]])
+        pairs_right = np.concatenate([found.right, rights[near.right[added]]])
+        order = np.argsort(pairs_right, kind="stable")
+        undecided = np.setdiff1d(found.undecided, pairs_right)
+        return Matches(pairs_left[order], pairs_right[order], np.bincount(right_join[undecided], minlength=len(link_xy)),
+                       found.rejected, undecided, found.correction)
 
     def global_ids(self) -> tuple[np.ndarray, np.ndarray]:
         """Global ids numbered by first sighting: for each compact id (-1 if unused) and for each input row."""

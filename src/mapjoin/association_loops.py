@@ -19,7 +19,7 @@ when it is clearly the best, and then chooses and tests its pairs with the ordin
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,13 +38,17 @@ DIFFERENT_CELLS = 2.0
 class RigidVotes:
     """Per join: the best correction (``turn`` dphi, ``offset`` of the centroid, complex; 0 without votes), its
     ``support`` (distinct right features voting for it), its ``agreement`` (distinct pairs of right features voting
-    for it: a true correction of n features has n (n - 1) / 2, chance few) and the ``runner_up``'s agreement."""
+    for it: a true correction of n features has n (n - 1) / 2, chance few) and the ``runner_up``'s agreement. The
+    ``voters``: the candidate pairs (rows of ``a``, ``b``) whose votes lie within a cell of the best correction, by
+    ``voter_join``: where the correction is exact (step 6's scope, :mod:`mapjoin.association_scope`)."""
 
     turn: np.ndarray
     offset: np.ndarray
     support: np.ndarray
     agreement: np.ndarray
     runner_up: np.ndarray
+    voters: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
+    voter_join: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
 
 
 def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.ndarray
@@ -172,4 +176,5 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
         chosen = near & (join == j)
         turn[j] = np.median(dphi[chosen])
         offset[j] = np.median(o[chosen].real) + 1j * np.median(o[chosen].imag)
-    return RigidVotes(turn, offset, support, agreement, runner_up)
+    voters = np.unique(np.concatenate([join[near] * len(b) + p[near], join[near] * len(b) + q[near]]))
+    return RigidVotes(turn, offset, support, agreement, runner_up, voters % len(b), voters // len(b))
