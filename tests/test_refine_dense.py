@@ -144,7 +144,13 @@ def test_interiors_of_different_segments_do_not_couple(name, data_dir):
                 assert not A[bounds[i]:bounds[i + 1], bounds[j]:bounds[j + 1]].any()
         # only the interior's last unknowns (coupled[i] of them) meet the separator's rows
         assert not A[bounds[-2]:, bounds[i]:bounds[i + 1] - partition.coupled[i]].any()
+        # ... and of those rows only the ones its segment's maps touch (rows[i])
+        others = np.ones(A.shape[0] - bounds[-2], dtype=bool)
+        others[partition.rows[i]] = False
+        assert not A[bounds[-2]:][others, bounds[i]:bounds[i + 1]].any()
     assert partition.coupled.sum() < bounds[-2]        # some interior unknowns never meet the separator
+    if segments > 2:                                    # DLR 200 (4), 8240 (6): no interior meets all its rows
+        assert all(len(rows) < A.shape[0] - bounds[-2] for rows in partition.rows)
     part = np.searchsorted(bounds, partition.position, side="right") - 1
     N = problem.n_maps
     assert (part[:3 * N].reshape(N, 3) == part[:3 * N:3, None]).all()
