@@ -107,6 +107,7 @@ class Partition:
         self.segments = len(bounds) - 2
         self._lower: np.ndarray | None = None       # which CSC entries are on or below the diagonal
         self._targets: np.ndarray | None = None     # where they go in the dense matrix (flat)
+        self._matrix: np.ndarray | None = None      # the dense matrix, filled anew by each scatter
 
     @classmethod
     def of(cls, owner: np.ndarray, compact: np.ndarray, base: np.ndarray, n_features: int) -> Partition:
@@ -152,16 +153,19 @@ class Partition:
     def scatter(self, pattern: BlockPattern, data: np.ndarray) -> np.ndarray:
         """The dense matrix, in this order, holding on and below its diagonal the symmetric matrix whose lower
         triangle is the CSC ``data`` of ``pattern`` (natural order; the slots above its diagonal are not
-        read): what the blockwise Cholesky reads."""
+        read): what the blockwise Cholesky reads. The same array each time, its other entries zero: a fresh one
+        of VicPark 200's 11 MB took 2-25 ms of page faults in each factorisation, against 1 ms of filling.
+        The matrix a scatter returns is thus the next one's: :class:`DenseFactor` keeps none of it (a copy
+        where Cholesky refused)."""
         n = pattern.n
         if self._targets is None:
             columns = np.repeat(np.arange(n), np.diff(pattern.indptr))
             self._lower = pattern.indices >= columns
             row, col = self.position[pattern.indices[self._lower]], self.position[columns[self._lower]]
             self._targets = np.maximum(row, col) * n + np.minimum(row, col)
-        matrix = np.zeros(n * n)
-        matrix[self._targets] = data[self._lower]
-        return matrix.reshape(n, n)
+            self._matrix = np.zeros(n * n)
+        self._matrix[self._targets] = data[self._lower]
+        return self._matrix.reshape(n, n)
 
 
 def _separator_rows(touching: np.ndarray, toucher: np.ndarray, separator: np.ndarray, size: np.ndarray,
@@ -187,10 +191,12 @@ class DenseFactor:
     """The blockwise Cholesky factor of a normal matrix ``A`` in a :class:`Partition`'s order (see the module
     docstring): per interior ``L_i`` and the non-zero trailing columns of ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
     (``A`` not positive definite, as a Newton step's may be), ``cholesky`` False and :meth:`solve` takes LU
-    with partial pivoting of the whole matrix instead. ``matrix``: ``A`` in that order, lower triangle."""
+    with partial pivoting of the whole matrix instead. ``matrix``: ``A`` in that order, lower triangle, kept (a
+    copy: ``matrix`` is the partition's buffer, :meth:`Partition.scatter`) only where Cholesky refused."""
 
     def __init__(self, matrix: np.ndarray, partition: Partition):
-        self.matrix, self.partition = matrix, partition
+        self.matrix: np.ndarray | None = None
+        self.partition = partition
         bounds = partition.bounds
         s0 = bounds[-2]
         self.interiors: list[tuple[np.ndarray, np.ndarray]] = []
@@ -210,7 +216,7 @@ class DenseFactor:
             self.separator = np.linalg.cholesky(schur)
             self.cholesky = True
         except np.linalg.LinAlgError:
-            self.interiors, self.cholesky = [], False
+            self.interiors, self.cholesky, self.matrix = [], False, matrix.copy()
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """``A^-1 rhs`` (``rhs`` and the result in the natural order); RuntimeError if ``A`` is exactly
