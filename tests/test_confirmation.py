@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
-from mapjoin.confirmation import Pieces, confirm, increment, piece_bounds
+from mapjoin.confirmation import Estimate, Pieces, confirm, increment, piece_bounds
 from mapjoin.faults import corrupted
 from mapjoin.joining import join
 from mapjoin.maps import LocalMap
@@ -92,6 +92,28 @@ def test_the_exact_dof_is_twice_the_features_the_pieces_share(id_sets, data):
     result = join(maps[first:stop], strategy="sequential", gate=0.0)
     exact = increment(Pieces(maps[first:stop], result.global_map), 0, middle - first, stop - first)
     assert exact.dof == 2 * len(left & right)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.integers(0, 30), unique=True, max_size=12), st.lists(st.integers(0, 30), unique=True, max_size=12),
+       st.integers(0, 2**32 - 1))
+def test_two_estimates_put_together_keep_the_first_ones_shared_features(mine, theirs, seed):
+    """Estimate.then, feature by feature (a dict and a loop): the second estimate moved by the first one's
+    junction pose (rotation and translation written out), a feature both hold where the first has it."""
+    rng = np.random.default_rng(seed)
+    first = Estimate(np.array([1, 2]), rng.normal(size=(2, 3)), np.array(mine, dtype=np.int64),
+                     rng.normal(size=(len(mine), 2)))
+    second = Estimate(np.array([3]), rng.normal(size=(1, 3)), np.array(theirs, dtype=np.int64),
+                      rng.normal(size=(len(theirs), 2)))
+    x, y, phi = first.poses[1]
+    rotation = np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+    expected = {i: f for i, f in zip(theirs, second.features @ rotation.T + [x, y])}
+    expected.update(zip(mine, first.features))
+    both = first.then(second, 2)
+    assert sorted(both.feature_ids.tolist()) == sorted(expected) and len(both.feature_ids) == len(expected)
+    for i, f in zip(both.feature_ids.tolist(), both.features):
+        np.testing.assert_allclose(f, expected[i], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(both.poses[2, :2], second.poses[0, :2] @ rotation.T + [x, y], rtol=0, atol=1e-12)
 
 
 def test_the_exact_increment_is_chi_square_on_consistent_maps():

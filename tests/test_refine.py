@@ -35,7 +35,7 @@ from mapjoin.refine import (
     join_and_refine,
     refine,
 )
-from mapjoin.refine import dense
+from mapjoin.refine import dense, solver
 from mapjoin.refine.groups import (
     _GROUP_OVERHEAD,
     _block_whitening,
@@ -345,6 +345,41 @@ def test_stops_at_the_optimum_not_one_step_short(name, real, solved):
     J, r = problem.jacobian(x), problem.residual(x)
     step = spsolve((J.T @ J).tocsc(), -(J.T @ r))
     assert np.abs(step).max() < 1e-10
+
+
+@pytest.mark.parametrize("name, count, chord", [("VicPark_200_local_maps", 200, "settles"),
+                                                ("DLR_200_local_maps", 200, "settles"),
+                                                ("535_data_5_local_maps", 5, "unsettled"),
+                                                ("DLR_200_local_maps", 181, "not taken")])
+@pytest.mark.parametrize("backend", ["dense", "sparse"])
+def test_the_step_that_confirms_convergence_costs_a_solve_not_a_factorisation(name, count, chord, backend, real,
+                                                                              monkeypatch):
+    """Near the optimum the last step is the chord step of the previous point's factor: one factorisation
+    fewer than steps where the step after it would move by at most the tolerance (VicPark 200, DLR 200); as
+    many, and one step more, where it would move more (535: the solver goes on with a factorisation); not
+    taken where its length times the last step's exceeds the tolerance (DLR 200's first 181 maps, the piece
+    its join's confirmation solves: the same steps as without it). Where it is taken the solve stops where a
+    further Gauss-Newton step (scipy's sparse solve of the normal equations of the analytic Jacobian) moves
+    nothing by more than 1e-10; always at the chi^2 the solve without the chord reaches."""
+    maps = real(name)[:count]
+    problem = ExactProblem(maps, backend=backend)
+    x0 = problem.pack(join(maps, strategy="tree").global_map)
+    factorisations = []
+    plain = ExactProblem.factorise
+    monkeypatch.setattr(ExactProblem, "factorise", lambda *a: factorisations.append(1) or plain(*a))
+    found = minimise(problem, x0)
+    assert found.converged and found.reason == "relative cost change below tolerance"
+    monkeypatch.setattr(ExactProblem, "factorise", plain)
+    monkeypatch.setattr(solver, "_chord", lambda *a: None)      # every step factorised, as before the chord
+    without = minimise(ExactProblem(maps, backend=backend), x0)
+    assert len(factorisations) == without.iterations - (chord == "settles")
+    assert found.iterations == without.iterations + (chord == "unsettled")
+    assert found.cost == pytest.approx(without.cost, rel=1e-13)
+    if chord == "not taken":                                   # the very same steps
+        assert np.array_equal(found.x, without.x)
+    else:
+        J, r = problem.jacobian(found.x), problem.residual(found.x)
+        assert np.abs(spsolve((J.T @ J).tocsc(), -(J.T @ r))).max() < 1e-10
 
 
 @pytest.mark.parametrize("name, count", [("535_data_5_local_maps", 5), ("VicPark_200_local_maps", 20)])

@@ -98,6 +98,24 @@ def test_an_indefinite_matrix_is_solved_and_inverted_by_lu(vicpark_optimum):
     assert_blocks_of(np.linalg.inv(B), problem, poses, features, 1e-9)
 
 
+def test_a_factor_outlives_the_next_factorisation(vicpark_optimum):
+    """The partition fills one dense matrix anew at every factorisation: a factor made before (a Cholesky one,
+    as the solver's chord step uses, and an LU one of an indefinite matrix) still solves its own matrix, as
+    numpy's LU of it from the Jacobian does, after another matrix has been factorised."""
+    problem, found, A = vicpark_optimum
+    indefinite = found.data.copy()
+    indefinite[problem._pattern.diagonal[:3]] *= -1.0
+    B = A.copy()
+    B[np.arange(3), np.arange(3)] *= -1.0
+    first, lu = problem.factorise(found.data), problem.factorise(indefinite)
+    assert first.cholesky and not lu.cholesky
+    problem.factorise(found.data, 5.0)                     # another matrix through the same buffer
+    rhs = np.random.default_rng(1).normal(size=problem.n_unknowns)
+    for factor, matrix in ((first, A), (lu, B)):
+        expected = np.linalg.solve(matrix, rhs)
+        np.testing.assert_allclose(problem.solve(factor, rhs), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
 def test_the_dense_factor_reads_the_lower_triangle_only():
     """The slots above the diagonal (zeros from linearise) are not read: values put there change nothing."""
     maps = list(simulate(6, seed=3).maps)
@@ -144,7 +162,13 @@ def test_interiors_of_different_segments_do_not_couple(name, data_dir):
                 assert not A[bounds[i]:bounds[i + 1], bounds[j]:bounds[j + 1]].any()
         # only the interior's last unknowns (coupled[i] of them) meet the separator's rows
         assert not A[bounds[-2]:, bounds[i]:bounds[i + 1] - partition.coupled[i]].any()
+        # ... and of those rows only the ones its segment's maps touch (rows[i])
+        others = np.ones(A.shape[0] - bounds[-2], dtype=bool)
+        others[partition.rows[i]] = False
+        assert not A[bounds[-2]:][others, bounds[i]:bounds[i + 1]].any()
     assert partition.coupled.sum() < bounds[-2]        # some interior unknowns never meet the separator
+    if segments > 2:                                    # DLR 200 (4), 8240 (6): no interior meets all its rows
+        assert all(len(rows) < A.shape[0] - bounds[-2] for rows in partition.rows)
     part = np.searchsorted(bounds, partition.position, side="right") - 1
     N = problem.n_maps
     assert (part[:3 * N].reshape(N, 3) == part[:3 * N:3, None]).all()

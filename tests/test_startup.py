@@ -195,6 +195,14 @@ def test_dense_refines_and_confirmations_import_no_scipy(data_dir, tmp_path):
     assert not scipy_modules("refine", str(data_dir / "VicPark_200_local_maps"))
 
 
+def test_the_issues_commands_import_no_numpy_ma(data_dir, tmp_path):
+    """numpy.ma (7 ms of start-up) is loaded by np.unique and np.isin without indices: neither DLR 200's join,
+    whose confirmation puts two pieces' optima together, nor VicPark 200's refine call them."""
+    for args in (("join", "DLR_200_local_maps"), ("refine", "VicPark_200_local_maps")):
+        modules = imported("-q", args[0], str(data_dir / args[1]), "-o", str(tmp_path / "out.csv"))
+        assert "mapjoin.confirmation" in modules and "numpy.ma" not in modules, args
+
+
 # ---- the lazily loaded commands ---------------------------------------------------------------------
 
 
