@@ -245,7 +245,7 @@ def test_a_drifted_feature_beside_another_is_left_new():
         plain = match_with_drift(left, left_cov, joins_left, *link, right, right_cov, joins_right, drift)
         assert (wrong, 8) in set(zip(plain.left.tolist(), plain.right.tolist()))
         strained = match_with_drift(left, left_cov, joins_left, *link, right, right_cov, joins_right, drift,
-                                    pair_drift=lambda i, j, d=left_drift: d[i])
+                                    pair_drift=lambda i, j, noise, d=left_drift: d[i])
         pairs = set(zip(strained.left.tolist(), strained.right.tolist()))
         assert pairs == set(zip(recent.tolist(), range(8)))
         assert 8 in strained.undecided.tolist() and strained.ambiguous[0] >= 1
