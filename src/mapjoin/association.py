@@ -514,6 +514,7 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     scale = np.ones(joins)
     largest = _join_maxima(left_covariances[:, 0] + left_covariances[:, 2], left_join, joins)
     previous = None
+    tested = None  # the last round's pairs before the joint test (over every join), its scale and its rejected counts
     live = np.ones(joins, dtype=bool)  # the joins whose next round may differ from their last
     settled: list[tuple] = []  # the outcomes of the others: their state repeats, so would their rounds
     for round_number in range(ROUNDS):
@@ -530,6 +531,12 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
                                     None if right_sightings is None else right_sightings[columns])
             i, j, undecided = rows[i], columns[j], columns[undecided]
         ambiguous = np.bincount(right_join[undecided], minlength=joins)
+        if tested is not None and live.all() and _repeated(tested, i, j, scale):
+            # the last round's joint test of the same pairs in the same scale: its outcome, the pairs repeat
+            outcome = (previous[0], previous[1], ambiguous, tested[3], undecided, correction)
+            break
+        if live.all():
+            tested = (i, j, np.ones(joins) if first_round else scale, None)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
         unscaled = inverted(left_covariances[i] + right_covariances[j])
@@ -538,6 +545,8 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         information = prior_information if first_round else prior_information / scale[:, None, None]
         keep, sum_g, sum_m = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
+        if tested is not None:
+            tested = (*tested[:3], rejected)
         if not keep.all():  # mostly all are kept: then the pairs and the joint test's sums as they are
             i, j, r, unscaled, pair_join = i[keep], j[keep], r[keep], unscaled[keep], pair_join[keep]
             sum_g = _segment_sums(terms[1][keep], pair_join, joins)
@@ -573,6 +582,13 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         outcome = _with_settled(outcome, settled, right_join)
     order = np.argsort(outcome[1], kind="stable")
     return Matches(outcome[0][order], outcome[1][order], *outcome[2:])
+
+
+def _repeated(tested: tuple, i: np.ndarray, j: np.ndarray, scale: np.ndarray) -> bool:
+    """Whether a round's pairs before the joint test (``i``, ``j``) and its variance factors ``scale`` are the last
+    round's (``tested``): then its joint test is the last one's (the innovations are taken from the prior prediction,
+    the same for the same pairs), and so are the pairs it keeps."""
+    return np.array_equal(tested[0], i) and np.array_equal(tested[1], j) and np.array_equal(tested[2], scale)
 
 
 def _settled_outcome(outcome: tuple, joins: np.ndarray, right_join: np.ndarray) -> tuple:
