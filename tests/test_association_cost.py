@@ -1,6 +1,7 @@
 """The association's shortcuts (mapjoin.association): each one leaves the association as it was. Step 6's exit when no
-pair can vote against the pairs that vote, counted by brute force; the rounds' reuse of a repeated joint test and the
-exit against the association with each shortcut disabled, on simulated runs and on real maps."""
+pair can vote against the pairs that vote, counted by brute force; the rounds' candidate search against every pair
+within the radius; the median against numpy's; the rounds' reuse of a repeated joint test and of the last search, and
+step 6's exit, against the association with each shortcut disabled, on simulated runs and on real maps."""
 
 from __future__ import annotations
 
@@ -54,6 +55,37 @@ def test_no_vote_where_every_drift_and_move_is_below_the_noise():
     assert association._may_vote(noise, np.zeros(3), noise, np.array([0.0, 0.0, 0.5]), True)
 
 
+points = st.lists(st.tuples(st.floats(-20, 20), st.floats(-20, 20)), min_size=1, max_size=30)
+
+
+@settings(max_examples=200, deadline=None)
+@given(points, points, st.floats(0.1, 8.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0))
+def test_a_later_search_finds_every_pair_within_its_radius(left, right, radius, shrink, dx, dy):
+    """A first search, then a second around moved predictions with other radii (inside the first's reach or not): the
+    pairs the second gives include every (left, right) pair within the second radius, by brute force (the reused
+    pairs or a fresh search)."""
+    left = np.array([complex(*p) for p in left])
+    predicted = np.array([complex(*p) for p in right])
+    first_radius = np.full(len(predicted), radius)
+    search = association._Searched()
+    search(left, np.zeros(len(left), np.intp), predicted, np.zeros(len(predicted), np.intp), first_radius, 1)
+    moved = predicted + complex(dx, dy) * radius * abs(shrink)
+    second_radius = first_radius * (1 - shrink / 2)
+    i, j = search(left, np.zeros(len(left), np.intp), moved, np.zeros(len(moved), np.intp), second_radius, 1)
+    found = set(zip(i.tolist(), j.tolist()))
+    within = {(a, b) for a in range(len(left)) for b in range(len(moved))
+              if abs(left[a] - moved[b]) <= second_radius[b]}
+    assert within <= found
+    order = list(zip(i.tolist(), j.tolist()))
+    assert order == sorted(order)  # by left row, then right row, as a fresh search gives them
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1e6, 1e6), min_size=1, max_size=40) | st.lists(st.integers(0, 500), min_size=1, max_size=9))
+def test_median_is_numpys(values):
+    assert association._median(np.array(values)) == float(np.median(np.array(values)))
+
+
 def associated(maps, strategy: str, monkeypatch, **disabled):
     """The global ids and per-join counts of ``join_associated``, with the shortcuts named in ``disabled`` replaced
     by functions that never take them."""
@@ -72,6 +104,13 @@ def always_may_vote(*_):
     return True
 
 
+def always_search():
+    return association._candidates
+
+
+DISABLED = {"_repeated": never_repeated, "_may_vote": always_may_vote, "_Searched": always_search}
+
+
 @settings(max_examples=6, deadline=None)
 @given(st.integers(1, 10_000), st.sampled_from(["sequential", "tree"]), st.booleans())
 def test_shortcuts_change_no_association_of_simulated_runs(seed, strategy, covariances):
@@ -80,7 +119,7 @@ def test_shortcuts_change_no_association_of_simulated_runs(seed, strategy, covar
         local = tuple(dataclasses.replace(m, covariance=None) for m in local)
     with pytest.MonkeyPatch.context() as patch:
         fast = associated(local, strategy, patch)
-        slow = associated(local, strategy, patch, _repeated=never_repeated, _may_vote=always_may_vote)
+        slow = associated(local, strategy, patch, **DISABLED)
     assert np.array_equal(fast[0], slow[0]) and fast[1] == slow[1]
 
 
@@ -100,6 +139,6 @@ def test_shortcuts_change_no_association_of_a_loop_closing_dataset(data_dir, str
         return call
 
     fast = associated(local, strategy, monkeypatch, _repeated=counted("_repeated"), _may_vote=counted("_may_vote"))
-    slow = associated(local, strategy, monkeypatch, _repeated=never_repeated, _may_vote=always_may_vote)
+    slow = associated(local, strategy, monkeypatch, **DISABLED)
     assert np.array_equal(fast[0], slow[0]) and fast[1] == slow[1]
     assert taken["_repeated"] > 0
