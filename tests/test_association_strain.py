@@ -140,6 +140,9 @@ def test_settled_drift_against_a_level_is_exact_where_it_reaches_it(seed, n, tie
     exact = drift.settled(np.arange(12), link)
     level = exact * rng.choice([0.5, 1.0, 2.0], 12)  # below, at and above each feature's D
     got = drift.settled(np.arange(12), link, level=level)
+    # the direct way given, as the sequential join has it from before(): the same answer
+    assert np.array_equal(drift.settled(np.arange(12), link, level=level, direct=drift.before(np.arange(12), link)[0]),
+                          got)
     reached = exact >= level
     assert np.array_equal(got[reached], exact[reached])
     assert (got[~reached] < level[~reached]).all()

@@ -999,7 +999,7 @@ class _Associator:
         right_covariances = rotated(self.row_covariances[rows], link_phi)
         nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
         drift = (*self.drift.before(slice(None, used), k - 1), nothing, nothing)
-        pair_drift = _asked_once(lambda i, j, noise: self.drift.settled(i, k - 1, level=noise))
+        pair_drift = _asked_once(lambda i, j, noise: self.drift.settled(i, k - 1, level=noise, direct=drift[0][i]))
 
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
