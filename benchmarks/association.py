@@ -11,7 +11,12 @@ Writes the 'association' section of benchmarks/README.md. ``--non-target NAME`` 
 target of issue 13 (VicPark's 6898 small maps, say: the same run in far more maps, a check on data the rules
 were not chosen on), sequential only, one run however many --repeat, its rows labelled so.
 
-    PYTHONPATH=src python benchmarks/association.py [DATASETS...] [--repeat N] [--non-target NAME ...]
+``--commands`` adds a second table, of whole commands as a user runs them (a fresh interpreter each: start-up,
+imports, reading the maps and writing the global map included): `mapjoin join DATASET -o g.csv` against `mapjoin join
+LOCAL --associate -o g.csv`, LOCAL being the dataset's maps with ids local to each map (local_ids) written to a
+temporary folder as MAT files, the two run in turn --repeat times (medians).
+
+    PYTHONPATH=src python benchmarks/association.py [DATASETS...] [--repeat N] [--non-target NAME ...] [--commands]
 """
 
 from __future__ import annotations
@@ -19,11 +24,12 @@ from __future__ import annotations
 import os
 import statistics
 import sys
+import tempfile
 from pathlib import Path
 
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import dataset_arguments, median_seconds, write_section  # noqa: E402
+from common import compile_mapjoin, dataset_arguments, median_seconds, whole_command, write_section  # noqa: E402
 
 from mapjoin import io as mapio  # noqa: E402
 from mapjoin.association import DEFAULT_GATE, AssociatedJoin, join_associated, link_errors, local_ids  # noqa: E402
@@ -46,13 +52,46 @@ def alternated(local: list[LocalMap], maps: list[LocalMap], strategy: str, repea
     return statistics.median(associating), statistics.median(known), found
 
 
+def commands_table(data: Path, datasets: list[str], repeat: int) -> list[str]:
+    """The whole commands' table (``--commands``): per dataset and strategy, the median wall seconds of `mapjoin join`
+    of the dataset with its ids and of `mapjoin join --associate` of its maps with local ids, run in turn."""
+    lines = ["", f"Whole commands ({compile_mapjoin()}; fresh interpreters, start-up and reading included; "
+             f"medians of {repeat}, run in turn; load average {os.getloadavg()[0]:.2f} at their start):", "",
+             "| dataset | strategy | `join` (s) | `join --associate`, local ids (s) | ratio | association alone |",
+             "|---|---|---:|---:|---:|---:|"]
+    with tempfile.TemporaryDirectory() as folder:
+        for name in datasets:
+            local_folder = os.path.join(folder, name)
+            os.mkdir(local_folder)
+            mapio.write_maps(local_ids(mapio.read_maps(str(data / name)))[0], os.path.join(local_folder, ""), "mat")
+            output = os.path.join(folder, "g.csv")
+            for strategy in ("sequential", "tree"):
+                known_args = ["join", str(data / name), "--strategy", strategy, "-o", output]
+                associating_args = ["join", local_folder, "--associate", "--strategy", strategy, "-o", output]
+                known, associating = [], []
+                for _ in range(repeat):
+                    known.append(whole_command(known_args, 1)[0])
+                    associating.append(whole_command(associating_args, 1)[0])
+                known_s, associating_s = statistics.median(known), statistics.median(associating)
+                row = (f"| {name} | {strategy} | {known_s:.2f} | {associating_s:.2f} | {associating_s / known_s:.1f}× | "
+                       f"{(associating_s - known_s) / known_s:.1f}× |")
+                print(row, flush=True)
+                lines.append(row)
+    return lines
+
+
 def main() -> None:
-    args = dataset_arguments(__doc__, DATASETS, lambda parser: parser.add_argument(
-        "--non-target", action="append", default=[], metavar="NAME",
-        help="a dataset that is no target, sequential only, one run (repeatable)"))
+    def options(parser) -> None:
+        parser.add_argument("--non-target", action="append", default=[], metavar="NAME",
+                            help="a dataset that is no target, sequential only, one run (repeatable)")
+        parser.add_argument("--commands", action="store_true",
+                            help="also time the whole commands, `join` against `join --associate` (a second table)")
+
+    args = dataset_arguments(__doc__, DATASETS, options)
     also = "".join(f" --non-target {name}" for name in args.non_target)
     lines = [f"Measured with `PYTHONPATH=src python benchmarks/association.py --repeat {args.repeat}{also}` "
              f"(load average {os.getloadavg()[0]:.2f} at the start; gate {DEFAULT_GATE}, default covariance mode).", "",
+             "In one process, maps loaded (the association's own cost):", "",
              "| dataset | strategy | true links | missed | recall | false links | ambiguous | rejected | "
              "associating join (ms) | known-id join (ms) | ratio | association alone |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -73,6 +112,8 @@ def main() -> None:
                f"{associating / known:.1f}× | {(associating - known) / known:.1f}× |")
         print(row, flush=True)
         lines.append(row)
+    if args.commands:
+        lines += commands_table(args.data, list(args.datasets), args.repeat)
     write_section("association", "\n".join(lines))
 
 

@@ -63,7 +63,7 @@ def associate(left, right, maps, left_drift):
                             covariance(len(right)), np.zeros(len(right), np.intp),
                             (left_drift, np.zeros(len(left)), zeros, zeros), left_sightings=sighting_bits(maps),
                             right_sightings=sighting_bits(np.full(len(right), 9)),
-                            pair_drift=lambda i, j: left_drift[i])
+                            pair_drift=lambda i, j, noise: left_drift[i])
 
 
 def test_a_lone_drifted_pair_beside_a_duplicate_is_left_new():

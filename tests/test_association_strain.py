@@ -140,6 +140,9 @@ def test_settled_drift_against_a_level_is_exact_where_it_reaches_it(seed, n, tie
     exact = drift.settled(np.arange(12), link)
     level = exact * rng.choice([0.5, 1.0, 2.0], 12)  # below, at and above each feature's D
     got = drift.settled(np.arange(12), link, level=level)
+    # the direct way given, as the sequential join has it from before(): the same answer
+    assert np.array_equal(drift.settled(np.arange(12), link, level=level, direct=drift.before(np.arange(12), link)[0]),
+                          got)
     reached = exact >= level
     assert np.array_equal(got[reached], exact[reached])
     assert (got[~reached] < level[~reached]).all()
@@ -245,7 +248,7 @@ def test_a_drifted_feature_beside_another_is_left_new():
         plain = match_with_drift(left, left_cov, joins_left, *link, right, right_cov, joins_right, drift)
         assert (wrong, 8) in set(zip(plain.left.tolist(), plain.right.tolist()))
         strained = match_with_drift(left, left_cov, joins_left, *link, right, right_cov, joins_right, drift,
-                                    pair_drift=lambda i, j, d=left_drift: d[i])
+                                    pair_drift=lambda i, j, noise, d=left_drift: d[i])
         pairs = set(zip(strained.left.tolist(), strained.right.tolist()))
         assert pairs == set(zip(recent.tolist(), range(8)))
         assert 8 in strained.undecided.tolist() and strained.ambiguous[0] >= 1

@@ -140,6 +140,10 @@ DEFAULT_GATE = 0.999
 EXHAUSTIVE_PAIRS = 10
 #: a single join's candidate pairs are found by brute force up to this many (left x right) pairs, else by a grid
 BRUTE_FORCE_PAIRS = 1 << 16
+#: the rounds' candidate search reaches this many times each right feature's radius, so that the later rounds mostly
+#: take its pairs (:class:`_Searched`; VicPark's and DLR's sequential joins search in 48 % and 55 % of their rounds,
+#: against 76 % and 90 % at 1)
+SEARCH_REACH = 1.25
 #: the variance factor of a round needs at least this many degrees of freedom (2k - 3 for k pairs)
 MIN_DOF = 4
 #: a feature's nearest candidate is taken when the next one is at least this much farther (squared Mahalanobis
@@ -253,6 +257,29 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
             i, j = np.nonzero(np.abs(left[rows, None] - predicted[None, :]) <= radius[None, :])
             return rows[i], j
     return pairs_within(left, left_join, predicted, right_join, radius, joins)
+
+
+class _Searched:
+    """:func:`_candidates` remembering its last search, for the rounds of :func:`match_features`: a round whose every
+    right feature's reach (its radius about its prediction) lies inside its reach in the last search has no candidate
+    the last search did not find, so it takes the last search's pairs (more, maybe: the gate's ``d^2`` drops those, as
+    every pair in the gate lies within the radius, :func:`_gate`). A search reaches :data:`SEARCH_REACH` times the radius
+    (the pairs it adds cost little): the corrected link's posterior is tighter than the prior and its correction small,
+    so that the rounds after the first mostly lie inside its search."""
+
+    def __init__(self) -> None:
+        self.last: tuple | None = None
+
+    def __call__(self, left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, right_join: np.ndarray,
+                 radius: np.ndarray, joins: int) -> tuple[np.ndarray, np.ndarray]:
+        last = self.last
+        if (last is not None and last[0] is left and len(last[1]) == len(predicted)
+                and (np.abs(predicted - last[1]) + radius <= last[2] * (1 - 1e-9)).all()):
+            return last[3], last[4]
+        radius = radius * SEARCH_REACH
+        i, j = _candidates(left, left_join, predicted, right_join, radius, joins)
+        self.last = (left, predicted, radius, i, j)
+        return i, j
 
 
 def blocks(variances: np.ndarray) -> np.ndarray:
@@ -384,6 +411,14 @@ def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarr
                     axis=1)
 
 
+def _median(values: np.ndarray) -> float:
+    """``np.median(values)`` (the mean of the middle two of an even count, as a float), by one sort: on a join's few
+    pairs ``np.median``'s own overhead is ten times the sort's."""
+    ordered = np.sort(values)
+    middle = len(ordered) // 2
+    return float(ordered[middle]) if len(ordered) % 2 else (float(ordered[middle - 1]) + float(ordered[middle])) / 2
+
+
 def _segment_medians(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarray:
     """The median of ``values`` in each group (the upper one of an even group; NaN for an empty group)."""
     if count == 1:
@@ -434,10 +469,11 @@ def sighting_bits(maps: np.ndarray) -> np.ndarray:
 def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, largest: np.ndarray,
           predicted: np.ndarray, lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray,
           link: np.ndarray, scale: np.ndarray | None, g2: float, margin: float = DEFAULT_MARGIN,
-          left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
+          search: Callable[..., tuple[np.ndarray, np.ndarray]] = _candidates) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The unambiguous candidate pairs (left rows, right rows) of every join, and the ambiguous right rows
-    (sorted).
+    (sorted); the pairs within each right feature's radius are found by ``search`` (:func:`_candidates`, or a
+    :class:`_Searched`).
 
     A pair's innovation ``r = f - x`` has covariance ``S = C0 + C1 + H link H^T`` with ``H = [I, u]`` (``C0``,
     ``C1``: the features' 2 x 2 covariances, rows ``[xx, xy, yy]``, times their join's variance factor ``scale``
@@ -458,7 +494,7 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     # the trace bounds the largest eigenvalue: every pair in the gate is within this Euclidean radius
     own_trace = largest[right_join] + right_covariances[:, 0] + right_covariances[:, 2]
     radius = np.sqrt(g2 * ((own_trace if scale is None else scale[right_join] * own_trace) + sxx + syy))
-    i, j = _candidates(left, left_join, predicted, right_join, radius, joins)
+    i, j = search(left, left_join, predicted, right_join, radius, joins)
     r = left[i] - predicted[j]
     if scale is None:  # a factor of 1 changes nothing
         own_covariances = left_covariances[i] + right_covariances[j]
@@ -514,6 +550,8 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     scale = np.ones(joins)
     largest = _join_maxima(left_covariances[:, 0] + left_covariances[:, 2], left_join, joins)
     previous = None
+    search = _Searched()  # the rounds' candidate pairs, found again only where a round reaches beyond the last
+    tested = None  # the last round's pairs before the joint test (over every join), its scale and its rejected counts
     live = np.ones(joins, dtype=bool)  # the joins whose next round may differ from their last
     settled: list[tuple] = []  # the outcomes of the others: their state repeats, so would their rounds
     for round_number in range(ROUNDS):
@@ -521,7 +559,7 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         if live.all():
             i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
                                     right_join, link, None if first_round else scale, g2, margin, left_sightings,
-                                    right_sightings)
+                                    right_sightings, search)
         else:  # the live joins' rows only; each join's pairs are what they would be among all
             rows, columns = np.flatnonzero(live[left_join]), np.flatnonzero(live[right_join])
             i, j, undecided = _gate(left[rows], left_covariances[rows], left_join[rows], largest, predicted[columns],
@@ -530,6 +568,12 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
                                     None if right_sightings is None else right_sightings[columns])
             i, j, undecided = rows[i], columns[j], columns[undecided]
         ambiguous = np.bincount(right_join[undecided], minlength=joins)
+        if tested is not None and live.all() and _repeated(tested, i, j, scale):
+            # the last round's joint test of the same pairs in the same scale: its outcome, the pairs repeat
+            outcome = (previous[0], previous[1], ambiguous, tested[3], undecided, correction)
+            break
+        if live.all():
+            tested = (i, j, np.ones(joins) if first_round else scale, None)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
         unscaled = inverted(left_covariances[i] + right_covariances[j])
@@ -538,6 +582,8 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         information = prior_information if first_round else prior_information / scale[:, None, None]
         keep, sum_g, sum_m = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
+        if tested is not None:
+            tested = (*tested[:3], rejected)
         if not keep.all():  # mostly all are kept: then the pairs and the joint test's sums as they are
             i, j, r, unscaled, pair_join = i[keep], j[keep], r[keep], unscaled[keep], pair_join[keep]
             sum_g = _segment_sums(terms[1][keep], pair_join, joins)
@@ -575,6 +621,13 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     return Matches(outcome[0][order], outcome[1][order], *outcome[2:])
 
 
+def _repeated(tested: tuple, i: np.ndarray, j: np.ndarray, scale: np.ndarray) -> bool:
+    """Whether a round's pairs before the joint test (``i``, ``j``) and its variance factors ``scale`` are the last
+    round's (``tested``): then its joint test is the last one's (the innovations are taken from the prior prediction,
+    the same for the same pairs), and so are the pairs it keeps."""
+    return np.array_equal(tested[0], i) and np.array_equal(tested[1], j) and np.array_equal(tested[2], scale)
+
+
 def _settled_outcome(outcome: tuple, joins: np.ndarray, right_join: np.ndarray) -> tuple:
     """The part of a round's ``outcome`` (left rows, right rows, ambiguous, rejected, undecided, correction) that
     belongs to the ``joins`` (a mask over them)."""
@@ -598,11 +651,13 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...] | None,
                      gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
                      left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
-                     pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                     pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
                      scope: VoterDrift | None = None) -> Matches:
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
-    right rows)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the associator's, through
-    the chain's ties) and the lone drifted pairs beside a second copy and a rival (:func:`_unconfirmed`, step 8),
+    right rows, their noise)`` gives the pairs' drift (:func:`_unstrained`, module docstring, step 7: the
+    associator's, through the chain's ties; compared with the noise only, it may stop at it where the way is long)
+    and the lone drifted pairs beside a second copy and a rival (:func:`_unconfirmed`, step 8; both only where a
+    pair's drift reaches its noise),
     then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6), then those among the
     undrifted features still unpaired that the link's correction moved (``moved=True``):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
@@ -614,12 +669,16 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     if drift is None:
         return found
     if pair_drift is not None:
-        drifts = pair_drift(found.left, found.right)
-        unstrained = _unstrained(found, left, left_covariances, left_join, link_xy, link_phi, right,
-                                 right_covariances, right_join, drifts, left_sightings)
-        found = _unconfirmed(unstrained, left, left_covariances, left_join, link_xy, link_phi, right,
-                             right_covariances, right_join, drifts[np.isin(found.right, unstrained.right)],
-                             left_sightings, margin)
+        noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
+        drifts = pair_drift(found.left, found.right, noise)
+        if (drifts >= noise).any():  # else no pair is drifted: steps 7 and 8 drop none
+            unstrained = _unstrained(found, left, left_join, link_xy, link_phi, right, right_join, drifts, noise,
+                                     left_sightings)
+            if unstrained is not found:
+                kept = np.isin(found.right, unstrained.right)
+                drifts, noise = drifts[kept], noise[kept]
+            found = _unconfirmed(unstrained, left, left_join, link_xy, link_phi, right, right_join, drifts, noise,
+                                 left_sightings, margin)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, scope)
     found = found if closed is None else closed
@@ -629,15 +688,12 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     return found if closed is None else closed
 
 
-def _unstrained(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
-                link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_covariances: np.ndarray,
-                right_join: np.ndarray, drift: np.ndarray, left_sightings: np.ndarray | None) -> Matches:
-    """``found`` less the pairs :func:`mapjoin.association_strain.drift_rivals` names (``drift``: each pair's), whose
-    right features are left new and counted ambiguous; the right features are predicted through each join's link
-    as ``found`` corrected it."""
-    noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
-    if not (drift >= noise).any():  # no drifted pair (drift_rivals would drop none)
-        return found
+def _unstrained(found: Matches, left: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
+                right: np.ndarray, right_join: np.ndarray, drift: np.ndarray, noise: np.ndarray,
+                left_sightings: np.ndarray | None) -> Matches:
+    """``found`` less the pairs :func:`mapjoin.association_strain.drift_rivals` names (``drift``, ``noise``: each
+    pair's, :func:`_pair_noise`), whose right features are left new and counted ambiguous (``found`` itself when
+    none); the right features are predicted through each join's link as ``found`` corrected it."""
     drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
                         drift, left_sightings)
     if not drop.any():
@@ -654,16 +710,15 @@ def _pair_noise(left_covariances: np.ndarray, right_covariances: np.ndarray, lef
             + right_covariances[right_rows, 0] + right_covariances[right_rows, 2]) / 2
 
 
-def _unconfirmed(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
-                 link_xy: np.ndarray, link_phi: np.ndarray, right: np.ndarray, right_covariances: np.ndarray,
-                 right_join: np.ndarray, drift: np.ndarray, left_sightings: np.ndarray | None = None,
-                 margin: float = DEFAULT_MARGIN) -> Matches:
-    """``found`` less its lone drifted pairs (:func:`mapjoin.association_lone.lone_drifted`; ``drift``: each pair's)
+def _unconfirmed(found: Matches, left: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
+                 right: np.ndarray, right_join: np.ndarray, drift: np.ndarray, noise: np.ndarray,
+                 left_sightings: np.ndarray | None = None, margin: float = DEFAULT_MARGIN) -> Matches:
+    """``found`` less its lone drifted pairs (:func:`mapjoin.association_lone.lone_drifted`; ``drift``, ``noise``:
+    each pair's)
     that have both another left feature of their join within half their drift, seen with the chosen one or not (a
     second copy: :func:`mapjoin.association_strain.drift_rivals` without ``left_sightings``, margin
     :data:`mapjoin.association_lone.LONE_MARGIN`), and a rival seen with it within step 3's ``margin`` (the same
     function with the sightings; step 8); their right features are left new and counted ambiguous."""
-    noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
     lone = lone_drifted(right_join[found.right], noise, drift, len(link_xy))
     if not lone.any():
         return found
@@ -720,7 +775,6 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     rights = np.flatnonzero(free)
     if len(lefts) < LOOP_SUPPORT or len(rights) < LOOP_SUPPORT:
         return None
-    g2 = float(_threshold(gate, 1))
     correction = found.correction
     turn = np.exp(1j * (link_phi + correction[:, 2]))
     corrected_xy = link_xy + correction[:, 0] + 1j * correction[:, 1]
@@ -728,11 +782,15 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     predicted = corrected_xy[r_join] + turn[r_join] * right[rights]
     left_noise = (left_covariances[lefts, 0] + left_covariances[lefts, 2]) / 2
     right_noise = (right_covariances[rights, 0] + right_covariances[rights, 2]) / 2
+    if moved:  # how far the correction moved each free right feature's prediction: its spread
+        reach = np.abs(predicted - link_xy[r_join] - np.exp(1j * link_phi[r_join]) * right[rights]) ** 2
+    if not _may_vote(left_noise, left_drift[lefts], right_noise, reach if moved else right_drift[rights], moved):
+        return None
+    g2 = float(_threshold(gate, 1))
     link_spread = link_variances[r_join, 0] + link_variances[r_join, 1] * np.abs(right[rights]) ** 2  # isotropic
     widest = _join_maxima(left_noise + left_drift[lefts], left_join[lefts], joins)
     # how far each free right feature's spread reaches: its drift, or how far the correction moved its prediction
-    reach = np.abs(predicted - link_xy[r_join] - np.exp(1j * link_phi[r_join]) * right[rights]) ** 2 if moved \
-        else right_drift[rights]
+    reach = reach if moved else right_drift[rights]
     radius = np.sqrt(g2 * (widest[r_join] + right_noise + reach + link_spread))
     a, b = _candidates(left[lefts], left_join[lefts], predicted, r_join, radius, joins)
     offsets = left[lefts[a]] - predicted[b]
@@ -816,6 +874,20 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
                    rejected, undecided, correction)
 
 
+def _may_vote(left_noise: np.ndarray, left_drift: np.ndarray, right_noise: np.ndarray, right_spread: np.ndarray,
+              moved: bool) -> bool:
+    """Whether any (free left, free right) pair could vote in :func:`_closed_loops`, over all pairs at once (O(1)
+    calls, whatever the features' joins): a voting pair's spread is at least its noise, ``left_noise + right_noise``.
+    The spread is the two features' drift (``right_spread``: the right one's), or, ``moved``, the right feature's move
+    (``right_spread``) for a pair whose drift is below its noise; so no pair votes when the largest spread less the
+    right noise is below the least left noise (moved), or the largest drift less noise of each side sums below 0.
+    The answer is no only when clearly so (by more than a rounding of the noise), so that it never drops a vote."""
+    slack = 1e-9 * (left_noise.max() + right_noise.max())
+    if moved:
+        return bool((right_spread - right_noise).max() + slack >= left_noise.min())
+    return bool((left_drift - left_noise).max() + (right_spread - right_noise).max() + slack >= 0.0)
+
+
 def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
                 information: np.ndarray, gate: float, joins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The pairs kept by the joint compatibility test of every join (a mask over the pairs, grouped by join):
@@ -840,15 +912,15 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
     return keep, big_g, big_m
 
 
-def _asked_once(pair_drift: Callable[[np.ndarray, np.ndarray], np.ndarray]
-                ) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+def _asked_once(pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+                ) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
     """``pair_drift`` remembering its last pairs and answer: step 7 asks it for a join's pairs, the chain's ties ask
     it again after step 6, which mostly changed no pair."""
     last: list = []
 
-    def remembered(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    def remembered(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
         if not (last and np.array_equal(last[0], i) and np.array_equal(last[1], j)):
-            last[:] = [i, j, pair_drift(i, j)]
+            last[:] = [i, j, pair_drift(i, j, noise)]
         return last[2]
 
     return remembered
@@ -927,8 +999,7 @@ class _Associator:
         right_covariances = rotated(self.row_covariances[rows], link_phi)
         nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
         drift = (*self.drift.before(slice(None, used), k - 1), nothing, nothing)
-        pair_drift = _asked_once(lambda i, j: self.drift.settled(
-            i, k - 1, level=_pair_noise(self.covariances, right_covariances, i, j)))
+        pair_drift = _asked_once(lambda i, j, noise: self.drift.settled(i, k - 1, level=noise, direct=drift[0][i]))
 
         found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
                                  np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
@@ -938,8 +1009,7 @@ class _Associator:
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
         left_ids = found.left
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
-                           np.zeros(len(z), np.intp), right_covariances, pair_drift(left_ids, found.right),
-                           np.array([k]))
+                           np.zeros(len(z), np.intp), right_covariances, pair_drift, np.array([k]))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
         order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
@@ -955,20 +1025,22 @@ class _Associator:
         return order, ids, len(found.right)
 
     def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
-             right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray, drift: np.ndarray,
-             junctions: np.ndarray) -> np.ndarray:
+             right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray,
+             pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], junctions: np.ndarray
+             ) -> np.ndarray:
         """The strain of each of ``found``'s pairs (a quarter of its squared residual around the link as the join's
         pairs corrected it: a fused feature sits about halfway), and the chain's ties: a join whose pairs include
-        :data:`TIE_SUPPORT` drifted ones (``drift``, each pair's before the join, at least its noise) measured its
+        :data:`TIE_SUPPORT` drifted ones (``pair_drift``: each pair's before the join, at least its noise) measured its
         link, at ``junctions[join]``, relative to the map that last saw their left features (``left_ids``, compact;
         the median), strained by their strains' median (:meth:`mapjoin.association_drift.SightingDrift.tie`)."""
         pair_join = right_join[found.right]
         strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
-        drifted = drift >= _pair_noise(self.covariances, right_covariances, left_ids, found.right)
+        noise = _pair_noise(self.covariances, right_covariances, left_ids, found.right)
+        drifted = pair_drift(found.left, found.right, noise) >= noise
         for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= TIE_SUPPORT).tolist():
             pairs = drifted & (pair_join == tying)
-            self.drift.tie(int(np.median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),
-                           float(np.median(strain[pairs])))
+            self.drift.tie(int(_median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),
+                           float(_median(strain[pairs])))
         return strain
 
     # tree strategy -----------------------------------------------------------------------
@@ -1001,12 +1073,12 @@ class _Associator:
         right_ids = pieces.feature_ids[right]
 
         @_asked_once
-        def pair_drift(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        def pair_drift(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
             # compared with the pairs' noise only: the ties are searched for the pairs whose direct ways reach it
             left_way = (left_ids[i], link_map[left_join[i]], start[left_join[i]])
             right_way = (right_ids[j], link_map[right_join[j]], end[right_join[j]])
             drift = self.drift.settled(*left_way, level=np.inf) + self.drift.settled_after(*right_way, level=np.inf)
-            reach = np.flatnonzero(drift >= _pair_noise(self.covariances, right_covariances, left_ids[i], j))
+            reach = np.flatnonzero(drift >= noise)
             if len(reach):
                 drift[reach] = (self.drift.settled(*(part[reach] for part in left_way))
                                 + self.drift.settled_after(*(part[reach] for part in right_way)))
@@ -1023,8 +1095,8 @@ class _Associator:
                                          right_covariances, right_join)
         self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
         strain = self._tie(found, pieces.features[left], left_ids[found.left], pieces.pose_xy[link],
-                           pieces.pose_phi[link], pieces.features[right], right_join, right_covariances,
-                           pair_drift(found.left, found.right), link_map + 1)
+                           pieces.pose_phi[link], pieces.features[right], right_join, right_covariances, pair_drift,
+                           link_map + 1)
         ids = pieces.feature_ids.copy()
         renamed = self._fresh(len(right))
         renamed[found.right] = ids[left[found.left]]

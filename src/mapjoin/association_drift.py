@@ -151,7 +151,7 @@ class SightingDrift:
         self.ties.append((int(old_map), int(junction), float(strain)))
 
     def settled(self, ids: np.ndarray, link_map: np.ndarray | int, start: np.ndarray | int = 0,
-                level: np.ndarray | float | None = None) -> np.ndarray:
+                level: np.ndarray | float | None = None, direct: np.ndarray | None = None) -> np.ndarray:
         """``D`` of left features ``ids`` relative to the end of map ``link_map`` (one, or one per feature) over the
         shorter way: the junctions since their last sighting (:meth:`before`), or, through a tie ``(m, c)`` made
         between map ``start`` and the link (the left piece's maps: the sequential join's start at 0), the junctions
@@ -162,10 +162,12 @@ class SightingDrift:
         The callers only compare ``D`` with a ``level`` (a pair's noise): given it, the ties are searched only for
         the features whose direct ``D`` plus strain reaches it (the shorter way is no longer); the others' direct
         ``D`` plus strain is below it, as is their ``D`` (``level=np.inf``: the direct way plus strain for all, an upper
-        bound)."""
+        bound). ``direct``: the features' ``D`` of :meth:`before` relative to the same ``link_map``, when the caller has
+        it (the sequential join asks it of every feature before the join)."""
         ids = np.asarray(ids, dtype=np.intp)
         seen, point = self.last_map[ids], self.last_point[ids]
-        best = drift_variance(self.sums[np.asarray(link_map, dtype=np.intp) + 1] - self.sums[seen + 1], point)
+        best = drift_variance(self.sums[np.asarray(link_map, dtype=np.intp) + 1] - self.sums[seen + 1], point) \
+            if direct is None else direct.copy()
         strain = self.strain[ids]
         drifted = best > 0  # a feature seen by the link's map has no shorter way
         if level is not None:
@@ -173,9 +175,10 @@ class SightingDrift:
         drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
         if len(drifted):  # every (drifted feature, tie) at once
             old_map, junction, tie_strain = self.tie_arrays()
-            link_map = np.broadcast_to(np.asarray(link_map, dtype=np.intp), ids.shape)
-            start = np.broadcast_to(np.asarray(start, dtype=np.intp), ids.shape)
-            seen, point, link, first = seen[drifted], point[drifted], link_map[drifted], start[drifted]
+            link, first = (np.asarray(value, dtype=np.intp) for value in (link_map, start))  # one, or one per feature
+            link, first = (value[drifted] if value.ndim else value + np.zeros(len(drifted), np.intp)
+                           for value in (link, first))
+            seen, point = seen[drifted], point[drifted]
             low, high = np.minimum(seen[:, None], old_map), np.maximum(seen[:, None], old_map)
             there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
                                    np.repeat(point, len(old_map))).reshape(len(seen), len(old_map))
