@@ -10,6 +10,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mapjoin import association_loops
 from mapjoin.association import LOOP_SUPPORT, match_features, match_with_drift
 from mapjoin.association_drift import SightingDrift
 from mapjoin.association_loops import rigid_votes
@@ -313,3 +314,27 @@ def test_too_few_moved_features_or_none_in_the_map_make_no_loop_closure(seed, ne
     pairs = set(zip(keep[found.left].tolist(), found.right.tolist()))
     assert pairs == set(zip(keep[plain.left].tolist(), plain.right.tolist()))
     assert all(k == j for k, j in pairs)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(33, 300), st.integers(0, 2**32 - 1), st.booleans(), st.booleans())
+def test_each_right_features_nearest_are_its_nearest(n, seed, lattice, tree):
+    """The votes' neighbours (association_loops._nearest, brute force in blocks or scipy's k-d tree beyond
+    BRUTE_FORCE) against a full sort of every distance: the same k smallest distances, never the point itself
+    (on a lattice, whose ties may be broken either way, the distances still agree)."""
+    rng = np.random.default_rng(seed)
+    points = (rng.integers(0, 12, n) + 1j * rng.integers(0, 12, n)) * 3.0 if lattice else \
+        rng.normal(size=n) * 20 + 1j * rng.normal(size=n) * 20
+    points = points + 1e-9 * np.arange(n)  # no two points alike (a lattice's duplicates apart)
+    k = association_loops.NEIGHBOURS
+    saved = association_loops.BRUTE_FORCE
+    association_loops.BRUTE_FORCE = 0 if tree else saved
+    try:
+        near = association_loops._nearest(points, k)
+    finally:
+        association_loops.BRUTE_FORCE = saved
+    assert near.shape == (n, k) and not (near == np.arange(n)[:, None]).any()
+    distances = np.abs(points[:, None] - points[None, :])
+    np.fill_diagonal(distances, np.inf)
+    expected = np.sort(distances, axis=1)[:, :k]
+    assert np.allclose(np.sort(np.take_along_axis(distances, near, axis=1), axis=1), expected, rtol=0, atol=1e-12)
