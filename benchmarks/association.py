@@ -89,6 +89,7 @@ def main() -> None:
 
     args = dataset_arguments(__doc__, DATASETS, options)
     also = "".join(f" --non-target {name}" for name in args.non_target)
+    also += " --commands" if args.commands else ""
     lines = [f"Measured with `PYTHONPATH=src python benchmarks/association.py --repeat {args.repeat}{also}` "
              f"(load average {os.getloadavg()[0]:.2f} at the start; gate {DEFAULT_GATE}, default covariance mode).", "",
              "In one process, maps loaded (the association's own cost):", "",
