@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from mapjoin import association_loops
 from mapjoin.association import LOOP_SUPPORT, match_features, match_with_drift
 from mapjoin.association_drift import SightingDrift
-from mapjoin.association_loops import rigid_votes
+from mapjoin.association_loops import DIFFERENT_CELLS, rigid_votes
 from mapjoin.se2 import compose
 
 
@@ -338,3 +338,90 @@ def test_each_right_features_nearest_are_its_nearest(n, seed, lattice, tree):
     np.fill_diagonal(distances, np.inf)
     expected = np.sort(distances, axis=1)[:, :k]
     assert np.allclose(np.sort(np.take_along_axis(distances, near, axis=1), axis=1), expected, rtol=0, atol=1e-12)
+
+
+def bent(rng, count=24, bend=0.004, clutter=40, noise=0.03):
+    """A map so far holding ``count`` of a right map's features (20 m long) moved by a correction that bends along
+    the map: a turn growing by ``bend`` per metre of x (as a piece that drifted along its own chain), then 0.6 m,
+    among ``clutter`` random features: the candidate pairs within 1.5 m, sorted by right feature."""
+    right = rng.uniform(-10, 10, count) + 1j * rng.uniform(-2, 2, count)
+    moved = 0.5 - 0.3j + right * np.exp(1j * bend * (right.real + 10))
+    left = np.concatenate([moved + noise * (rng.normal(size=count) + 1j * rng.normal(size=count)),
+                           rng.uniform(-12, 12, clutter) + 1j * rng.uniform(-4, 4, clutter)])
+    a, b = np.nonzero(np.abs(left[:, None] - right[None, :]) <= 1.5)
+    order = np.argsort(b, kind="stable")
+    return left, right, a[order], b[order]
+
+
+def brute_force_votes(left, right, a, b, centre, noise, turning, turn_cell, offset_cell):
+    """rigid_votes of one join of at most 32 right features (every pair of them votes) by a loop over the pairs of
+    candidate pairs and a dictionary of cells: the best cell (agreement, then support), its voters (the pairs of
+    the votes within a cell of its centre) and the runner-up, counted both ways: over every vote, and over the votes
+    of two pairs that are not voters (the rival association)."""
+    votes = []
+    for p in range(len(a)):
+        for q in range(len(a)):
+            if b[p] >= b[q] or a[p] == a[q]:
+                continue
+            span_left, span_right = left[a[p]] - left[a[q]], right[b[p]] - right[b[q]]
+            if (abs(span_left) - abs(span_right)) ** 2 > 9.0 * (noise[p] + noise[q]):
+                continue
+            dphi = float(np.angle(span_left / span_right))
+            if abs(dphi) > min(turning[p], turning[q]):
+                continue
+            o = left[a[p]] + np.exp(1j * dphi) * (centre - right[b[p]]) - centre
+            votes.append((p, q, np.array([dphi, o.real, o.imag])))
+    scale = np.array([turn_cell, offset_cell, offset_cell])
+
+    def cells(chosen):
+        found = {}
+        for p, q, x in chosen:
+            for shift in (0.0, 0.5):
+                key = (shift, *np.floor(x / scale + shift).astype(int).tolist())
+                found.setdefault(key, set()).add((int(b[p]), int(b[q])))
+        return {key: ((np.array(key[1:]) + 0.5 - key[0]) * scale, pairs) for key, pairs in found.items()}
+
+    every = cells(votes)
+    rank = {key: (len(pairs), len({f for pair in pairs for f in pair})) for key, (_, pairs) in every.items()}
+    best = max(rank.values())
+    centres = [every[key][0] for key in rank if rank[key] == best]
+    voters = {r for p, q, x in votes if (np.abs(x - centres[0]) <= scale).all() for r in (p, q)}
+
+    def runner_up(chosen):
+        return max([len(pairs) for c, pairs in cells(chosen).values()
+                    if (np.abs(c - centres[0]) > DIFFERENT_CELLS * scale).any()], default=0)
+
+    rivals = [vote for vote in votes if vote[0] not in voters and vote[1] not in voters]
+    return best, len(centres), voters, runner_up(votes), runner_up(rivals)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), bend=st.sampled_from([0.0, 0.002, 0.004, 0.008]))
+def test_the_runner_up_is_a_rival_association_as_counted_by_brute_force(seed, bend):
+    """rigid_votes' best cell, voters and runner-up against brute_force_votes on planted pieces, rigid or bent: the
+    runner-up counts only votes of pairs other than the best's voters. A bent piece's own pairs vote for cells
+    beyond the best (the runner-up over every vote is large); no rival association keeps their distances."""
+    rng = np.random.default_rng(seed)
+    left, right, a, b = bent(rng, bend=bend)
+    noise, turning = np.full(len(a), 2 * 0.03**2), np.full(len(a), 0.5)
+    centre = right.mean()
+    votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise, turning,
+                        np.array([0.01]), np.array([0.15]), 1)
+    best, ties, voters, every, rival = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
+    assert (votes.agreement[0], votes.support[0]) == best
+    if ties == 1:  # else either is the best
+        assert set(votes.voters.tolist()) == voters and votes.runner_up[0] == rival
+    assert votes.runner_up[0] <= every
+
+
+def test_a_bent_piece_closes_its_loop_where_its_own_pairs_vote_beyond_the_best():
+    """A piece bent by 0.004 rad per metre (0.08 rad along it): over every vote, the runner-up agrees more than half
+    the best (a rigid correction holds for part of the piece only: the closure would be refused), over the rival
+    association's votes far less (taken)."""
+    rng = np.random.default_rng(0)
+    left, right, a, b = bent(rng, bend=0.004)
+    noise, turning = np.full(len(a), 2 * 0.03**2), np.full(len(a), 0.5)
+    best, _, _, every, rival = brute_force_votes(left, right, a, b, right.mean(), noise, turning, 0.01, 0.15)
+    votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([right.mean()]), noise, turning,
+                        np.array([0.01]), np.array([0.15]), 1)
+    assert 2 * every > best[0] and votes.agreement[0] >= 2 * votes.runner_up[0] == 2 * rival

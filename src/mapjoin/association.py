@@ -154,7 +154,8 @@ ROUNDS = 4
 #: a loop closure needs at least this many right features voting for its offset (and twice the runner-up's), and
 #: this many pairs once associated around it
 LOOP_SUPPORT = 4
-#: ... and its pairs of right features agreeing on the correction at least this many times the runner-up's
+#: ... and its pairs of right features agreeing on the correction at least this many times the runner-up's (a
+#: rival association's: :func:`mapjoin.association_loops.rigid_votes`)
 LOOP_CLEAR = 2
 #: a join ties its map to the map that last saw its drifted pairs' features when it has at least this many (step 7):
 #: one, since a chain of small maps meets its old features one to three a join (VicPark 6898: with 4, as a loop

@@ -10,10 +10,13 @@ Two candidate pairs ``(i1, j1)``, ``(i2, j2)`` of one join (each within the drif
 ``o = f_i1 + e^{i dphi} (c - x_j1) - c`` (a small error of ``dphi`` moves ``o`` by at most it times the map's
 extent). :func:`rigid_votes` counts, in a grid over ``(dphi, o)`` (two grids shifted by half a cell, so that no
 cluster is cut in two), the distinct right features whose pairs vote in each cell, and gives each join's fullest
-cell, the median correction of its votes and the support of the fullest cell that stands for another correction
-(farther than :data:`DIFFERENT_CELLS` cells in ``dphi`` or in ``o``). Distances do not change under the correction,
-so chance votes are rare even where the drift's gate holds dozens of features; the caller takes a loop closure only
-when it is clearly the best, and then chooses and tests its pairs with the ordinary gate around the corrected link.
+cell, the median correction of its votes and the agreement of the fullest cell that stands for another correction
+(farther than :data:`DIFFERENT_CELLS` cells in ``dphi`` or in ``o``) by a rival association: among the votes of two
+pairs neither of which votes for the best cell. A drifted piece is bent along its length, and its own pairs, far
+apart along it, vote beyond the best cell: the same association, no rival (docs/method.md#data-association, step 6).
+Distances do not change under the correction, so chance votes are rare even where the drift's gate holds dozens of
+features; the caller takes a loop closure only when it is clearly the best, and then chooses and tests its pairs with
+the ordinary gate around the corrected link.
 """
 
 from __future__ import annotations
@@ -41,7 +44,8 @@ DIFFERENT_CELLS = 2.0
 class RigidVotes:
     """Per join: the best correction (``turn`` dphi, ``offset`` of the centroid, complex; 0 without votes), its
     ``support`` (distinct right features voting for it), its ``agreement`` (distinct pairs of right features voting
-    for it: a true correction of n features has n (n - 1) / 2, chance few) and the ``runner_up``'s agreement. The
+    for it: a true correction of n features has n (n - 1) / 2, chance few) and the ``runner_up``'s agreement (a cell
+    far from the best, counting the votes of two pairs that are not among the ``voters`` only). The
     ``voters``: the candidate pairs (rows of ``a``, ``b``) whose votes lie within a cell of the best correction, by
     ``voter_join``: where the correction is exact (step 6's scope, :mod:`mapjoin.association_scope`)."""
 
@@ -80,6 +84,23 @@ def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.
                                      pairs // (size * size) * size + pairs % size]))
     support = np.bincount(ends // size, minlength=len(cell))
     return join[row], cells[row], support, agreement  # a vote of each cell: its join and coordinates
+
+
+def _cells(join: np.ndarray, p: np.ndarray, q: np.ndarray, dphi: np.ndarray, o: np.ndarray, b: np.ndarray,
+           turn_cell: np.ndarray, offset_cell: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The occupied cells of the votes (two candidate pairs ``p``, ``q`` each, of ``join``, for the correction
+    ``dphi``, ``o``) in both grids (the second shifted by half a cell): each cell's join, centre (dphi, o.real,
+    o.imag), agreement and support (:func:`_fullest`)."""
+    found = []
+    for shift in (0.0, 0.5):
+        cells = np.column_stack([np.floor(dphi / turn_cell[join] + shift), np.floor(o.real / offset_cell[join] + shift),
+                                 np.floor(o.imag / offset_cell[join] + shift)]).astype(np.int64)
+        owner, coordinates, features, count = _fullest(join, cells, np.minimum(b[p], b[q]), np.maximum(b[p], b[q]))
+        centres = (coordinates + 0.5 - shift) * np.column_stack([turn_cell[owner], offset_cell[owner],
+                                                                   offset_cell[owner]])
+        found.append((owner, centres, count, features))
+    owner, centres, count, features = (np.concatenate(column) for column in zip(*found))
+    return owner, centres, count, features
 
 
 def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -166,18 +187,7 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
     if not parts:
         return RigidVotes(turn, offset, support, agreement, runner_up)
     join, p, q, dphi, o = (np.concatenate(column) for column in zip(*parts))
-    found = []
-    for shift in (0.0, 0.5):
-        cells = np.column_stack([np.floor(dphi / turn_cell[join] + shift), np.floor(o.real / offset_cell[join] + shift),
-                                 np.floor(o.imag / offset_cell[join] + shift)]).astype(np.int64)
-        owner, coordinates, features, count = _fullest(join, cells, np.minimum(b[p], b[q]), np.maximum(b[p], b[q]))
-        centres = (coordinates + 0.5 - shift) * np.column_stack([turn_cell[owner], offset_cell[owner],
-                                                                   offset_cell[owner]])
-        found.append((owner, centres, count, features))
-    owner = np.concatenate([f[0] for f in found])
-    centres = np.concatenate([f[1] for f in found])
-    count = np.concatenate([f[2] for f in found])
-    features = np.concatenate([f[3] for f in found])
+    owner, centres, count, features = _cells(join, p, q, dphi, o, b, turn_cell, offset_cell)
     order = np.lexsort((-features, -count, owner))
     first = np.ones(len(order), dtype=bool)
     first[1:] = owner[order][1:] != owner[order][:-1]
@@ -187,13 +197,20 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
     best_centre = np.zeros((joins, 3))
     best_centre[owner[best]] = centres[best]
     scale = np.column_stack([turn_cell, offset_cell, offset_cell])
-    apart = (np.abs(centres - best_centre[owner]) > DIFFERENT_CELLS * scale[owner]).any(axis=1)
-    np.maximum.at(runner_up, owner[apart], count[apart])
     # the correction: the median of the votes within a cell of the best cell's centre
     near = (np.abs(np.column_stack([dphi, o.real, o.imag]) - best_centre[join]) <= scale[join]).all(axis=1)
     for j in np.unique(join[near]).tolist():
         chosen = near & (join == j)
         turn[j] = np.median(dphi[chosen])
         offset[j] = np.median(o[chosen].real) + 1j * np.median(o[chosen].imag)
+    # the runner-up: the fullest cell far from the best among the votes of two pairs that are not the best's voters
+    # (a rival association); the best's own pairs voting elsewhere are its association through a bent piece
+    voting = np.zeros(len(b), dtype=bool)
+    voting[p[near]] = voting[q[near]] = True
+    rival = ~(voting[p] | voting[q])
+    owner, centres, count, _ = _cells(join[rival], p[rival], q[rival], dphi[rival], o[rival], b, turn_cell,
+                                      offset_cell)
+    apart = (np.abs(centres - best_centre[owner]) > DIFFERENT_CELLS * scale[owner]).any(axis=1)
+    np.maximum.at(runner_up, owner[apart], count[apart])
     voters = np.unique(np.concatenate([join[near] * len(b) + p[near], join[near] * len(b) + q[near]]))
     return RigidVotes(turn, offset, support, agreement, runner_up, voters % len(b), voters // len(b))
