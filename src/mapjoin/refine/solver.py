@@ -162,7 +162,10 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             chord = _chord(problem, *kept, x, gradient, cost, relative, tolerance)
             if chord is not None:   # a full undamped step of negligible gain, taken
                 x, data, second = chord, None, None
-                data, gradient, cost = problem.linearise(x)
+                if mode.newton:     # should it not settle, Newton's step follows: with its second-order term
+                    data, gradient, cost, second = problem.linearise(x, curvature=True)
+                else:
+                    data, gradient, cost = problem.linearise(x)
                 costs.append(cost)
                 if progress:
                     progress(len(costs) - 1, cost)
@@ -170,8 +173,6 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
                 kept = None
                 if np.max(np.abs(after), initial=0.0) <= tolerance * (1.0 + np.max(np.abs(x), initial=0.0)):
                     return stop("relative cost change below tolerance", True)
-                if mode.newton:     # not settled: on as usual, Newton's step with its second-order term
-                    data, gradient, cost, second = problem.linearise(x, curvature=True)
                 continue
             kept = None
         factor = None   # the previous step's factor is freed before the next is made
