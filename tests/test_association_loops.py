@@ -189,8 +189,9 @@ def test_clutter_alone_makes_no_loop_closure():
 @given(seed=st.integers(0, 10_000), votes=st.integers(1, 200), spread=st.sampled_from([1, 3, 1 << 21]))
 def test_cells_count_their_distinct_right_features_and_pairs_as_a_dictionary(seed, votes, spread):
     """_fullest against a dictionary of cells: each occupied cell in (join, cell) order, its first vote's join and
-    coordinates, its distinct right features and distinct pairs of them; cells far apart (2^21 cells between
-    votes: the key from their spans would pass 2^62, each column is made compact) count alike."""
+    coordinates, its distinct pairs of right features and, in the cells with their join's most pairs (where the best
+    cell is chosen), its distinct right features (0 elsewhere, and everywhere when not asked for); cells far apart
+    (2^21 cells between votes: the key from their spans would pass 2^62, each column is made compact) count alike."""
     from mapjoin.association_loops import _fullest
 
     rng = np.random.default_rng(seed)
@@ -205,9 +206,11 @@ def test_cells_count_their_distinct_right_features_and_pairs_as_a_dictionary(see
         entry[1].add((int(first[v]), int(second[v])))
     owner, coordinates, support, agreement = _fullest(join, cells, first, second)
     keys = sorted(expected)
+    most = {j: max(len(expected[k][1]) for k in keys if k[0] == j) for j in {k[0] for k in keys}}
     assert [(int(j), *c) for j, c in zip(owner, coordinates.tolist())] == keys
-    assert support.tolist() == [len(expected[k][0]) for k in keys]
+    assert support.tolist() == [len(expected[k][0]) if len(expected[k][1]) == most[k[0]] else 0 for k in keys]
     assert agreement.tolist() == [len(expected[k][1]) for k in keys]
+    assert (_fullest(join, cells, first, second, supported=False)[2] == 0).all()
 
 
 def test_a_lattice_met_again_closes_no_loop():
