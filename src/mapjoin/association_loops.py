@@ -123,8 +123,8 @@ def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if n <= ALL_PAIRS:
         return np.triu_indices(n, 1)
     u, v = np.repeat(np.arange(n), NEIGHBOURS), _nearest(points, NEIGHBOURS).ravel()
-    pairs = np.unique(np.column_stack([np.minimum(u, v), np.maximum(u, v)]), axis=0)
-    return pairs[:, 0], pairs[:, 1]
+    pairs = np.unique(np.minimum(u, v) * n + np.maximum(u, v))  # in (u, v) order, as one integer each
+    return pairs // n, pairs % n
 
 
 def _nearest(points: np.ndarray, k: int) -> np.ndarray:
@@ -182,14 +182,18 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
         q = np.arange(total) + np.repeat(run_first - (np.cumsum(runs) - runs), runs)
         # two different left features whose distance agrees with their right features' (one per pair u, v); the
         # rows' left features, points and noise gathered once, each vote reading them by position (u's side
-        # repeated along its runs), the distinct left features checked among the votes that agree
+        # repeated along its runs). Most votes disagree: they are dropped first against the rows' largest noise (a
+        # bound on each vote's two), the few left tested with their own noise, each vote's row of u found from its
+        # run; then the distinct left features are checked among the votes that agree
         row_left, row_noise = a[rows], noise[rows]
         row_point = left[row_left]
         span_left = np.repeat(row_point[own], runs) - row_point[q]
         span = np.abs(right_points[features[u]] - right_points[features[v]])
-        agree = np.flatnonzero((np.abs(span_left) - np.repeat(span, per)) ** 2
-                               <= g2 * (np.repeat(row_noise[own], runs) + row_noise[q]))
-        p, q, span_left = np.repeat(own, runs)[agree], q[agree], span_left[agree]
+        gap = (np.abs(span_left) - np.repeat(span, per)) ** 2
+        near = np.flatnonzero(gap <= g2 * (2 * row_noise.max()))
+        p = own[np.searchsorted(np.cumsum(runs), near, side="right")]
+        agree = gap[near] <= g2 * (row_noise[p] + row_noise[q[near]])
+        p, q, span_left = p[agree], q[near[agree]], span_left[near[agree]]
         distinct = row_left[p] != row_left[q]
         p, q, span_left = rows[p[distinct]], rows[q[distinct]], span_left[distinct]
         dphi = np.angle(span_left / (right_points[b[p]] - right_points[b[q]]))
