@@ -238,6 +238,12 @@ def _check_gate(gate: float) -> None:
         raise ValueError(f"gate must be a chi-square level in (0, 1), got {gate!r}")
 
 
+def _same(first: np.ndarray, second: np.ndarray) -> bool:
+    """``np.array_equal`` of two 1-D arrays, without its wrapper's cost (a round compares its pairs two or three
+    times)."""
+    return len(first) == len(second) and bool((first == second).all())
+
+
 def _segments(group: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """Rows grouped by ``group`` (non-decreasing, values < ``count``): each group's first row and size."""
     sizes = np.bincount(group, minlength=count)
@@ -252,8 +258,8 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
     (:func:`mapjoin.association_grid.pairs_within`)."""
     if joins == 1 and len(predicted):  # one join: the left points in the right ones' reach, then the outer difference
         reach = float(radius.max())
-        rows = np.flatnonzero((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
-                              & (left.imag >= predicted.imag.min() - reach) & (left.imag <= predicted.imag.max() + reach))
+        rows = ((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
+                & (left.imag >= predicted.imag.min() - reach) & (left.imag <= predicted.imag.max() + reach)).nonzero()[0]
         if len(rows) * len(predicted) <= BRUTE_FORCE_PAIRS:
             i, j = np.nonzero(np.abs(left[rows, None] - predicted[None, :]) <= radius[None, :])
             return rows[i], j
@@ -506,10 +512,11 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     gated = d2 <= g2
     i, j, d2 = i[gated], j[gated], d2[gated]
     taken = _clear(j, i, d2, left_sightings, margin) & _clear(i, j, d2, right_sightings, margin)
+    i, taken_j = i[taken], j[taken]
     undecided = np.zeros(len(predicted), dtype=bool)  # the right rows with candidates, none taken (sorted)
     undecided[j] = True
-    undecided[j[taken]] = False
-    return i[taken], j[taken], np.flatnonzero(undecided)
+    undecided[taken_j] = False
+    return i, taken_j, undecided.nonzero()[0]
 
 
 def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
@@ -587,7 +594,7 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
             sum_g = _segment_sums(terms[1][keep], pair_join, joins)
             sum_m = information + _segment_sums(terms[2][keep], pair_join, joins).reshape(joins, 3, 3)
         outcome = (i, j, ambiguous, rejected, undecided, correction)
-        if previous is not None and np.array_equal(previous[0], i) and np.array_equal(previous[1], j):
+        if previous is not None and _same(previous[0], i) and _same(previous[1], j):
             break
         previous = outcome
         # each link's correction and posterior covariance from its kept pairs; the robust variance factor
@@ -624,7 +631,7 @@ def _repeated(tested: tuple, i: np.ndarray, j: np.ndarray, scale: np.ndarray) ->
     """Whether a round's pairs before the joint test (``i``, ``j``) and its variance factors ``scale`` are the last
     round's (``tested``): then its joint test is the last one's (the innovations are taken from the prior prediction,
     the same for the same pairs), and so are the pairs it keeps."""
-    return np.array_equal(tested[0], i) and np.array_equal(tested[1], j) and np.array_equal(tested[2], scale)
+    return _same(tested[0], i) and _same(tested[1], j) and _same(tested[2], scale)
 
 
 def _settled_outcome(outcome: tuple, joins: np.ndarray, right_join: np.ndarray) -> tuple:
@@ -768,10 +775,10 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     joins = len(link_xy)
     free = np.ones(len(left), dtype=bool)
     free[found.left] = False
-    lefts = np.flatnonzero(free)
+    lefts = free.nonzero()[0]
     free = np.ones(len(right), dtype=bool)
     free[found.right] = False
-    rights = np.flatnonzero(free)
+    rights = free.nonzero()[0]
     if len(lefts) < LOOP_SUPPORT or len(rights) < LOOP_SUPPORT:
         return None
     correction = found.correction
@@ -914,14 +921,31 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
 
 def _asked_once(pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
                 ) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
-    """``pair_drift`` remembering its last pairs and answer: step 7 asks it for a join's pairs, the chain's ties ask
-    it again after step 6, which mostly changed no pair."""
+    """``pair_drift`` remembering its last pairs and answers: step 7 asks it for a join's pairs, the chain's ties ask
+    it again after step 6, which mostly changed few pairs. A pair's answer is its own (its left row, right row and
+    noise decide it, elementwise), so only the pairs not asked last time are asked (a tree level's step 6 adds its
+    loop closures' and junctions' pairs to thousands)."""
     last: list = []
 
     def remembered(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        if not (last and np.array_equal(last[0], i) and np.array_equal(last[1], j)):
-            last[:] = [i, j, pair_drift(i, j, noise)]
-        return last[2]
+        if last and _same(last[0], i) and _same(last[1], j):
+            return last[2]
+        if not (last and len(last[0])):
+            last[:] = [i, j, pair_drift(i, j, noise), noise]
+            return last[2]
+        before_i, before_j, before, before_noise = last
+        span = np.int64(max(int(i.max(initial=0)), int(before_i.max(initial=0))) + 1)
+        keys = before_j.astype(np.int64) * span + before_i
+        order = np.argsort(keys)
+        position, known = locate(keys, j.astype(np.int64) * span + i, order)
+        known &= before_noise[position] == noise
+        answer = np.empty(len(i))
+        answer[known] = before[position[known]]
+        fresh = ~known
+        if fresh.any():
+            answer[fresh] = pair_drift(i[fresh], j[fresh], noise[fresh])
+        last[:] = [i, j, answer, noise]
+        return answer
 
     return remembered
 

@@ -176,7 +176,7 @@ class SightingDrift:
         drifted = best > 0  # a feature seen by the link's map has no shorter way
         if level is not None:
             drifted &= best + strain >= level
-        drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
+        drifted = drifted.nonzero()[0] if self.ties else drifted[:0]
         if len(drifted):  # every (drifted feature, tie) at once
             old_map, junction, tie_strain = self.tie_arrays()
             link, first = (np.asarray(value, dtype=np.intp) for value in (link_map, start))  # one, or one per feature
@@ -209,7 +209,7 @@ class SightingDrift:
         drifted = best > 0
         if level is not None:
             drifted &= best + strain >= level
-        drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
+        drifted = drifted.nonzero()[0] if self.ties else drifted[:0]
         if len(drifted):
             old_map, junction, tie_strain = self.tie_arrays()
             first, point, link, last = first[drifted], point[drifted], link_map[drifted], end[drifted]
