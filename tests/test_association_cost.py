@@ -1,7 +1,8 @@
 """The association's shortcuts (mapjoin.association): each one leaves the association as it was. Step 6's exit when no
 pair can vote against the pairs that vote, counted by brute force; the rounds' candidate search against every pair
 within the radius; the median against numpy's; the rounds' reuse of a repeated joint test and of the last search, and
-step 6's exit, against the association with each shortcut disabled, on simulated runs and on real maps."""
+step 6's exit and the pairs' drift asked once per pair, against the association with each shortcut disabled, on
+simulated runs and on real maps."""
 
 from __future__ import annotations
 
@@ -108,7 +109,12 @@ def always_search():
     return association._candidates
 
 
-DISABLED = {"_repeated": never_repeated, "_may_vote": always_may_vote, "_Searched": always_search}
+def always_asked(pair_drift):
+    return pair_drift
+
+
+DISABLED = {"_repeated": never_repeated, "_may_vote": always_may_vote, "_Searched": always_search,
+            "_asked_once": always_asked}
 
 
 @settings(max_examples=6, deadline=None)

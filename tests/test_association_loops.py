@@ -417,6 +417,25 @@ def test_the_runner_up_is_a_rival_association_as_counted_by_brute_force(seed, be
     assert votes.runner_up[0] <= every
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), spread=st.sampled_from([1.0, 4.0, 30.0]))
+def test_votes_of_pairs_with_unequal_noise_are_those_counted_by_brute_force(seed, spread):
+    """rigid_votes drops the votes whose distances disagree first against the largest noise of the join's pairs, then
+    tests the others with their own: with each pair's noise drawn over a factor ``spread``, its best cell, voters and
+    runner-up are brute_force_votes' (each vote tested with its own two pairs' noise)."""
+    rng = np.random.default_rng(seed)
+    left, right, a, b = bent(rng, bend=0.002)
+    noise = 2 * 0.03**2 * np.exp(rng.uniform(-np.log(spread), 0.0, len(a)))
+    turning = np.full(len(a), 0.5)
+    centre = right.mean()
+    votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise, turning,
+                        np.array([0.01]), np.array([0.15]), 1)
+    best, ties, voters, _, rival = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
+    assert (votes.agreement[0], votes.support[0]) == best
+    if ties == 1:  # else either is the best
+        assert set(votes.voters.tolist()) == voters and votes.runner_up[0] == rival
+
+
 def test_a_bent_piece_closes_its_loop_where_its_own_pairs_vote_beyond_the_best():
     """A piece bent by 0.004 rad per metre (0.08 rad along it): over every vote, the runner-up agrees more than half
     the best (a rigid correction holds for part of the piece only: the closure would be refused), over the rival
