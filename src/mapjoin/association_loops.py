@@ -190,7 +190,7 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
         span_left = np.repeat(row_point[own], runs) - row_point[q]
         span = np.abs(right_points[features[u]] - right_points[features[v]])
         gap = (np.abs(span_left) - np.repeat(span, per)) ** 2
-        near = np.flatnonzero(gap <= g2 * (2 * row_noise.max()))
+        near = np.flatnonzero(gap <= g2 * (2 * np.fmax.reduce(row_noise)))  # (fmax: a NaN noise bounds nothing)
         p = own[np.searchsorted(np.cumsum(runs), near, side="right")]
         agree = gap[near] <= g2 * (row_noise[p] + row_noise[q[near]])
         p, q, span_left = p[agree], q[near[agree]], span_left[near[agree]]
