@@ -928,7 +928,7 @@ def _asked_once(pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.nd
     last: list = []
 
     def remembered(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        if last and _same(last[0], i) and _same(last[1], j):
+        if last and _same(last[0], i) and _same(last[1], j) and _same(last[3], noise):
             return last[2]
         if not (last and len(last[0])):
             last[:] = [i, j, pair_drift(i, j, noise), noise]
