@@ -190,10 +190,10 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
         span_left = np.repeat(row_point[own], runs) - row_point[q]
         span = np.abs(right_points[features[u]] - right_points[features[v]])
         gap = (np.abs(span_left) - np.repeat(span, per)) ** 2
-        near = np.flatnonzero(gap <= g2 * (2 * np.fmax.reduce(row_noise)))  # (fmax: a NaN noise bounds nothing)
-        p = own[np.searchsorted(np.cumsum(runs), near, side="right")]
-        agree = gap[near] <= g2 * (row_noise[p] + row_noise[q[near]])
-        p, q, span_left = p[agree], q[near[agree]], span_left[near[agree]]
+        rough = np.flatnonzero(gap <= g2 * (2 * np.fmax.reduce(row_noise)))  # (fmax: a NaN noise bounds nothing)
+        p = own[np.searchsorted(np.cumsum(runs), rough, side="right")]
+        agree = gap[rough] <= g2 * (row_noise[p] + row_noise[q[rough]])
+        p, q, span_left = p[agree], q[rough[agree]], span_left[rough[agree]]
         distinct = row_left[p] != row_left[q]
         p, q, span_left = rows[p[distinct]], rows[q[distinct]], span_left[distinct]
         dphi = np.angle(span_left / (right_points[b[p]] - right_points[b[q]]))
