@@ -1,7 +1,8 @@
 """The association's shortcuts (mapjoin.association): each one leaves the association as it was. Step 6's exit when no
 pair can vote against the pairs that vote, counted by brute force; the rounds' candidate search against every pair
 within the radius; the median against numpy's; the rounds' reuse of a repeated joint test and of the last search, and
-step 6's exit, against the association with each shortcut disabled, on simulated runs and on real maps."""
+step 6's exit and the pairs' drift asked once per pair, against the association with each shortcut disabled, on
+simulated runs and on real maps."""
 
 from __future__ import annotations
 
@@ -108,7 +109,12 @@ def always_search():
     return association._candidates
 
 
-DISABLED = {"_repeated": never_repeated, "_may_vote": always_may_vote, "_Searched": always_search}
+def always_asked(pair_drift):
+    return pair_drift
+
+
+DISABLED = {"_repeated": never_repeated, "_may_vote": always_may_vote, "_Searched": always_search,
+            "_asked_once": always_asked}
 
 
 @settings(max_examples=6, deadline=None)
@@ -142,3 +148,30 @@ def test_shortcuts_change_no_association_of_a_loop_closing_dataset(data_dir, str
     slow = associated(local, strategy, monkeypatch, **DISABLED)
     assert np.array_equal(fast[0], slow[0]) and fast[1] == slow[1]
     assert taken["_repeated"] > 0
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.lists(st.tuples(st.integers(0, 6), st.integers(0, 6), st.sampled_from([0.5, 1.0])), max_size=12),
+                min_size=1, max_size=5))
+def test_pair_drift_is_asked_once_per_pair_and_answered_as_asked_directly(asks):
+    """association._asked_once over a sequence of pair sets (each right row once, as a join's pairs are): every
+    answer is the function's own for that pair, and of each set only the pairs not in the set before it (same left
+    row, right row and noise) are asked."""
+    asked = []
+
+    def pair_drift(i, j, noise):  # elementwise, as the associator's are
+        asked.append(set(zip(i.tolist(), j.tolist(), noise.tolist())))
+        return i * 100.0 + j + noise / 8
+
+    remembered = association._asked_once(pair_drift)
+    before: set = set()
+    for pairs in asks:
+        pairs = list({j: (i, j, n) for i, j, n in pairs}.values())  # one pair per right row
+        i, j, noise = (np.array(column, dtype=dtype) for column, dtype in
+                       zip(zip(*pairs) if pairs else ([], [], []), (np.intp, np.intp, float)))
+        calls = len(asked)
+        answer = remembered(i, j, noise)
+        assert answer.tolist() == (i * 100.0 + j + noise / 8).tolist()
+        new = set(zip(i.tolist(), j.tolist(), noise.tolist())) - before
+        assert set().union(*asked[calls:]) == new if before else len(asked) - calls <= 1
+        before = set(zip(i.tolist(), j.tolist(), noise.tolist()))

@@ -189,8 +189,9 @@ def test_clutter_alone_makes_no_loop_closure():
 @given(seed=st.integers(0, 10_000), votes=st.integers(1, 200), spread=st.sampled_from([1, 3, 1 << 21]))
 def test_cells_count_their_distinct_right_features_and_pairs_as_a_dictionary(seed, votes, spread):
     """_fullest against a dictionary of cells: each occupied cell in (join, cell) order, its first vote's join and
-    coordinates, its distinct right features and distinct pairs of them; cells far apart (2^21 cells between
-    votes: the key from their spans would pass 2^62, each column is made compact) count alike."""
+    coordinates, its distinct pairs of right features and, in the cells with their join's most pairs (where the best
+    cell is chosen), its distinct right features (0 elsewhere, and everywhere when not asked for); cells far apart
+    (2^21 cells between votes: the key from their spans would pass 2^62, each column is made compact) count alike."""
     from mapjoin.association_loops import _fullest
 
     rng = np.random.default_rng(seed)
@@ -205,9 +206,11 @@ def test_cells_count_their_distinct_right_features_and_pairs_as_a_dictionary(see
         entry[1].add((int(first[v]), int(second[v])))
     owner, coordinates, support, agreement = _fullest(join, cells, first, second)
     keys = sorted(expected)
+    most = {j: max(len(expected[k][1]) for k in keys if k[0] == j) for j in {k[0] for k in keys}}
     assert [(int(j), *c) for j, c in zip(owner, coordinates.tolist())] == keys
-    assert support.tolist() == [len(expected[k][0]) for k in keys]
+    assert support.tolist() == [len(expected[k][0]) if len(expected[k][1]) == most[k[0]] else 0 for k in keys]
     assert agreement.tolist() == [len(expected[k][1]) for k in keys]
+    assert (_fullest(join, cells, first, second, supported=False)[2] == 0).all()
 
 
 def test_a_lattice_met_again_closes_no_loop():
@@ -412,6 +415,25 @@ def test_the_runner_up_is_a_rival_association_as_counted_by_brute_force(seed, be
     if ties == 1:  # else either is the best
         assert set(votes.voters.tolist()) == voters and votes.runner_up[0] == rival
     assert votes.runner_up[0] <= every
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), spread=st.sampled_from([1.0, 4.0, 30.0]))
+def test_votes_of_pairs_with_unequal_noise_are_those_counted_by_brute_force(seed, spread):
+    """rigid_votes drops the votes whose distances disagree first against the largest noise of the join's pairs, then
+    tests the others with their own: with each pair's noise drawn over a factor ``spread``, its best cell, voters and
+    runner-up are brute_force_votes' (each vote tested with its own two pairs' noise)."""
+    rng = np.random.default_rng(seed)
+    left, right, a, b = bent(rng, bend=0.002)
+    noise = 2 * 0.03**2 * np.exp(rng.uniform(-np.log(spread), 0.0, len(a)))
+    turning = np.full(len(a), 0.5)
+    centre = right.mean()
+    votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise, turning,
+                        np.array([0.01]), np.array([0.15]), 1)
+    best, ties, voters, _, rival = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
+    assert (votes.agreement[0], votes.support[0]) == best
+    if ties == 1:  # else either is the best
+        assert set(votes.voters.tolist()) == voters and votes.runner_up[0] == rival
 
 
 def test_a_bent_piece_closes_its_loop_where_its_own_pairs_vote_beyond_the_best():

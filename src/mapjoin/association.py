@@ -238,6 +238,12 @@ def _check_gate(gate: float) -> None:
         raise ValueError(f"gate must be a chi-square level in (0, 1), got {gate!r}")
 
 
+def _same(first: np.ndarray, second: np.ndarray) -> bool:
+    """``np.array_equal`` of two 1-D arrays, without its wrapper's cost (a round compares its pairs two or three
+    times)."""
+    return len(first) == len(second) and bool((first == second).all())
+
+
 def _segments(group: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """Rows grouped by ``group`` (non-decreasing, values < ``count``): each group's first row and size."""
     sizes = np.bincount(group, minlength=count)
@@ -252,8 +258,8 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
     (:func:`mapjoin.association_grid.pairs_within`)."""
     if joins == 1 and len(predicted):  # one join: the left points in the right ones' reach, then the outer difference
         reach = float(radius.max())
-        rows = np.flatnonzero((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
-                              & (left.imag >= predicted.imag.min() - reach) & (left.imag <= predicted.imag.max() + reach))
+        rows = ((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
+                & (left.imag >= predicted.imag.min() - reach) & (left.imag <= predicted.imag.max() + reach)).nonzero()[0]
         if len(rows) * len(predicted) <= BRUTE_FORCE_PAIRS:
             i, j = np.nonzero(np.abs(left[rows, None] - predicted[None, :]) <= radius[None, :])
             return rows[i], j
@@ -430,16 +436,16 @@ def _segment_medians(values: np.ndarray, group: np.ndarray, count: int) -> np.nd
     return np.where(size > 0, values[order][middle] if len(values) else np.nan, np.nan)
 
 
-def _best(group: np.ndarray, other: np.ndarray, d2: np.ndarray, sightings: np.ndarray | None
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """For each pair (``group``: its feature on one side, ``other``: on the other): whether it is the nearest of
-    its group, and the distance of the group's nearest *rival*, infinite when there is none. A rival is another
-    candidate that is a different feature from the nearest: one seen in a same map as it (``sightings``: each
-    other-side feature's maps, :func:`sighting_bits`; without them every other candidate is a rival). Two
-    candidates never seen together may be one feature mapped twice, and either is the right match. A join's
-    groups are mostly of one candidate: then each is its group's nearest with no rival, without sorting."""
+def _clear(group: np.ndarray, other: np.ndarray, d2: np.ndarray, sightings: np.ndarray | None, margin: float
+           ) -> np.ndarray:
+    """For each pair (``group``: its feature on one side, ``other``: on the other): whether it is the nearest of its
+    group and its group's nearest *rival* is at least ``margin`` farther (in ``d2``; none: infinitely). A rival is
+    another candidate that is a different feature from the nearest: one seen in a same map as it (``sightings``: each
+    other-side feature's maps, :func:`sighting_bits`; without them every other candidate is a rival). Two candidates
+    never seen together may be one feature mapped twice, and either is the right match. A join's groups are mostly of
+    one candidate: then each is clear, without sorting."""
     if len(group) < 2 or np.bincount(group).max() == 1:
-        return np.ones(len(group), dtype=bool), np.full(len(group), np.inf)
+        return np.ones(len(group), dtype=bool)
     order = np.lexsort((d2, group))
     grouped, others, distances = group[order], other[order], d2[order]
     first = np.ones(len(order), dtype=bool)
@@ -450,11 +456,9 @@ def _best(group: np.ndarray, other: np.ndarray, d2: np.ndarray, sightings: np.nd
         rival &= (sightings[others] & sightings[others[head]]).any(axis=1)
     second = np.full(len(order), np.inf)
     np.minimum.at(second, head[rival], distances[rival])
-    best = np.zeros(len(order), dtype=bool)
-    best[order] = first
-    runner_up = np.empty(len(order))
-    runner_up[order] = second[head]
-    return best, runner_up
+    clear = np.zeros(len(order), dtype=bool)
+    clear[order] = first & (second[head] - distances >= margin)
+    return clear
 
 
 def sighting_bits(maps: np.ndarray) -> np.ndarray:
@@ -481,7 +485,7 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     (None: 1);
     ``largest[join]``: the largest trace of its left ``C0`` before the factor; ``link[join]``: the 3 x 3 covariance
     of the join's link error); it is a candidate when ``d^2 = r^T S^-1 r <= g2``. A candidate is taken when it is its
-    right feature's nearest and its left feature's nearest, and each one's nearest rival (:func:`_best`, given the
+    right feature's nearest and its left feature's nearest, and each one's nearest rival (:func:`_clear`, given the
     features' ``sightings``) is at least ``margin`` farther (in ``d^2``); the other right features with candidates
     are ambiguous.
     """
@@ -507,13 +511,12 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     d2 = (yy / det) * r.real**2 + 2 * (-xy / det) * r.real * r.imag + (xx / det) * r.imag**2
     gated = d2 <= g2
     i, j, d2 = i[gated], j[gated], d2[gated]
-    right_best, right_second = _best(j, i, d2, left_sightings)
-    left_best, left_second = _best(i, j, d2, right_sightings)
-    taken = right_best & left_best & (right_second - d2 >= margin) & (left_second - d2 >= margin)
+    taken = _clear(j, i, d2, left_sightings, margin) & _clear(i, j, d2, right_sightings, margin)
+    i, taken_j = i[taken], j[taken]
     undecided = np.zeros(len(predicted), dtype=bool)  # the right rows with candidates, none taken (sorted)
     undecided[j] = True
-    undecided[j[taken]] = False
-    return i[taken], j[taken], np.flatnonzero(undecided)
+    undecided[taken_j] = False
+    return i, taken_j, undecided.nonzero()[0]
 
 
 def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray,
@@ -554,10 +557,11 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     search = _Searched()  # the rounds' candidate pairs, found again only where a round reaches beyond the last
     tested = None  # the last round's pairs before the joint test (over every join), its scale and its rejected counts
     live = np.ones(joins, dtype=bool)  # the joins whose next round may differ from their last
+    all_live = True  # live.all(), kept as the joins settle
     settled: list[tuple] = []  # the outcomes of the others: their state repeats, so would their rounds
     for round_number in range(ROUNDS):
         first_round = previous is None  # the factor is 1 (a product or a division by it changes nothing)
-        if live.all():
+        if all_live:
             i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
                                     right_join, link, None if first_round else scale, g2, margin, left_sightings,
                                     right_sightings, search)
@@ -569,11 +573,11 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
                                     None if right_sightings is None else right_sightings[columns])
             i, j, undecided = rows[i], columns[j], columns[undecided]
         ambiguous = np.bincount(right_join[undecided], minlength=joins)
-        if tested is not None and live.all() and _repeated(tested, i, j, scale):
+        if tested is not None and all_live and _repeated(tested, i, j, scale):
             # the last round's joint test of the same pairs in the same scale: its outcome, the pairs repeat
             outcome = (previous[0], previous[1], ambiguous, tested[3], undecided, correction)
             break
-        if live.all():
+        if all_live:
             tested = (i, j, np.ones(joins) if first_round else scale, None)
         pair_join = right_join[j]
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
@@ -590,7 +594,7 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
             sum_g = _segment_sums(terms[1][keep], pair_join, joins)
             sum_m = information + _segment_sums(terms[2][keep], pair_join, joins).reshape(joins, 3, 3)
         outcome = (i, j, ambiguous, rejected, undecided, correction)
-        if previous is not None and np.array_equal(previous[0], i) and np.array_equal(previous[1], j):
+        if previous is not None and _same(previous[0], i) and _same(previous[1], j):
             break
         previous = outcome
         # each link's correction and posterior covariance from its kept pairs; the robust variance factor
@@ -608,6 +612,7 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
             if repeats.any():
                 settled.append(_settled_outcome(outcome, repeats, right_join))
                 live &= ~repeats
+                all_live = False
                 going = live[pair_join]
                 previous = (i[going], j[going])
             fresh = np.where(live[:, None], fresh, correction)  # settled joins keep their state
@@ -626,7 +631,7 @@ def _repeated(tested: tuple, i: np.ndarray, j: np.ndarray, scale: np.ndarray) ->
     """Whether a round's pairs before the joint test (``i``, ``j``) and its variance factors ``scale`` are the last
     round's (``tested``): then its joint test is the last one's (the innovations are taken from the prior prediction,
     the same for the same pairs), and so are the pairs it keeps."""
-    return np.array_equal(tested[0], i) and np.array_equal(tested[1], j) and np.array_equal(tested[2], scale)
+    return _same(tested[0], i) and _same(tested[1], j) and _same(tested[2], scale)
 
 
 def _settled_outcome(outcome: tuple, joins: np.ndarray, right_join: np.ndarray) -> tuple:
@@ -770,10 +775,10 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     joins = len(link_xy)
     free = np.ones(len(left), dtype=bool)
     free[found.left] = False
-    lefts = np.flatnonzero(free)
+    lefts = free.nonzero()[0]
     free = np.ones(len(right), dtype=bool)
     free[found.right] = False
-    rights = np.flatnonzero(free)
+    rights = free.nonzero()[0]
     if len(lefts) < LOOP_SUPPORT or len(rights) < LOOP_SUPPORT:
         return None
     correction = found.correction
@@ -801,14 +806,15 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
         spread = np.where(spread < noise, reach[b], 0.0)
     closeness = np.abs(offsets) ** 2 / (noise + spread + link_spread[b])  # in the drift's gate's units
     voting = (closeness <= g2) & (spread >= noise)
+    voter = np.zeros(len(rights), dtype=bool)  # the right features with a candidate in the drift's gate, counted first
+    voter[b[voting]] = True
+    if not (np.bincount(r_join[voter], minlength=joins) >= LOOP_SUPPORT).any():
+        return None
     order = np.flatnonzero(voting)[np.argsort(r_join[b[voting]], kind="stable")]
     a, b, noise, closeness = a[order], b[order], noise[order], closeness[order]
     heading = correction[r_join[b], 2] ** 2 if moved else left_heading[lefts[a]] + right_heading[rights[b]]
     turning = np.sqrt(g2 * (heading + link_variances[r_join[b], 1]))
     pair_join = r_join[b]
-    voters = np.bincount(r_join[np.unique(b)], minlength=joins)  # right features with a candidate in the drift's gate
-    if not (voters >= LOOP_SUPPORT).any():
-        return None
     sizes = np.maximum(np.bincount(r_join, minlength=joins), 1)  # the free right features' centroid and extent
     centre = (np.bincount(r_join, predicted.real, joins) + 1j * np.bincount(r_join, predicted.imag, joins)) / sizes
     extent = np.sqrt(np.bincount(r_join, np.abs(predicted - centre[r_join]) ** 2, joins) / sizes)
@@ -915,14 +921,31 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
 
 def _asked_once(pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
                 ) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
-    """``pair_drift`` remembering its last pairs and answer: step 7 asks it for a join's pairs, the chain's ties ask
-    it again after step 6, which mostly changed no pair."""
+    """``pair_drift`` remembering its last pairs and answers: step 7 asks it for a join's pairs, the chain's ties ask
+    it again after step 6, which mostly changed few pairs. A pair's answer is its own (its left row, right row and
+    noise decide it, elementwise), so only the pairs not asked last time are asked (a tree level's step 6 adds its
+    loop closures' and junctions' pairs to thousands)."""
     last: list = []
 
     def remembered(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        if not (last and np.array_equal(last[0], i) and np.array_equal(last[1], j)):
-            last[:] = [i, j, pair_drift(i, j, noise)]
-        return last[2]
+        if last and _same(last[0], i) and _same(last[1], j) and _same(last[3], noise):
+            return last[2]
+        if not (last and len(last[0])):
+            last[:] = [i, j, pair_drift(i, j, noise), noise]
+            return last[2]
+        before_i, before_j, before, before_noise = last
+        span = np.int64(max(int(i.max(initial=0)), int(before_i.max(initial=0))) + 1)
+        keys = before_j.astype(np.int64) * span + before_i
+        order = np.argsort(keys)
+        position, known = locate(keys, j.astype(np.int64) * span + i, order)
+        known &= before_noise[position] == noise
+        answer = np.empty(len(i))
+        answer[known] = before[position[known]]
+        fresh = ~known
+        if fresh.any():
+            answer[fresh] = pair_drift(i[fresh], j[fresh], noise[fresh])
+        last[:] = [i, j, answer, noise]
+        return answer
 
     return remembered
 

@@ -138,10 +138,14 @@ class SightingDrift:
         return drift_variance(sums, self.first_point[ids]), sums[:, 1]
 
     def tie_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The chain's ties as arrays: old maps, junctions, strains (made once per new tie, not per join)."""
-        if not self.made_ties or len(self.made_ties[0][0]) != len(self.ties):
-            ties = np.array(self.ties, dtype=float).reshape(-1, 3)
-            self.made_ties[:] = [(ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2])]
+        """The chain's ties as arrays: old maps, junctions, strains (the ties added since the last call appended to
+        the arrays then made: O(new ties), not O(ties), per join)."""
+        made = len(self.made_ties[0][0]) if self.made_ties else 0
+        if made != len(self.ties):
+            ties = np.array(self.ties[made:], dtype=float).reshape(-1, 3)
+            added = (ties[:, 0].astype(np.intp), ties[:, 1].astype(np.intp), ties[:, 2])
+            self.made_ties[:] = [tuple(np.concatenate([before, after]) for before, after in zip(self.made_ties[0], added))
+                                 if made else added]
         return self.made_ties[0]
 
     def tie(self, old_map: int, junction: int, strain: float) -> None:
@@ -172,7 +176,7 @@ class SightingDrift:
         drifted = best > 0  # a feature seen by the link's map has no shorter way
         if level is not None:
             drifted &= best + strain >= level
-        drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
+        drifted = drifted.nonzero()[0] if self.ties else drifted[:0]
         if len(drifted):  # every (drifted feature, tie) at once
             old_map, junction, tie_strain = self.tie_arrays()
             link, first = (np.asarray(value, dtype=np.intp) for value in (link_map, start))  # one, or one per feature
@@ -205,7 +209,7 @@ class SightingDrift:
         drifted = best > 0
         if level is not None:
             drifted &= best + strain >= level
-        drifted = np.flatnonzero(drifted) if self.ties else drifted[:0]
+        drifted = drifted.nonzero()[0] if self.ties else drifted[:0]
         if len(drifted):
             old_map, junction, tie_strain = self.tie_arrays()
             first, point, link, last = first[drifted], point[drifted], link_map[drifted], end[drifted]

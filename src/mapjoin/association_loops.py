@@ -58,13 +58,16 @@ class RigidVotes:
     voter_join: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
 
 
-def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.ndarray
+def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.ndarray, supported: bool = True
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The occupied cells (``cells``: integer coordinates per vote, a vote being two pairs of right features
     ``first`` < ``second``) with their join, their distinct right features and their distinct right pairs.
     Cells are numbered by one integer key, lexicographic in (join, cell), so that every count is a sort of
     integers: each column offset by its least value, or, were the key too large for that, its values made compact
-    (a sort per column)."""
+    (a sort per column). The distinct right features are counted only where the best cell is chosen among them:
+    in the cells with their join's most right pairs (0 elsewhere, and everywhere unless ``supported``), since a
+    join's best cell has the most pairs first (:func:`rigid_votes`); the other cells' would cost a sort of all the
+    votes' ends."""
     columns = [join, *cells.T]
     low = [int(column.min(initial=0)) for column in columns]
     spans = [int(column.max(initial=0)) - least + 1 for column, least in zip(columns, low)]
@@ -80,22 +83,32 @@ def _fullest(join: np.ndarray, cells: np.ndarray, first: np.ndarray, second: np.
     size = np.int64(max(int(first.max(initial=0)), int(second.max(initial=0))) + 1)
     pairs = np.unique((number * size + first) * size + second)  # one vote per right pair and cell
     agreement = np.bincount(pairs // (size * size), minlength=len(cell))
-    ends = np.unique(np.concatenate([pairs // (size * size) * size + pairs % (size * size) // size,
-                                     pairs // (size * size) * size + pairs % size]))
-    support = np.bincount(ends // size, minlength=len(cell))
+    support = np.zeros(len(cell), np.int64)
+    if supported and len(cell):
+        owner = join[row]
+        most = np.zeros(int(owner.max()) + 1, np.int64)
+        np.maximum.at(most, owner, agreement)
+        fullest = agreement == most[owner]
+        pairs = pairs[fullest[pairs // (size * size)]]
+        ends = np.unique(np.concatenate([pairs // (size * size) * size + pairs % (size * size) // size,
+                                         pairs // (size * size) * size + pairs % size]))
+        support = np.bincount(ends // size, minlength=len(cell))
     return join[row], cells[row], support, agreement  # a vote of each cell: its join and coordinates
 
 
 def _cells(join: np.ndarray, p: np.ndarray, q: np.ndarray, dphi: np.ndarray, o: np.ndarray, b: np.ndarray,
-           turn_cell: np.ndarray, offset_cell: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+           turn_cell: np.ndarray, offset_cell: np.ndarray, supported: bool = True
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The occupied cells of the votes (two candidate pairs ``p``, ``q`` each, of ``join``, for the correction
     ``dphi``, ``o``) in both grids (the second shifted by half a cell): each cell's join, centre (dphi, o.real,
-    o.imag), agreement and support (:func:`_fullest`)."""
+    o.imag), agreement and support (:func:`_fullest`: only where it may choose the best cell, and only if
+    ``supported``)."""
     found = []
     for shift in (0.0, 0.5):
         cells = np.column_stack([np.floor(dphi / turn_cell[join] + shift), np.floor(o.real / offset_cell[join] + shift),
                                  np.floor(o.imag / offset_cell[join] + shift)]).astype(np.int64)
-        owner, coordinates, features, count = _fullest(join, cells, np.minimum(b[p], b[q]), np.maximum(b[p], b[q]))
+        owner, coordinates, features, count = _fullest(join, cells, np.minimum(b[p], b[q]), np.maximum(b[p], b[q]),
+                                                       supported)
         centres = (coordinates + 0.5 - shift) * np.column_stack([turn_cell[owner], offset_cell[owner],
                                                                    offset_cell[owner]])
         found.append((owner, centres, count, features))
@@ -110,8 +123,8 @@ def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if n <= ALL_PAIRS:
         return np.triu_indices(n, 1)
     u, v = np.repeat(np.arange(n), NEIGHBOURS), _nearest(points, NEIGHBOURS).ravel()
-    pairs = np.unique(np.column_stack([np.minimum(u, v), np.maximum(u, v)]), axis=0)
-    return pairs[:, 0], pairs[:, 1]
+    pairs = np.unique(np.minimum(u, v) * n + np.maximum(u, v))  # in (u, v) order, as one integer each
+    return pairs // n, pairs % n
 
 
 def _nearest(points: np.ndarray, k: int) -> np.ndarray:
@@ -169,14 +182,18 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
         q = np.arange(total) + np.repeat(run_first - (np.cumsum(runs) - runs), runs)
         # two different left features whose distance agrees with their right features' (one per pair u, v); the
         # rows' left features, points and noise gathered once, each vote reading them by position (u's side
-        # repeated along its runs), the distinct left features checked among the votes that agree
+        # repeated along its runs). Most votes disagree: they are dropped first against the rows' largest noise (a
+        # bound on each vote's two), the few left tested with their own noise, each vote's row of u found from its
+        # run; then the distinct left features are checked among the votes that agree
         row_left, row_noise = a[rows], noise[rows]
         row_point = left[row_left]
         span_left = np.repeat(row_point[own], runs) - row_point[q]
         span = np.abs(right_points[features[u]] - right_points[features[v]])
-        agree = np.flatnonzero((np.abs(span_left) - np.repeat(span, per)) ** 2
-                               <= g2 * (np.repeat(row_noise[own], runs) + row_noise[q]))
-        p, q, span_left = np.repeat(own, runs)[agree], q[agree], span_left[agree]
+        gap = (np.abs(span_left) - np.repeat(span, per)) ** 2
+        rough = np.flatnonzero(gap <= g2 * (2 * np.fmax.reduce(row_noise)))  # (fmax: a NaN noise bounds nothing)
+        p = own[np.searchsorted(np.cumsum(runs), rough, side="right")]
+        agree = gap[rough] <= g2 * (row_noise[p] + row_noise[q[rough]])
+        p, q, span_left = p[agree], q[rough[agree]], span_left[rough[agree]]
         distinct = row_left[p] != row_left[q]
         p, q, span_left = rows[p[distinct]], rows[q[distinct]], span_left[distinct]
         dphi = np.angle(span_left / (right_points[b[p]] - right_points[b[q]]))
@@ -209,7 +226,7 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
     voting[p[near]] = voting[q[near]] = True
     rival = ~(voting[p] | voting[q])
     owner, centres, count, _ = _cells(join[rival], p[rival], q[rival], dphi[rival], o[rival], b, turn_cell,
-                                      offset_cell)
+                                      offset_cell, supported=False)
     apart = (np.abs(centres - best_centre[owner]) > DIFFERENT_CELLS * scale[owner]).any(axis=1)
     np.maximum.at(runner_up, owner[apart], count[apart])
     voters = np.unique(np.concatenate([join[near] * len(b) + p[near], join[near] * len(b) + q[near]]))

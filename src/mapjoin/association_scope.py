@@ -36,12 +36,15 @@ __all__ = ["VoterDrift", "beyond_voters", "chain_drift", "voter_drift", "voters_
 VoterDrift = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
-def chain_drift(drift: SightingDrift, maps: np.ndarray, others: np.ndarray, points: np.ndarray) -> np.ndarray:
+def chain_drift(drift: SightingDrift, maps: np.ndarray, others: np.ndarray, points: np.ndarray,
+                rows: np.ndarray | None = None) -> np.ndarray:
     """``D`` between the sightings by ``maps`` and by ``others`` (one each) of features at ``points`` (dead-reckoned,
     as seen by ``maps``) over the shorter way: the junctions between the two maps, either way along the chain, or
     through one of the chain's ties ``(m, c)`` (:meth:`mapjoin.association_drift.SightingDrift.tie`) the junctions
     from the sighting to one end of the tie, its strain and those from the other end (the feature moved by the two
-    ends' places) to the other map, as :meth:`~mapjoin.association_drift.SightingDrift.settled` takes a link's."""
+    ends' places) to the other map, as :meth:`~mapjoin.association_drift.SightingDrift.settled` takes a link's.
+    ``rows``: each of ``others`` compared with feature ``rows[k]`` of ``maps`` and ``points`` (None: one each), so
+    that a feature's way to each tie is summed once however many maps it is compared with."""
 
     def between(first: np.ndarray, second: np.ndarray, at: np.ndarray) -> np.ndarray:
         low, high = np.minimum(first, second), np.maximum(first, second)
@@ -50,15 +53,17 @@ def chain_drift(drift: SightingDrift, maps: np.ndarray, others: np.ndarray, poin
         return drift_variance(np.broadcast_to(sums, (*shape, 5)).reshape(-1, 5),
                               np.broadcast_to(at, shape).ravel()).reshape(shape)
 
-    best = between(maps, others, points)
-    if not drift.ties or not len(maps):
+    if rows is None:
+        rows = np.arange(len(others))
+    best = between(maps[rows], others, points[rows])
+    if not drift.ties or not len(others):
         return best
     old_map, junction, strain = drift.tie_arrays()
     poses = drift.chain.poses
     for near, far in ((old_map, junction), (junction, old_map)):  # the tie taken from either end
         moved = points[:, None] - poses[near] + poses[far]
-        way = (between(maps[:, None], near[None, :], points[:, None]) + strain
-               + between(far[None, :], others[:, None], moved))
+        to_tie = between(maps[:, None], near[None, :], points[:, None]) + strain  # per feature, then per comparison
+        way = to_tie[rows] + between(far[None, :], others[:, None], moved[rows])
         best = np.minimum(best, way.min(axis=1))
     return best
 
@@ -77,7 +82,7 @@ def voter_drift(drift: SightingDrift, maps: np.ndarray, points: np.ndarray, join
     feature = np.repeat(np.arange(len(maps)), count)
     other = keys[np.arange(int(count.sum())) + np.repeat(start - (np.cumsum(count) - count), count)] % span
     best = np.full(len(maps), np.inf)
-    np.minimum.at(best, feature, chain_drift(drift, maps[feature], other, points[feature]))
+    np.minimum.at(best, feature, chain_drift(drift, maps, other, points, feature))
     return best
 
 
