@@ -311,6 +311,50 @@ def test_the_streamed_join_reads_its_files_again_to_confirm(data_dir, tmp_path):
     assert sum(r.exact_p is not None for r in expected) == 1 and not any(r.flag for r in expected)  # join 181
 
 
+@pytest.mark.parametrize("keep", [True, False])
+def test_the_streamed_join_confirms_on_its_kept_maps_or_reads_them_again(data_dir, tmp_path, monkeypatch, keep):
+    """The streamed join keeps its maps for the confirmation while they are few (DLR 200's: not read again, the
+    reader made to fail), and reads them again past :data:`KEEP_VALUES`: the same report either way, the
+    in-memory join's."""
+    from cli_runner import run
+
+    from mapjoin.cli import common
+    from mapjoin.cli import join as join_command
+
+    reads = []
+    read_local_maps = common.read_local_maps
+    monkeypatch.setattr(common, "read_local_maps", lambda *args: reads.append(args) or read_local_maps(*args))
+    if not keep:
+        monkeypatch.setattr(join_command, "KEEP_VALUES", 1000)   # DLR's first few maps
+    folder = data_dir / "DLR_200_local_maps"
+    result = run("join", str(folder), "-o", str(tmp_path / "g.csv"), "--report", str(tmp_path / "r.csv"))
+    assert result.exit_code == 0, result.output
+    assert len(reads) == (0 if keep else 1)
+    with open(tmp_path / "r.csv", newline="") as table:
+        rows = list(csv.DictReader(table))
+    expected = join(mapio.read_maps(str(folder)), confirm=confirm).report
+    assert [(row["flag"], row["exact_p"]) for row in rows] == [
+        (str(r.flag), "" if r.exact_p is None else repr(r.exact_p)) for r in expected]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.integers(0, 6), max_size=12), st.integers(0, 400))
+def test_a_stream_keeps_its_maps_while_they_hold_at_most_the_limits_numbers(sizes, limit):
+    """KeptMaps passes every map on, in order, and holds them all while their states and covariances hold at
+    most ``limit`` numbers (3 + 2m + (3 + 2m)^2 each, counted here by hand), none once past it."""
+    from mapjoin.confirmation import KeptMaps
+
+    maps = [LocalMap(f"m{k}", k, k + 1, np.zeros(3), np.arange(m, dtype=np.int64), np.zeros((m, 2)), np.ones(m),
+                     np.ones(2), np.eye(3 + 2 * m)) for k, m in enumerate(sizes)]
+    kept = KeptMaps(iter(maps), limit)
+    passed = []
+    for local_map in kept:
+        passed.append(local_map)
+        held = sum(3 + 2 * m + (3 + 2 * m) ** 2 for m in sizes[:len(passed)])
+        assert ([id(m) for m in kept.maps] == [id(m) for m in passed]) if held <= limit else kept.maps is None
+    assert passed == maps
+
+
 def test_a_streamed_join_from_stdin_keeps_the_fast_flags_and_says_so(tmp_path):
     from cli_runner import run
 

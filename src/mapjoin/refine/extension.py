@@ -40,7 +40,7 @@ from ..se2 import compose, to_frame, transform
 from .problem import ExactProblem
 from .solver import TOLERANCE
 
-__all__ = ["MAX_STEPS", "Extension", "extend"]
+__all__ = ["MAX_STEPS", "Extension", "SharedTerm", "extend"]
 
 #: chord steps before the extension gives up (DLR 200's join 181 takes 5)
 MAX_STEPS = 20
@@ -76,8 +76,8 @@ class SharedTerm:
         self.columns = np.concatenate([3 * int(base[0]) + np.arange(3),
                                        (3 * problem.n_maps + 2 * at[shared][:, None] + np.arange(2)).ravel()])
         P = state_covariance(local_map)
-        rows = (3 + 2 * np.flatnonzero(shared)[:, None] + np.arange(2)).ravel()
-        rest = np.setdiff1d(np.arange(len(P)), rows)
+        state = np.concatenate([[False] * 3, np.repeat(shared, 2)])       # B's state entries that are shared
+        rows, rest = np.flatnonzero(state), np.flatnonzero(~state)
         self._rows, self._rest = rows, rest
         self.whitening = np.linalg.inv(np.linalg.cholesky(P[np.ix_(rows, rows)]))   # L^-1, P_ss = L L^T
         # the conditional mean of B's other entries given the shared ones: s_rest - P_rs P_ss^-1 e_s
