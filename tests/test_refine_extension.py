@@ -124,11 +124,19 @@ def test_the_extended_optimum_is_the_union_solved_whole(seed):
     assert served >= 3
 
 
-def test_a_step_that_raises_chi2_gives_up():
-    """From a point far from the chain's optimum (its features scattered by metres), the chord steps of A's
-    Hessian there do not lower chi^2 or do not settle: None, and the caller solves the union whole."""
+def test_far_from_the_chains_optimum_it_gives_up_without_solving_by_lu():
+    """From a point far from the chain's optimum (its features scattered by metres), the Newton matrix there is not
+    positive definite (the dense backend would solve by LU of the whole matrix): Gauss-Newton's is factorised
+    instead, every solve is by its Cholesky factor, and the chord steps do not lower chi^2 or do not settle: None,
+    and the caller solves the union whole."""
     maps = list(simulate(40, seed=5, laps=1.0).maps)
     problem = ExactProblem(maps[:30])
     x = problem.pack(join(maps[:30]).global_map)
     x[3 * problem.n_maps:] += np.random.default_rng(0).normal(scale=3.0, size=2 * problem.n_features)
-    assert extend(problem, x, maps[30], max_steps=3) is None
+    data, _, _, second = problem.linearise(x, curvature=True)
+    assert problem.backend == "dense" and not problem.factorise(data + second).cholesky
+    solved_by = []
+    solve = problem.solve
+    problem.solve = lambda factor, rhs: solved_by.append(factor.cholesky) or solve(factor, rhs)
+    assert extend(problem, x, maps[30]) is None
+    assert solved_by and all(solved_by)

@@ -37,6 +37,7 @@ import numpy as np
 from ..covariance import state_covariance
 from ..maps import LocalMap, locate
 from ..se2 import compose, to_frame, transform
+from .dense import DenseFactor
 from .problem import ExactProblem
 from .solver import TOLERANCE
 
@@ -144,6 +145,10 @@ def extend(problem: ExactProblem, x: np.ndarray, local_map: LocalMap, *, toleran
     data, gradient, cost, second = problem.linearise(x, curvature=True)
     try:
         factor = problem.factorise(data + second)
+        if isinstance(factor, DenseFactor) and not factor.cholesky:
+            # not positive definite (the chain not at a minimum): the dense backend would solve each step by LU of
+            # the whole matrix; Gauss-Newton's matrix is positive definite
+            factor = problem.factorise(data)
         unit = np.zeros((problem.n_unknowns, len(columns)))
         unit[columns, np.arange(len(columns))] = 1.0
         Z = problem.solve(factor, unit)                          # A^-1 E: the update's columns
