@@ -130,18 +130,18 @@ class Pieces:
     """Exact optima of runs ``maps[first:stop]`` of one chain, each solved once (a join's pieces are
     shared: sequential join k's union is join k+1's left piece).
 
-    A union whose right piece is one map (every sequential join's) is first extended from the left piece's
-    optimum (:func:`mapjoin.refine.extension.extend`: chord steps with the factor of the left piece's Hessian,
-    where a solve of the union costs a factorisation per step; DLR 200's join 181: 5 solves against 3
-    factorisations), and solved whole as below only where that gives up (a loop closure that moves the map by
-    metres). A piece is solved from its own tree join, as ``refine`` starts by default: measured, the fast sequential
-    map of a long run with loop closures leaves the solve far from the optimum after 100 iterations (a
-    2-lap simulation of 1000 maps, maps 0..744: chi^2 8962 against 5712, reached from the tree join in 7),
-    so that joins were kept flagged as unconverged. The union of a join's two pieces is solved from the two
-    pieces' optima put together (the right one placed at the left one's end): measured, the fast
-    sequential map after a loop closure can lead the union's solve into another, higher minimum
-    (docs/method.md#confirmation), the pieces' optima do not; the fast join's ``global_map`` is the second
-    start of a union whose increment fails (:meth:`from_fast_join`).
+    A union whose right piece is one map (every sequential join's) is first extended from the left piece's optimum
+    (:func:`mapjoin.refine.extension.extend`: chord steps with the factor of the left piece's Hessian, where a solve
+    of the union costs a factorisation per step; DLR 200's join 181: one factorisation and 6 solves against 3
+    factorisations and 4 solves), and solved whole as below only where that gives up (a loop closure that moves the
+    map by metres). A piece is solved from its own tree join, as ``refine`` starts by default: measured, the fast
+    sequential map of a long run with loop closures leaves the solve far from the optimum after 100 iterations (a
+    2-lap simulation of 1000 maps, maps 0..744: chi^2 8962 against 5712, reached from the tree join in 7), so that
+    joins were kept flagged as unconverged. The union of a join's two pieces is solved from the two pieces' optima
+    put together (the right one placed at the left one's end): measured, the fast sequential map after a loop
+    closure can lead the union's solve into another, higher minimum (docs/method.md#confirmation), the pieces'
+    optima do not; the fast join's ``global_map`` is the second start of a union whose increment fails
+    (:meth:`from_fast_join`).
     """
 
     def __init__(self, maps: Sequence[LocalMap], global_map: GlobalMap, max_iterations: int = 100,

@@ -17,8 +17,9 @@ shared term's ``J^T J`` at the current point, a rank-``2s`` update applied by th
 each step costs one solve with A's factor (and a ``k``-column one once), where a solve of the union
 costs a factorisation per step. It is a chord method: A's part of the matrix is that of A's optimum,
 which the union's moves away from, so it converges linearly (DLR 200's join 181: steps of 6e-2,
-2e-3, 3e-3, 2e-5, 1e-5 m or rad, 5 solves against the union solve's 3 factorisations; with the shared
-term's second-order part it took 7). The shared term's ``J^T J`` keeps the matrix positive definite,
+2e-3, 3e-3, 2e-5, 1e-5 m or rad: one factorisation and 6 solves, one of them of 21 columns, against the
+union solve's 3 factorisations and 4 solves on a problem of its own; with the shared term's second-order
+part it took 7 steps). The shared term's ``J^T J`` keeps the matrix positive definite,
 so each step is a descent direction. B's own unknowns follow from ``a`` in closed form (the
 conditional mean of B's state given the shared part). Stops as :func:`.solver.minimise` does
 (docs/method.md#solver); gives up (None) where a step raises chi^2, where the steps do not shrink
