@@ -72,6 +72,65 @@ def test_the_exact_increment_is_that_of_the_dense_least_squares_problems(seed, b
     assert exact.union.cost == pytest.approx(union[0], rel=1e-7)
 
 
+def _three_solves(maps: list[LocalMap], k: int) -> tuple[float, int]:
+    """The exact statistic of sequential join k by its definition: chi2*(maps 1..k+1) - chi2*(maps 1..k) - 0 (the
+    right piece, one map, fits itself), and its dof, from independent exact solves (``refine``, each from its own
+    tree join)."""
+    from mapjoin.refine import refine
+
+    union, left = refine(maps[:k + 1], covariances=False), refine(maps[:k], covariances=False)
+    assert union.converged and left.converged
+    return union.cost - left.cost, (union.residuals - union.unknowns) - (left.residuals - left.unknowns)
+
+
+def _counting_extensions(monkeypatch) -> list[bool]:
+    """Whether each union of a one-map right piece came from the left piece's factor (refine.extension)."""
+    from mapjoin.refine import extension
+
+    served, extend = [], extension.extend
+
+    def counted(*args, **kwargs):
+        found = extend(*args, **kwargs)
+        served.append(found is not None)
+        return found
+
+    monkeypatch.setattr(extension, "extend", counted)
+    return served
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_sequential_joins_increment_is_that_of_three_independent_exact_solves(seed, monkeypatch):
+    """At the joins after loop closures (those the fast statistic flags) of simulations, the increment, its union
+    extended from the left piece's optimum where the chord steps converge, is the definition's: three
+    independent exact solves (1e-6 relative; the same dof). Most unions are extended; the others (loop
+    closures that move the map by metres) are solved whole."""
+    served = _counting_extensions(monkeypatch)
+    maps = list(simulate(120, seed=seed, laps=2.0).maps)
+    fast = join(maps)
+    pieces = Pieces(maps, fast.global_map)
+    for record in [r for r in fast.report if r.flag][:6]:
+        exact = increment(pieces, 0, record.join, record.join + 1)
+        chi2, dof = _three_solves(maps, record.join)
+        assert exact.converged
+        assert exact.chi2 == pytest.approx(chi2, rel=1e-6)
+        assert exact.dof == dof
+    assert sum(served) >= 3
+
+
+def test_dlrs_confirmed_join_is_extended_to_the_three_solves_increment(data_dir, monkeypatch):
+    """DLR 200's join 181, the one the streamed join confirms: its union extended from the left piece's optimum
+    (no solve of its own), its increment the three independent solves' (1e-6 relative)."""
+    served = _counting_extensions(monkeypatch)
+    maps = mapio.read_maps(str(data_dir / "DLR_200_local_maps"))
+    fast = join(maps)
+    record = fast.report[180]
+    assert record.join == 181 and piece_bounds(maps, record, "sequential") == (0, 181, 182)
+    exact = increment(Pieces(maps, fast.global_map), 0, 181, 182)
+    chi2, dof = _three_solves(maps, 181)
+    assert served == [True]
+    assert exact.chi2 == pytest.approx(chi2, rel=1e-6) and exact.dof == dof
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.sets(st.integers(0, 12), min_size=1, max_size=6), min_size=2, max_size=6), st.data())
 def test_the_exact_dof_is_twice_the_features_the_pieces_share(id_sets, data):
@@ -250,6 +309,50 @@ def test_the_streamed_join_reads_its_files_again_to_confirm(data_dir, tmp_path):
     assert [row["flag"] for row in rows] == [str(r.flag) for r in expected]
     assert [row["exact_p"] for row in rows] == ["" if r.exact_p is None else repr(r.exact_p) for r in expected]
     assert sum(r.exact_p is not None for r in expected) == 1 and not any(r.flag for r in expected)  # join 181
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_the_streamed_join_confirms_on_its_kept_maps_or_reads_them_again(data_dir, tmp_path, monkeypatch, keep):
+    """The streamed join keeps its maps for the confirmation while they are few (DLR 200's: not read again, the
+    reader made to fail), and reads them again past :data:`KEEP_VALUES`: the same report either way, the
+    in-memory join's."""
+    from cli_runner import run
+
+    from mapjoin.cli import common
+    from mapjoin.cli import join as join_command
+
+    reads = []
+    read_local_maps = common.read_local_maps
+    monkeypatch.setattr(common, "read_local_maps", lambda *args: reads.append(args) or read_local_maps(*args))
+    if not keep:
+        monkeypatch.setattr(join_command, "KEEP_VALUES", 1000)   # DLR's first few maps
+    folder = data_dir / "DLR_200_local_maps"
+    result = run("join", str(folder), "-o", str(tmp_path / "g.csv"), "--report", str(tmp_path / "r.csv"))
+    assert result.exit_code == 0, result.output
+    assert len(reads) == (0 if keep else 1)
+    with open(tmp_path / "r.csv", newline="") as table:
+        rows = list(csv.DictReader(table))
+    expected = join(mapio.read_maps(str(folder)), confirm=confirm).report
+    assert [(row["flag"], row["exact_p"]) for row in rows] == [
+        (str(r.flag), "" if r.exact_p is None else repr(r.exact_p)) for r in expected]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.integers(0, 6), max_size=12), st.integers(0, 400))
+def test_a_stream_keeps_its_maps_while_they_hold_at_most_the_limits_numbers(sizes, limit):
+    """KeptMaps passes every map on, in order, and holds them all while their states and covariances hold at
+    most ``limit`` numbers (3 + 2m + (3 + 2m)^2 each, counted here by hand), none once past it."""
+    from mapjoin.confirmation import KeptMaps
+
+    maps = [LocalMap(f"m{k}", k, k + 1, np.zeros(3), np.arange(m, dtype=np.int64), np.zeros((m, 2)), np.ones(m),
+                     np.ones(2), np.eye(3 + 2 * m)) for k, m in enumerate(sizes)]
+    kept = KeptMaps(iter(maps), limit)
+    passed = []
+    for local_map in kept:
+        passed.append(local_map)
+        held = sum(3 + 2 * m + (3 + 2 * m) ** 2 for m in sizes[:len(passed)])
+        assert ([id(m) for m in kept.maps] == [id(m) for m in passed]) if held <= limit else kept.maps is None
+    assert passed == maps
 
 
 def test_a_streamed_join_from_stdin_keeps_the_fast_flags_and_says_so(tmp_path):

@@ -16,15 +16,16 @@ end pose, fixed at B's own origin), so ``dof = 2n`` for ``n`` shared features: t
 dof (docs/method.md#each-join). A sequential join is B = one map, whose own optimum is 0.
 
 Each piece is solved by :func:`mapjoin.refine.solver.minimise` from its own tree join (the start
-``refine`` takes by default, :data:`mapjoin.refine.DEFAULT_START`), and the union from the two pieces' optima. Cost: two exact solves of at most the
-whole chain per confirmed join; only joins failing stage 1 are confirmed, and a piece's optimum
-is computed once however many joins read it (docs/method.md#confirmation).
+``refine`` takes by default, :data:`mapjoin.refine.DEFAULT_START`), and the union from the two pieces' optima
+(with a one-map right piece, by extending the left piece's optimum: :mod:`mapjoin.refine.extension`). Cost:
+two exact solves of at most the whole chain per confirmed join; only joins failing stage 1 are confirmed, and
+a piece's optimum is computed once however many joins read it (docs/method.md#confirmation).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -32,15 +33,15 @@ import numpy as np
 from .consistency import p_values
 from .joining import JoinRecord, JoinResult, Strategy, join_tree
 from .maps import GlobalMap, LocalMap, locate
-from .se2 import compose, relative, to_frame, transform
+from .se2 import compose, relative, to_frame, transform, wrap
 from .streaming import CompactReport
 
 if TYPE_CHECKING:
     from .refine.dense import Backend
     from .refine.problem import ExactProblem
 
-__all__ = ["BUDGET", "MAX_SOLVED", "REREAD_LIMIT", "Estimate", "Increment", "Optimum", "Pieces", "chain_backend",
-           "confirm", "confirm_streamed", "increment", "piece_bounds", "variance_factor"]
+__all__ = ["BUDGET", "KEEP_VALUES", "MAX_SOLVED", "REREAD_LIMIT", "Estimate", "Increment", "KeptMaps", "Optimum",
+           "Pieces", "chain_backend", "confirm", "confirm_streamed", "increment", "piece_bounds", "variance_factor"]
 
 #: the exact solves of a run's confirmations stop once they have solved this many times the chain's maps
 BUDGET = 20.0
@@ -51,6 +52,9 @@ MAX_SOLVED = 20_000
 #: a streamed join's maps are read again for its confirmation only up to this many maps (a longer stream
 #: keeps its memory bound, and its fast flags)
 REREAD_LIMIT = 100_000
+#: ... and kept as they are joined, not read again, while they hold at most this many numbers (states and
+#: covariances: 16 MB; DLR 200's hold 0.2 M; reading them again took 30-40 ms of its 0.45 s ``join``)
+KEEP_VALUES = 2**21
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,14 +130,18 @@ class Pieces:
     """Exact optima of runs ``maps[first:stop]`` of one chain, each solved once (a join's pieces are
     shared: sequential join k's union is join k+1's left piece).
 
-    A piece is solved from its own tree join, as ``refine`` starts by default: measured, the fast sequential
-    map of a long run with loop closures leaves the solve far from the optimum after 100 iterations (a
-    2-lap simulation of 1000 maps, maps 0..744: chi^2 8962 against 5712, reached from the tree join in 7),
-    so that joins were kept flagged as unconverged. The union of a join's two pieces is solved from the two
-    pieces' optima put together (the right one placed at the left one's end): measured, the fast
-    sequential map after a loop closure can lead the union's solve into another, higher minimum
-    (docs/method.md#confirmation), the pieces' optima do not; the fast join's ``global_map`` is the second
-    start of a union whose increment fails (:meth:`from_fast_join`).
+    A union whose right piece is one map (every sequential join's) is first extended from the left piece's optimum
+    (:func:`mapjoin.refine.extension.extend`: chord steps with the factor of the left piece's Hessian, where a solve
+    of the union costs a factorisation per step; DLR 200's join 181: one factorisation and 6 solves against 3
+    factorisations and 4 solves), and solved whole as below only where that gives up (a loop closure that moves the
+    map by metres). A piece is solved from its own tree join, as ``refine`` starts by default: measured, the fast
+    sequential map of a long run with loop closures leaves the solve far from the optimum after 100 iterations (a
+    2-lap simulation of 1000 maps, maps 0..744: chi^2 8962 against 5712, reached from the tree join in 7), so that
+    joins were kept flagged as unconverged. The union of a join's two pieces is solved from the two pieces' optima
+    put together (the right one placed at the left one's end): measured, the fast sequential map after a loop
+    closure can lead the union's solve into another, higher minimum (docs/method.md#confirmation), the pieces'
+    optima do not; the fast join's ``global_map`` is the second start of a union whose increment fails
+    (:meth:`from_fast_join`).
     """
 
     def __init__(self, maps: Sequence[LocalMap], global_map: GlobalMap, max_iterations: int = 100,
@@ -141,6 +149,9 @@ class Pieces:
         self._maps, self._fast, self._max_iterations = list(maps), Estimate.of(global_map), max_iterations
         self._backend = backend  # the linear algebra of every solve (:func:`chain_backend`)
         self._optima: dict[tuple[int, int], tuple[Optimum, Estimate]] = {}
+        # the last piece solved, its problem and optimum's unknowns, until the next solve: a union of it and one
+        # map starts from its problem (:meth:`_extended`)
+        self._last: tuple[tuple[int, int], ExactProblem, np.ndarray] | None = None
         self.solved = 0  # maps in the exact problems solved so far
 
     def optimum(self, first: int, stop: int, start: Estimate | None = None) -> Optimum:
@@ -157,9 +168,42 @@ class Pieces:
         """The exact optimum of maps ``first .. stop - 1``, solved from those of ``first .. middle - 1`` and
         ``middle .. stop - 1`` put together."""
         if (first, stop) not in self._optima:
+            if stop - middle == 1 and middle - first > 1:
+                extended = self._extended(first, middle)
+                if extended is not None:
+                    self._optima[first, stop] = extended
+                    return extended[0]
             left, right = self._optima[first, middle][1], self._optima[middle, stop][1]
             return self.optimum(first, stop, left.then(right, self._maps[middle].start_id))
         return self.optimum(first, stop)
+
+    def _extended(self, first: int, middle: int) -> tuple[Optimum, Estimate] | None:
+        """The exact optimum of maps ``first .. middle``, the run ``first .. middle - 1`` (solved) and one map,
+        from the run's own optimum and the factor of its Hessian there (:func:`mapjoin.refine.extension.extend`:
+        chord steps, no factorisation of the union's); None where that gives up. Counted in :attr:`solved` as
+        the union's solve (the budget confirms the same joins either way)."""
+        from .refine.extension import extend
+        from .refine.problem import ExactProblem
+
+        run, added = self._maps[first:middle], self._maps[middle]
+        last, self._last = self._last, None
+        if last is not None and last[0] == (first, middle):
+            problem, x = last[1:]
+        else:   # the run was solved before another piece: its problem made again
+            problem = ExactProblem(run, backend=self._backend)
+            x = self._optima[first, middle][1].values(problem, run[0].start_id)
+        found = extend(problem, x, added)
+        if found is None:
+            return None
+        self.solved += middle + 1 - first
+        left = self._optima[first, middle][0]
+        poses, features = problem.unpack(found.x)
+        end_pose = found.end_pose.copy()
+        end_pose[2] = wrap(end_pose[2])
+        return (Optimum(found.cost, left.dof + 2 * found.shared, True),
+                Estimate(np.append(problem.pose_ids, added.end_id), np.concatenate([poses, end_pose[None, :]]),
+                         np.concatenate([problem.feature_ids, found.feature_ids]),
+                         np.concatenate([features, found.features])))
 
     def from_fast_join(self, first: int, stop: int) -> Optimum:
         """The exact optimum of maps ``first .. stop - 1`` solved again from the fast join's map; the lower of
@@ -179,8 +223,10 @@ class Pieces:
         from .refine.solver import minimise
 
         self.solved += stop - first
+        self._last = None   # the last problem released before the next is made
         problem = ExactProblem(run, backend=self._backend)
         found = minimise(problem, start.values(problem, run[0].start_id), max_iterations=self._max_iterations)
+        self._last = (first, stop), problem, found.x
         poses, features = problem.unpack(found.x)
         return (Optimum(found.cost, problem.n_residuals - problem.n_unknowns, found.converged),
                 Estimate(problem.pose_ids, poses, problem.feature_ids, features))
@@ -267,6 +313,27 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
                                                      flag=bool(p < gate) or not exact.converged)
     report = tuple(confirmed.get(r.join, r) for r in result.report)
     return dataclasses.replace(result, report=report)
+
+
+class KeptMaps:
+    """The maps of a stream, passed on as they come and kept for :func:`confirm_streamed` (which then need not read
+    them again) while they hold at most ``limit`` numbers (:data:`KEEP_VALUES`); past that they are let go, and the
+    stream's memory stays bounded. ``maps``: those kept, None once let go."""
+
+    def __init__(self, maps: Iterable[LocalMap], limit: int = KEEP_VALUES) -> None:
+        self._source, self._room = iter(maps), limit
+        self.maps: list[LocalMap] | None = []
+
+    def __iter__(self) -> Iterator[LocalMap]:
+        for local_map in self._source:
+            if self.maps is not None:
+                self._room -= local_map.features.size + 3 + (0 if local_map.covariance is None
+                                                              else local_map.covariance.size)
+                if self._room < 0:
+                    self.maps = None
+                else:
+                    self.maps.append(local_map)
+            yield local_map
 
 
 def confirm_streamed(result: JoinResult, read: Callable[[], Sequence[LocalMap]] | None, gate: float,

@@ -8,7 +8,7 @@ import click
 
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
-from ..confirmation import confirm, confirm_streamed
+from ..confirmation import KEEP_VALUES, KeptMaps, confirm, confirm_streamed
 from ..joining import JoinResult, join as join_maps
 from ..streaming import join_stream
 from ..maps import Range
@@ -90,9 +90,12 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     if strategy == "sequential" and not (exact or associate or on_inconsistent == "skip"):
         with common.local_map_stream(inputs, input_format, outputs) as stream, \
                 progress_bar(ctx, None, "maps joined") as progress:  # read as they are joined: a count, not a bar
-            streamed = join_stream(stream, covariance, solver, progress, gate=gate, on_inconsistent=on_inconsistent,
+            # stdin, a FIFO or a pipe give their data once: its joins are not confirmed, its maps not kept
+            once = next((path for path in mapio.resolve_inputs(inputs) if mapio.read_once(path)), None)
+            kept = KeptMaps(stream, 0 if once else KEEP_VALUES)   # for the confirmation: not read again if few
+            streamed = join_stream(kept, covariance, solver, progress, gate=gate, on_inconsistent=on_inconsistent,
                                    confirm=lambda joined: confirm_stream(ctx, joined, inputs, input_format, outputs,
-                                                                         gate))
+                                                                         gate, once, kept))
         result, global_map, read = streamed.result, streamed.result.global_map, streamed.read_seconds
         origin_id, count = streamed.origin_id, len(global_map.pose_ids)
     else:
@@ -156,11 +159,13 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
 
 
 def confirm_stream(ctx: click.Context, result: JoinResult, inputs: tuple[str, ...], input_format: str | None,
-                   outputs: mapio.Outputs, gate: float) -> JoinResult:
-    """The streamed join's flags confirmed on the exact problem, its maps read again from files (not from
-    stdin, a FIFO or a pipe, which give their data once: read again, they would block or give none)."""
-    once = next((path for path in mapio.resolve_inputs(inputs) if mapio.read_once(path)), None)
-    read = None if once else (lambda: common.read_local_maps(inputs, input_format, outputs))
+                   outputs: mapio.Outputs, gate: float, once: str | None, kept: KeptMaps) -> JoinResult:
+    """The streamed join's flags confirmed on the exact problem, on its maps as ``kept`` or read again from files
+    (not from ``once``, stdin, a FIFO or a pipe, which give their data once: read again, they would block or give
+    none)."""
+    maps = kept.maps
+    read = (None if once else (lambda: maps) if maps is not None else
+            (lambda: common.read_local_maps(inputs, input_format, outputs)))
     confirmed, unconfirmed = confirm_streamed(result, read, gate,
                                               "stdin" if once == mapio.STDIN else f"{once}, read once")
     if unconfirmed:
