@@ -33,7 +33,8 @@ thread, load 2-3): a step and the marginals of VicPark 200 16-19 and 16-18 ms ag
 matrix's 34 and 42 ms, DLR 200 17 and 22 ms against 70 and 91 ms.
 
 A step solves ``A x = b`` by the triangular solves of that factor (:mod:`.triangular`: numpy
-has none, so they are matrix products by halves). The marginal covariances
+has none, so they are matrix products by blocks, the blocks' inverses made once per factor, all interiors' in one
+numpy call). The marginal covariances
 (docs/method.md#marginal-covariances) are the diagonal blocks of ``A^-1 = L^-T L^-1``: the
 column blocks of ``L^-1`` multiplied with themselves, where ``L^-1``'s columns of interior i
 are ``L_i^-1`` over ``-L_S^-1 B_i L_i^-1`` and the separator's ``L_S^-1``; never the whole
@@ -49,7 +50,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from .triangular import lower_inverse, solve_lower, solve_lower_transposed
+from .triangular import Triangle
 
 if TYPE_CHECKING:
     from .sparse import BlockPattern
@@ -189,7 +190,8 @@ _SEGMENT_WORK = 1e7
 
 class DenseFactor:
     """The blockwise Cholesky factor of a normal matrix ``A`` in a :class:`Partition`'s order (see the module
-    docstring): per interior ``L_i`` and the non-zero trailing columns of ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
+    docstring): per interior ``L_i`` (a :class:`.triangular.Triangle`, the interiors' block inverses made by one
+    numpy call) and the non-zero trailing columns of ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
     (``A`` not positive definite, as a Newton step's may be), ``cholesky`` False and :meth:`solve` takes LU
     with partial pivoting of the whole matrix instead. ``matrix``: ``A`` in that order, lower triangle, kept (a
     copy: ``matrix`` is the partition's buffer, :meth:`Partition.scatter`) only where Cholesky refused."""
@@ -199,21 +201,22 @@ class DenseFactor:
         self.partition = partition
         bounds = partition.bounds
         s0 = bounds[-2]
-        self.interiors: list[tuple[np.ndarray, np.ndarray]] = []
+        self.interiors: list[tuple[Triangle, np.ndarray]] = []
         schur = matrix[s0:, s0:].copy()
         try:
-            for (a, b), t, rows in zip(itertools.pairwise(bounds[:-1]), partition.coupled, partition.rows):
-                L = np.linalg.cholesky(matrix[a:b, a:b])
+            spans = list(itertools.pairwise(bounds[:-1]))
+            triangles = Triangle.all_of([np.linalg.cholesky(matrix[a:b, a:b]) for a, b in spans])
+            for L, (a, b), t, rows in zip(triangles, spans, partition.coupled, partition.rows):
                 c = b - a - t                                   # the interior's first unknown a map at the
                 # separator touches: C_i L_i^-T's columns from there (before it they are zero), its rows those
                 # of the separator's unknowns the segment's maps touch (the others are zero)
-                B = solve_lower(L[c:, c:], matrix[s0:, a + c:b][rows].T).T
+                B = L.solve(matrix[s0:, a + c:b][rows].T, c).T
                 if isinstance(rows, slice):
                     schur -= B @ B.T
                 else:
                     schur[np.ix_(rows, rows)] -= B @ B.T
                 self.interiors.append((L, B))
-            self.separator = np.linalg.cholesky(schur)
+            self.separator = Triangle.all_of([np.linalg.cholesky(schur)])[0]
             self.cholesky = True
         except np.linalg.LinAlgError:
             self.interiors, self.cholesky, self.matrix = [], False, matrix.copy()
@@ -231,24 +234,24 @@ class DenseFactor:
         else:
             bounds = partition.bounds
             s0 = bounds[-2]
-            y = [solve_lower(L, b[a:c]) for (L, _), a, c in zip(self.interiors, bounds[:-2], bounds[1:-1])]
+            y = [L.solve(b[a:c]) for (L, _), a, c in zip(self.interiors, bounds[:-2], bounds[1:-1])]
             ys = b[s0:].copy()
             for (_, B), yi, rows in zip(self.interiors, y, partition.rows):
                 ys[rows] -= B @ yi[len(yi) - B.shape[1]:]
-            xs = solve_lower_transposed(self.separator, solve_lower(self.separator, ys))
+            xs = self.separator.solve_transposed(self.separator.solve(ys))
             for (_, B), yi, rows in zip(self.interiors, y, partition.rows):
                 yi[len(yi) - B.shape[1]:] -= B.T @ xs[rows]
-            x = np.concatenate([solve_lower_transposed(L, yi) for (L, _), yi in zip(self.interiors, y)] + [xs])
+            x = np.concatenate([L.solve_transposed(yi) for (L, _), yi in zip(self.interiors, y)] + [xs])
         return x[partition.position]
 
     def inverse_columns(self) -> list[tuple[int, np.ndarray]]:
         """``L^-1`` by column blocks: ``(first, Z)`` per interior and the separator, Z holding the non-zero rows
         (the interior's, then the separator's) of the columns ``first ..`` (in the partition's order)."""
         bounds = self.partition.bounds
-        separator_inverse = lower_inverse(self.separator)
+        separator_inverse = self.separator.inverse()
         blocks = []
         for (L, B), a, rows in zip(self.interiors, bounds[:-2], self.partition.rows):
-            W = lower_inverse(L)
+            W = L.inverse()
             # (L_S^-1 B_i) L_i^-1's trailing rows: B_i's columns are the fewer
             blocks.append((int(a), np.concatenate([W, -(separator_inverse[:, rows] @ B) @ W[len(W) - B.shape[1]:]])))
         blocks.append((int(bounds[-2]), separator_inverse))
