@@ -260,3 +260,26 @@ def test_the_segmented_solve_equals_the_sparse_one_on_small_simulations(count, s
     np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9 * (1.0 + np.max(np.abs(b.x))))
     for got, expected in ((pa, pb), (fa, fb)):
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("name", ["VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps"])
+def test_the_partition_is_the_least_work_of_its_segment_counts(name, data_dir, monkeypatch):
+    """The work a partition states is the flops of its factorisation counted from what it holds (each interior's
+    Cholesky, its trailing block's solve against and update of only the separator's rows it meets, the
+    separator's Cholesky, the allowance per segment), and no other segment count gives less."""
+    maps = mapio.read_maps([str(data_dir / name)])
+    chosen = ExactProblem(maps, backend="dense")._partition
+
+    def counted(partition):
+        bounds, n = partition.bounds, partition.bounds[-1]
+        s = n - bounds[-2]
+        r = np.array([s if isinstance(rows, slice) else len(rows) for rows in partition.rows])
+        inner, t = np.diff(bounds[:-1]), partition.coupled
+        return float(np.sum(inner ** 3 / 3 + t ** 2 * r + t * r ** 2) + s ** 3 / 3) + dense._SEGMENT_WORK * len(r)
+
+    assert chosen.work == pytest.approx(counted(chosen), rel=1e-12)
+    for K in dense._SEGMENT_COUNTS:
+        monkeypatch.setattr(dense, "_SEGMENT_COUNTS", (K,))
+        other = ExactProblem(maps, backend="dense")._partition
+        assert other.work == pytest.approx(counted(other), rel=1e-12)
+        assert chosen.work <= other.work

@@ -23,14 +23,16 @@ features: VicPark 200's features couple with 51 others on average, DLR 200's wit
 features are eliminated a segment at a time, not one by one. Within an interior, the unknowns
 that a map touching the separator also touches come last: ``C_i`` is zero before them, and so is
 ``B_i``, so only they enter the Schur complement; and ``C_i``'s rows are zero but for the separator's unknowns
-that maps of segment i touch (``Partition.rows``: DLR 200's four segments meet 116-253 of its 315), so
-``B_i`` has only those rows and updates only their block of ``S`` (a factorisation 17 % less CPU there). K is chosen once per problem by the dense work it
-leaves (:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes K = 2 (separator 337 of
-1198 unknowns, 569 of the 861 interior ones coupled to it; 217 MFlop a factorisation with the
-per-segment allowance, against the whole Cholesky's 573), DLR 200 K = 4 (315 of 1698, 679 of 1383;
-214 against 1632), 8240 K = 6 (141 of 1374; 100 against 865). Measured in-process (one OpenBLAS
-thread, load 2-3): a step and the marginals of VicPark 200 16-19 and 16-18 ms against the whole
-matrix's 34 and 42 ms, DLR 200 17 and 22 ms against 70 and 91 ms.
+that maps of segment i touch (``Partition.rows``: DLR 200's six segments meet 69-197 of its 397), so
+``B_i`` has only those rows and updates only their block of ``S`` (a factorisation 17 % less CPU there, with four
+segments). K is chosen once per problem by the dense work it leaves, those rows counted per segment
+(:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes K = 3 (separator 406 of 1198
+unknowns, 628 of the 792 interior ones coupled to it; 195 MFlop a factorisation with the per-segment
+allowance, against the whole Cholesky's 573), DLR 200 K = 6 (397 of 1698, 740 of 1301; 136 against
+1632), 8240 K = 6 (141 of 1374; 91 against 865). Counting the separator's whole size per segment instead
+chose K = 2 for VicPark 200 and K = 4 for DLR 200: measured in fresh processes as the command runs
+(2026-11-26, load 2-3), DLR 200's factorisation 12-13 ms against 10-11 and its marginals 25-27 against 17
+ms now (with :mod:`.triangular`'s block solves), VicPark 200's 11-15 against 10-14 and 20 against 17.5.
 
 A step solves ``A x = b`` by the triangular solves of that factor (:mod:`.triangular`: numpy
 has none, so they are matrix products by blocks, the blocks' inverses made once per factor, all interiors' in one
@@ -69,8 +71,10 @@ DENSE_UNKNOWNS = 4000
 #: DLR 200 and of 8240 (benchmarks/startup.py --crossover, 2026-11-26, load 3, OpenBLAS on one thread as the
 #: command runs it): dense took 0.33-0.63 of the sparse backend's wall time up to 163 MFlop and 0.69-0.80 at
 #: DLR 200's 214 (1698 unknowns) and VicPark 200's 217 (1198), the largest measured; a first partition without
-#: the interiors' trailing blocks reached parity at 1.3 times that work. A confirmation's solves take the whole
-#: chain's backend (:func:`mapjoin.confirmation.chain_backend`).
+#: the interiors' trailing blocks reached parity at 1.3 times that work. (Those works counted the separator's
+#: whole size per segment; counting each segment's rows, these problems take 136 and 195 MFlop, and the bound was
+#: kept: the crossover's own problems stay dense, larger ones are unmeasured.) A confirmation's solves take the
+#: whole chain's backend (:func:`mapjoin.confirmation.chain_backend`).
 DENSE_WORK = 2.5e8
 
 
@@ -140,7 +144,11 @@ class Partition:
             sizes = np.bincount(part, weights=size, minlength=K + 1)
             t = np.bincount(part[near], weights=size[near], minlength=K + 1)[:K]
             inner, s = sizes[:K], sizes[K]
-            work = float(np.sum(inner ** 3 / 3 + t ** 2 * s + t * s ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
+            at = separator[touching]                    # the separator's rows each segment's maps touch (rows)
+            seen = np.zeros((K, n_nodes), dtype=bool)
+            seen[toucher[at] * K // n_maps, touching[at]] = True
+            r = seen @ size
+            work = float(np.sum(inner ** 3 / 3 + t ** 2 * r + t * r ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
             if best is None or work < best[0]:
                 best = work, 2 * part + near, sizes, t, K, separator
         work, key, sizes, t, K, separator = best
