@@ -283,3 +283,19 @@ def test_the_partition_is_the_least_work_of_its_segment_counts(name, data_dir, m
         other = ExactProblem(maps, backend="dense")._partition
         assert other.work == pytest.approx(counted(other), rel=1e-12)
         assert chosen.work <= other.work
+
+
+def test_the_schur_updates_index_each_segments_rows_block(vicpark_optimum):
+    """Each segment's flat indices address exactly the (rows, rows) block of the separator's Schur complement, as
+    numpy's own multi-index does; they are made once (VicPark 200's are small enough to keep)."""
+    problem, _, _ = vicpark_optimum
+    partition = problem._partition
+    s = partition.bounds[-1] - partition.bounds[-2]
+    updates = partition.updates()
+    assert len(updates) == partition.segments and any(update is not None for update in updates)
+    for rows, update in zip(partition.rows, updates):
+        if update is None:
+            assert isinstance(rows, slice)
+        else:
+            assert np.array_equal(update, np.ravel_multi_index(np.ix_(rows, rows), (s, s)).ravel())
+    assert partition.updates() is updates

@@ -164,12 +164,18 @@ class Partition:
         """Per segment, where the block of its ``rows`` lies in the separator's Schur complement (s, s), as flat
         (row-major) indices; None where its rows are all of them. Made once, for every factorisation's update
         ``S[rows, rows] -= B_i B_i^T``: index arrays made anew each time (``numpy.ix_``) took 2.2 ms of VicPark
-        200's 10 ms factorisation, these 0.8 (in-process, 2026-11-26, load 4)."""
-        if self._updates is None:
-            s = len(self.order) - int(self.bounds[-2])
-            self._updates = [None if isinstance(rows, slice) else (rows[:, None] * s + rows).ravel()
-                             for rows in self.rows]
-        return self._updates
+        200's 10 ms factorisation, these 0.8 (in-process, 2026-11-26, load 4). Kept only while their bytes are no
+        more than the dense matrix's the partition holds (:meth:`scatter`; VicPark 200: 1.4 MB against 11.5): with
+        many segments each meeting much of a large separator they are made anew each time, as ``numpy.ix_`` was."""
+        if self._updates is not None:
+            return self._updates
+        s = len(self.order) - int(self.bounds[-2])
+        kind = np.int32 if s * s < 2**31 else np.intp
+        updates = [None if isinstance(rows, slice) else (rows[:, None] * s + rows).ravel().astype(kind)
+                   for rows in self.rows]
+        if sum(update.nbytes for update in updates if update is not None) <= 8 * len(self.order) ** 2:
+            self._updates = updates
+        return updates
 
     def scatter(self, pattern: BlockPattern, data: np.ndarray) -> np.ndarray:
         """The dense matrix, in this order, holding on and below its diagonal the symmetric matrix whose lower
