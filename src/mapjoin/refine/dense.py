@@ -165,13 +165,14 @@ class Partition:
         (row-major) indices; None where its rows are all of them. Made once, for every factorisation's update
         ``S[rows, rows] -= B_i B_i^T``: index arrays made anew each time (``numpy.ix_``) took 2.2 ms of VicPark
         200's 10 ms factorisation, these 0.8 (in-process, 2026-11-26, load 4). Kept only while their bytes are no
-        more than the dense matrix's the partition holds (:meth:`scatter`; VicPark 200: 1.4 MB against 11.5): with
-        many segments each meeting much of a large separator they are made anew each time, as ``numpy.ix_`` was."""
+        more than the dense matrix's the partition holds (:meth:`scatter`; VicPark 200: 2.8 MB against 11.5): with
+        many segments each meeting much of a large separator they are made anew each time, as ``numpy.ix_`` was.
+        In numpy's index integer: numpy converts any other at every use (32 bits took 0.78 ms for VicPark 200's
+        largest block against 0.31)."""
         if self._updates is not None:
             return self._updates
         s = len(self.order) - int(self.bounds[-2])
-        kind = np.int32 if s * s < 2**31 else np.intp
-        updates = [None if isinstance(rows, slice) else (rows[:, None] * s + rows).ravel().astype(kind)
+        updates = [None if isinstance(rows, slice) else (rows[:, None] * s + rows).ravel().astype(np.intp, copy=False)
                    for rows in self.rows]
         if sum(update.nbytes for update in updates if update is not None) <= 8 * len(self.order) ** 2:
             self._updates = updates
