@@ -44,9 +44,9 @@ from mapjoin.refine.groups import (
 )
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.solver import TOLERANCE, minimise
-from mapjoin.refine.triangular import lower_inverses
 from mapjoin.refine.factor import factorise
 from mapjoin.refine.sparse import Supernodes, closed_pattern, selected_inverse
+from mapjoin.refine.triangular import lower_inverses
 from mapjoin.simulation import simulate
 
 KNOWN_OPTIMA = {  # chi^2 at the exact optimum
