@@ -13,12 +13,7 @@ from mapjoin.joining import join
 from mapjoin.refine import dense
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.solver import minimise
-from mapjoin.refine.triangular import (
-    LEAF,
-    lower_inverse,
-    solve_lower,
-    solve_lower_transposed,
-)
+from mapjoin.refine.triangular import BLOCK, Triangle, block_inverses
 from mapjoin.simulation import simulate
 
 
@@ -31,22 +26,72 @@ def lower_triangular(n: int, seed: int, spread: float) -> np.ndarray:
 
 
 @settings(max_examples=40, deadline=None)
-@given(n=st.one_of(st.integers(1, 2 * LEAF + 3), st.integers(2 * LEAF, 5 * LEAF)), seed=st.integers(0, 10**6),
-       spread=st.floats(0.0, 3.0), columns=st.sampled_from([None, 1, 3]))
-def test_triangular_solves_and_inverse_equal_numpys_general_ones(n, seed, spread, columns):
-    """Across the leaf size (halving at every depth), one right-hand side or several: L^-1 b, L^-T b and L^-1
-    equal numpy's LU solve and inverse; the inverse is exactly zero above the diagonal."""
+@given(n=st.one_of(st.integers(0, 2 * BLOCK + 3), st.integers(2 * BLOCK, 6 * BLOCK + 5)), seed=st.integers(0, 10**6),
+       spread=st.floats(0.0, 3.0), columns=st.sampled_from([None, 1, 3]), first=st.floats(0.0, 1.0))
+def test_triangular_solves_and_inverse_equal_numpys_general_ones(n, seed, spread, columns, first):
+    """Across block boundaries (none, one block, a last block cut short), one right-hand side or several: L^-1 b,
+    L^-T b and L^-1 equal numpy's LU solve and inverse; the inverse is exactly zero above the diagonal. A
+    right-hand side given from its row ``first`` on (the rows before zero) gives the same rows of L^-1 b."""
     L = lower_triangular(n, seed, spread)
     b = np.random.default_rng(seed + 1).normal(size=n if columns is None else (n, columns))
-    scale = np.linalg.cond(L)
-    for got, expected in ((solve_lower(L, b), np.linalg.solve(L, b)),
-                          (solve_lower_transposed(L, b), np.linalg.solve(L.T, b))):
+    [triangle] = Triangle.all_of([L])
+    scale = np.linalg.cond(L) if n else 1.0
+    def assert_close(got, expected):
         assert got.shape == expected.shape
-        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13 * scale * np.abs(expected).max())
-    inverse = lower_inverse(L)
-    expected = np.linalg.inv(L)
-    np.testing.assert_allclose(inverse, expected, rtol=0, atol=1e-13 * scale * np.abs(expected).max())
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13 * scale * np.abs(expected).max(initial=1.0))
+    assert_close(triangle.solve(b), np.linalg.solve(L, b) if n else b)
+    assert_close(triangle.solve_transposed(b), np.linalg.solve(L.T, b) if n else b)
+    k = int(first * n)
+    tail = b.copy()
+    tail[:k] = 0.0
+    got = triangle.solve(b[k:], k)
+    assert_close(got, (np.linalg.solve(L, tail) if n else tail)[k:])
+    inverse = triangle.inverse()
+    expected = np.linalg.inv(L) if n else L
+    assert_close(inverse, expected)
     assert not np.triu(inverse, 1).any()
+
+
+def random_spd(n: int, rng: np.random.Generator) -> np.ndarray:
+    """A random symmetric positive definite matrix (n, n), its eigenvalues spread over about two decades."""
+    Q = np.linalg.qr(rng.normal(size=(n, n)))[0] if n else np.zeros((0, 0))
+    return (Q * 10.0 ** rng.uniform(-1, 1, n)) @ Q.T
+
+
+@settings(max_examples=30, deadline=None)
+@given(sizes=st.lists(st.one_of(st.integers(0, BLOCK + 2), st.integers(BLOCK, 4 * BLOCK + 7)), max_size=5),
+       seed=st.integers(0, 10**6))
+def test_block_inverses_of_several_interiors_equal_the_loop_over_each_block(sizes, seed):
+    """The batched routine against the straightforward loop: the Cholesky factors of random SPD blocks of mixed
+    sizes (as a dense factor's interiors are), their diagonal blocks inverted in one stacked call, equal each
+    block inverted on its own by numpy (a last block cut short completed by the identity); and per interior the
+    Cholesky solve by those blocks, L^-T L^-1 b, equals numpy's LU solve of the SPD block itself."""
+    rng = np.random.default_rng(seed)
+    matrices = [random_spd(n, rng) for n in sizes]
+    factors = [np.linalg.cholesky(A) for A in matrices]
+    batched = block_inverses(factors)
+    assert len(batched) == len(factors)
+    for L, inverses in zip(factors, batched):
+        n = len(L)
+        assert inverses.shape == (-(-n // BLOCK), BLOCK, BLOCK)
+        for j, j0 in enumerate(range(0, n, BLOCK)):
+            j1 = min(j0 + BLOCK, n)
+            expected = np.eye(BLOCK)
+            expected[:j1 - j0, :j1 - j0] = np.linalg.inv(L[j0:j1, j0:j1])
+            np.testing.assert_allclose(inverses[j], expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+            assert not np.triu(inverses[j], 1).any()
+    for A, triangle in zip(matrices, Triangle.all_of(factors)):
+        b = rng.normal(size=len(A))
+        expected = np.linalg.solve(A, b) if len(A) else b
+        got = triangle.solve_transposed(triangle.solve(b))
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-10 * np.abs(expected).max(initial=1.0))
+
+
+def test_a_triangle_refuses_block_inverses_of_another_size():
+    """A triangle and its block inverses are made together: a count that does not fit the matrix is refused."""
+    L = np.eye(BLOCK + 1)
+    with pytest.raises(ValueError, match="needs 2 block inverses"):
+        Triangle(L, block_inverses([np.eye(BLOCK)])[0])
 
 
 @pytest.fixture(scope="module")
@@ -215,3 +260,42 @@ def test_the_segmented_solve_equals_the_sparse_one_on_small_simulations(count, s
     np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9 * (1.0 + np.max(np.abs(b.x))))
     for got, expected in ((pa, pb), (fa, fb)):
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("name", ["VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps"])
+def test_the_partition_is_the_least_work_of_its_segment_counts(name, data_dir, monkeypatch):
+    """The work a partition states is the flops of its factorisation counted from what it holds (each interior's
+    Cholesky, its trailing block's solve against and update of only the separator's rows it meets, the
+    separator's Cholesky, the allowance per segment), and no other segment count gives less."""
+    maps = mapio.read_maps([str(data_dir / name)])
+    chosen = ExactProblem(maps, backend="dense")._partition
+
+    def counted(partition):
+        bounds, n = partition.bounds, partition.bounds[-1]
+        s = n - bounds[-2]
+        r = np.array([s if isinstance(rows, slice) else len(rows) for rows in partition.rows])
+        inner, t = np.diff(bounds[:-1]), partition.coupled
+        return float(np.sum(inner ** 3 / 3 + t ** 2 * r + t * r ** 2) + s ** 3 / 3) + dense._SEGMENT_WORK * len(r)
+
+    assert chosen.work == pytest.approx(counted(chosen), rel=1e-12)
+    for K in dense._SEGMENT_COUNTS:
+        monkeypatch.setattr(dense, "_SEGMENT_COUNTS", (K,))
+        other = ExactProblem(maps, backend="dense")._partition
+        assert other.work == pytest.approx(counted(other), rel=1e-12)
+        assert chosen.work <= other.work
+
+
+def test_the_schur_updates_index_each_segments_rows_block(vicpark_optimum):
+    """Each segment's flat indices address exactly the (rows, rows) block of the separator's Schur complement, as
+    numpy's own multi-index does; they are made once (VicPark 200's are small enough to keep)."""
+    problem, _, _ = vicpark_optimum
+    partition = problem._partition
+    s = partition.bounds[-1] - partition.bounds[-2]
+    updates = partition.updates()
+    assert len(updates) == partition.segments and any(update is not None for update in updates)
+    for rows, update in zip(partition.rows, updates):
+        if update is None:
+            assert isinstance(rows, slice)
+        else:
+            assert np.array_equal(update, np.ravel_multi_index(np.ix_(rows, rows), (s, s)).ravel())
+    assert partition.updates() is updates

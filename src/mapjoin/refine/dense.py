@@ -23,17 +23,20 @@ features: VicPark 200's features couple with 51 others on average, DLR 200's wit
 features are eliminated a segment at a time, not one by one. Within an interior, the unknowns
 that a map touching the separator also touches come last: ``C_i`` is zero before them, and so is
 ``B_i``, so only they enter the Schur complement; and ``C_i``'s rows are zero but for the separator's unknowns
-that maps of segment i touch (``Partition.rows``: DLR 200's four segments meet 116-253 of its 315), so
-``B_i`` has only those rows and updates only their block of ``S`` (a factorisation 17 % less CPU there). K is chosen once per problem by the dense work it
-leaves (:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes K = 2 (separator 337 of
-1198 unknowns, 569 of the 861 interior ones coupled to it; 217 MFlop a factorisation with the
-per-segment allowance, against the whole Cholesky's 573), DLR 200 K = 4 (315 of 1698, 679 of 1383;
-214 against 1632), 8240 K = 6 (141 of 1374; 100 against 865). Measured in-process (one OpenBLAS
-thread, load 2-3): a step and the marginals of VicPark 200 16-19 and 16-18 ms against the whole
-matrix's 34 and 42 ms, DLR 200 17 and 22 ms against 70 and 91 ms.
+that maps of segment i touch (``Partition.rows``: DLR 200's six segments meet 69-197 of its 397), so
+``B_i`` has only those rows and updates only their block of ``S`` (a factorisation 17 % less CPU there, with four
+segments). K is chosen once per problem by the dense work it leaves, those rows counted per segment
+(:meth:`Partition.of`: K = 1 is the whole matrix); VicPark 200 takes K = 3 (separator 406 of 1198
+unknowns, 628 of the 792 interior ones coupled to it; 195 MFlop a factorisation with the per-segment
+allowance, against the whole Cholesky's 573), DLR 200 K = 6 (397 of 1698, 740 of 1301; 136 against
+1632), 8240 K = 6 (141 of 1374; 91 against 865). Counting the separator's whole size per segment instead
+chose K = 2 for VicPark 200 and K = 4 for DLR 200: measured in fresh processes as the command runs
+(2026-11-26, load 2-3), DLR 200's factorisation 12-13 ms against 10-11 and its marginals 25-27 against 17
+ms now (with :mod:`.triangular`'s block solves), VicPark 200's 11-15 against 10-14 and 20 against 17.5.
 
 A step solves ``A x = b`` by the triangular solves of that factor (:mod:`.triangular`: numpy
-has none, so they are matrix products by halves). The marginal covariances
+has none, so they are matrix products by blocks, the blocks' inverses made once per factor, all interiors' in one
+numpy call). The marginal covariances
 (docs/method.md#marginal-covariances) are the diagonal blocks of ``A^-1 = L^-T L^-1``: the
 column blocks of ``L^-1`` multiplied with themselves, where ``L^-1``'s columns of interior i
 are ``L_i^-1`` over ``-L_S^-1 B_i L_i^-1`` and the separator's ``L_S^-1``; never the whole
@@ -49,7 +52,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from .triangular import lower_inverse, solve_lower, solve_lower_transposed
+from .triangular import Triangle
 
 if TYPE_CHECKING:
     from .sparse import BlockPattern
@@ -68,8 +71,10 @@ DENSE_UNKNOWNS = 4000
 #: DLR 200 and of 8240 (benchmarks/startup.py --crossover, 2026-11-26, load 3, OpenBLAS on one thread as the
 #: command runs it): dense took 0.33-0.63 of the sparse backend's wall time up to 163 MFlop and 0.69-0.80 at
 #: DLR 200's 214 (1698 unknowns) and VicPark 200's 217 (1198), the largest measured; a first partition without
-#: the interiors' trailing blocks reached parity at 1.3 times that work. A confirmation's solves take the whole
-#: chain's backend (:func:`mapjoin.confirmation.chain_backend`).
+#: the interiors' trailing blocks reached parity at 1.3 times that work. (Those works counted the separator's
+#: whole size per segment; counting each segment's rows, these problems take 136 and 195 MFlop, and the bound was
+#: kept: the crossover's own problems stay dense, larger ones are unmeasured.) A confirmation's solves take the
+#: whole chain's backend (:func:`mapjoin.confirmation.chain_backend`).
 DENSE_WORK = 2.5e8
 
 
@@ -108,6 +113,7 @@ class Partition:
         self._lower: np.ndarray | None = None       # which CSC entries are on or below the diagonal
         self._targets: np.ndarray | None = None     # where they go in the dense matrix (flat)
         self._matrix: np.ndarray | None = None      # the dense matrix, filled anew by each scatter
+        self._updates: list[np.ndarray | None] | None = None    # see updates
 
     @classmethod
     def of(cls, owner: np.ndarray, compact: np.ndarray, base: np.ndarray, n_features: int) -> Partition:
@@ -139,7 +145,11 @@ class Partition:
             sizes = np.bincount(part, weights=size, minlength=K + 1)
             t = np.bincount(part[near], weights=size[near], minlength=K + 1)[:K]
             inner, s = sizes[:K], sizes[K]
-            work = float(np.sum(inner ** 3 / 3 + t ** 2 * s + t * s ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
+            at = separator[touching]                    # the separator's rows each segment's maps touch (rows)
+            seen = np.zeros((K, n_nodes), dtype=bool)
+            seen[toucher[at] * K // n_maps, touching[at]] = True
+            r = seen @ size
+            work = float(np.sum(inner ** 3 / 3 + t ** 2 * r + t * r ** 2) + s ** 3 / 3) + _SEGMENT_WORK * K
             if best is None or work < best[0]:
                 best = work, 2 * part + near, sizes, t, K, separator
         work, key, sizes, t, K, separator = best
@@ -149,6 +159,24 @@ class Partition:
             np.cumsum(size[nodes]) - size[nodes], size[nodes]))
         return cls(order, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64), t.astype(np.int64), work,
                    _separator_rows(touching, toucher, separator, size, K, n_maps))
+
+    def updates(self) -> list[np.ndarray | None]:
+        """Per segment, where the block of its ``rows`` lies in the separator's Schur complement (s, s), as flat
+        (row-major) indices; None where its rows are all of them. Made once, for every factorisation's update
+        ``S[rows, rows] -= B_i B_i^T``: index arrays made anew each time (``numpy.ix_``) took 2.2 ms of VicPark
+        200's 10 ms factorisation, these 0.8 (in-process, 2026-11-26, load 4). Kept only while their bytes are no
+        more than the dense matrix's the partition holds (:meth:`scatter`; VicPark 200: 2.8 MB against 11.5): with
+        many segments each meeting much of a large separator they are made anew each time, as ``numpy.ix_`` was.
+        In numpy's index integer: numpy converts any other at every use (32 bits took 0.78 ms for VicPark 200's
+        largest block against 0.31)."""
+        if self._updates is not None:
+            return self._updates
+        s = len(self.order) - int(self.bounds[-2])
+        updates = [None if isinstance(rows, slice) else (rows[:, None] * s + rows).ravel().astype(np.intp, copy=False)
+                   for rows in self.rows]
+        if sum(update.nbytes for update in updates if update is not None) <= 8 * len(self.order) ** 2:
+            self._updates = updates
+        return updates
 
     def scatter(self, pattern: BlockPattern, data: np.ndarray) -> np.ndarray:
         """The dense matrix, in this order, holding on and below its diagonal the symmetric matrix whose lower
@@ -189,7 +217,8 @@ _SEGMENT_WORK = 1e7
 
 class DenseFactor:
     """The blockwise Cholesky factor of a normal matrix ``A`` in a :class:`Partition`'s order (see the module
-    docstring): per interior ``L_i`` and the non-zero trailing columns of ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
+    docstring): per interior ``L_i`` (a :class:`.triangular.Triangle`, the interiors' block inverses made by one
+    numpy call) and the non-zero trailing columns of ``B_i``, and the separator's ``L_S``; or, where Cholesky refused
     (``A`` not positive definite, as a Newton step's may be), ``cholesky`` False and :meth:`solve` takes LU
     with partial pivoting of the whole matrix instead. ``matrix``: ``A`` in that order, lower triangle, kept (a
     copy: ``matrix`` is the partition's buffer, :meth:`Partition.scatter`) only where Cholesky refused."""
@@ -199,21 +228,24 @@ class DenseFactor:
         self.partition = partition
         bounds = partition.bounds
         s0 = bounds[-2]
-        self.interiors: list[tuple[np.ndarray, np.ndarray]] = []
+        self.interiors: list[tuple[Triangle, np.ndarray]] = []
         schur = matrix[s0:, s0:].copy()
+        entries = schur.reshape(-1)                             # a view: the copy is contiguous
         try:
-            for (a, b), t, rows in zip(itertools.pairwise(bounds[:-1]), partition.coupled, partition.rows):
-                L = np.linalg.cholesky(matrix[a:b, a:b])
+            spans = list(itertools.pairwise(bounds[:-1]))
+            triangles = Triangle.all_of([np.linalg.cholesky(matrix[a:b, a:b]) for a, b in spans])
+            for L, (a, b), t, rows, update in zip(triangles, spans, partition.coupled, partition.rows,
+                                                  partition.updates()):
                 c = b - a - t                                   # the interior's first unknown a map at the
                 # separator touches: C_i L_i^-T's columns from there (before it they are zero), its rows those
                 # of the separator's unknowns the segment's maps touch (the others are zero)
-                B = solve_lower(L[c:, c:], matrix[s0:, a + c:b][rows].T).T
-                if isinstance(rows, slice):
+                B = L.solve(matrix[s0:, a + c:b][rows].T, c).T
+                if update is None:
                     schur -= B @ B.T
                 else:
-                    schur[np.ix_(rows, rows)] -= B @ B.T
+                    entries[update] -= (B @ B.T).ravel()
                 self.interiors.append((L, B))
-            self.separator = np.linalg.cholesky(schur)
+            self.separator = Triangle.all_of([np.linalg.cholesky(schur)])[0]
             self.cholesky = True
         except np.linalg.LinAlgError:
             self.interiors, self.cholesky, self.matrix = [], False, matrix.copy()
@@ -231,24 +263,24 @@ class DenseFactor:
         else:
             bounds = partition.bounds
             s0 = bounds[-2]
-            y = [solve_lower(L, b[a:c]) for (L, _), a, c in zip(self.interiors, bounds[:-2], bounds[1:-1])]
+            y = [L.solve(b[a:c]) for (L, _), a, c in zip(self.interiors, bounds[:-2], bounds[1:-1])]
             ys = b[s0:].copy()
             for (_, B), yi, rows in zip(self.interiors, y, partition.rows):
                 ys[rows] -= B @ yi[len(yi) - B.shape[1]:]
-            xs = solve_lower_transposed(self.separator, solve_lower(self.separator, ys))
+            xs = self.separator.solve_transposed(self.separator.solve(ys))
             for (_, B), yi, rows in zip(self.interiors, y, partition.rows):
                 yi[len(yi) - B.shape[1]:] -= B.T @ xs[rows]
-            x = np.concatenate([solve_lower_transposed(L, yi) for (L, _), yi in zip(self.interiors, y)] + [xs])
+            x = np.concatenate([L.solve_transposed(yi) for (L, _), yi in zip(self.interiors, y)] + [xs])
         return x[partition.position]
 
     def inverse_columns(self) -> list[tuple[int, np.ndarray]]:
         """``L^-1`` by column blocks: ``(first, Z)`` per interior and the separator, Z holding the non-zero rows
         (the interior's, then the separator's) of the columns ``first ..`` (in the partition's order)."""
         bounds = self.partition.bounds
-        separator_inverse = lower_inverse(self.separator)
+        separator_inverse = self.separator.inverse()
         blocks = []
         for (L, B), a, rows in zip(self.interiors, bounds[:-2], self.partition.rows):
-            W = lower_inverse(L)
+            W = L.inverse()
             # (L_S^-1 B_i) L_i^-1's trailing rows: B_i's columns are the fewer
             blocks.append((int(a), np.concatenate([W, -(separator_inverse[:, rows] @ B) @ W[len(W) - B.shape[1]:]])))
         blocks.append((int(bounds[-2]), separator_inverse))

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import JoinError
+from .triangular import lower_inverses
 
 _GROUP_OVERHEAD = 2e4      # entries of a map's block worth one group's Python overhead in the evaluation
 
@@ -129,39 +130,9 @@ def _inverse_cholesky(covariance: np.ndarray) -> np.ndarray:
     their inverse, W whitens a residual)."""
     try:
         k = covariance.shape[-1]
-        return _triangular_inverse(np.linalg.cholesky(covariance.reshape(-1, k, k))).reshape(covariance.shape)
+        return lower_inverses(np.linalg.cholesky(covariance.reshape(-1, k, k))).reshape(covariance.shape)
     except np.linalg.LinAlgError:
         raise JoinError("a local map's covariance is not positive definite") from None
-
-
-def _triangular_inverse(L: np.ndarray) -> np.ndarray:
-    """Inverses of a stack of lower triangular matrices (G, d, d). Large ones (d >= 24) by
-    halves: ``[[A, 0], [B, C]]^-1 = [[A^-1, 0], [-C^-1 B A^-1, C^-1]]``, the halves inverted
-    the same way (0.3-0.6 of the time of LAPACK's general inverse, which does a full LU and
-    its inverse, on stacks of 1000 to 10^4 matrices of 45-61 rows; benchmarks/README.md, "Time
-    of refine at 10^4 maps"). Few small ones by LAPACK's solve (numpy's batched inverse) of the
-    upper triangular transposes: partial pivoting finds nothing below the diagonal there, so
-    no row moves and the factorisation leaves the matrix as it is. Many small ones row by
-    row, the forward substitution vectorised over the stack. Each way keeps every zero block
-    of the inverse exactly zero (as the pattern of J^T J, read from the information, needs);
-    numpy's, so that a small exact join imports no scipy."""
-    G, d = L.shape[0], L.shape[-1]
-    if d >= 24:
-        h = d // 2
-        W = np.zeros_like(L)
-        W[:, :h, :h] = _triangular_inverse(L[:, :h, :h])
-        W[:, h:, h:] = _triangular_inverse(L[:, h:, h:])
-        W[:, h:, :h] = -np.matmul(W[:, h:, h:], np.matmul(L[:, h:, :h], W[:, :h, :h]))
-        return W
-    if G < 4 * d:
-        return np.linalg.inv(L.transpose(0, 2, 1)).transpose(0, 2, 1)
-    W = np.zeros_like(L)
-    reciprocal = 1.0 / np.diagonal(L, axis1=1, axis2=2)
-    W[:, 0, 0] = reciprocal[:, 0]
-    for j in range(1, d):
-        W[:, j, :j] = np.matmul(L[:, j:j + 1, :j], W[:, :j, :j])[:, 0, :] * -reciprocal[:, j:j + 1]
-        W[:, j, j] = reciprocal[:, j]
-    return W
 
 
 def coupled_nodes(information: np.ndarray, point: np.ndarray, independent: bool) -> np.ndarray:
