@@ -8,6 +8,7 @@ import dataclasses
 import io
 import itertools
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -727,6 +728,10 @@ def test_cli_writes_the_exact_map_with_covariances(simulated_folder, tmp_path):
     assert "refined 12 maps:" in result.stderr and "from the tree join, 4 iterations, chi^2 " in result.stderr
     written = mapio.read_global_map(tmp_path / "g.csv")
     expected = refine(mapio.read_maps([simulated_folder]))
+    # each step's line also gives chi^2's change, the difference of the library's costs (3 digits)
+    changes = [float(c) for c in re.findall(r"^iteration \d+: chi\^2 = \S+ \(change (\S+)\)$", result.stderr, re.M)]
+    np.testing.assert_allclose(changes, np.diff(expected.costs), rtol=5e-3)
+    assert len(changes) == expected.iterations and "iteration 0: chi^2 = " + f"{expected.costs[0]:.10g}\n" in result.stderr
     np.testing.assert_array_equal(written.features, expected.global_map.features)
     np.testing.assert_array_equal(written.pose_covariances, expected.global_map.pose_covariances)
 
