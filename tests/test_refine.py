@@ -8,6 +8,7 @@ import dataclasses
 import io
 import itertools
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -614,6 +615,38 @@ def test_a_shortened_step_does_not_stop_the_solver_far_from_the_optimum():
     assert abs(found.x[0]) < 0.33                  # atan(x)^2 <= 0.1: the optimum to the tolerance
 
 
+class ScaledArctangentProblem(ArctangentProblem):
+    """:class:`ArctangentProblem` with its first residual scaled, ``(c atan x, b)``: Gauss-Newton's step is the
+    same, its gain c^2 times as large. ``curvatures`` records, per linearisation, whether Newton's term was
+    asked for."""
+
+    def __init__(self, b: float, c: float):
+        super().__init__(b)
+        self.c = c
+        self.curvatures: list[bool] = []
+
+    def cost(self, x):
+        return float((self.c * np.arctan(x[0])) ** 2 + self.b ** 2)
+
+    def linearise(self, x, curvature=False):
+        self.curvatures.append(curvature)
+        r, j = self.c * np.arctan(x[0]), self.c / (1.0 + x[0] ** 2)
+        found = (np.array([j * j]), np.array([j * r]), self.cost(x))
+        return found + (np.array([r * -2.0 * x[0] * self.c / (1.0 + x[0] ** 2) ** 2]),) if curvature else found
+
+
+@pytest.mark.parametrize("scale, newton", [(2.0, True), (10.0, False)])
+def test_a_newton_step_follows_only_a_step_of_at_most_three_standard_deviations(scale, newton):
+    """From x = 0.5 Gauss-Newton's step lands at x = 0.5 - 1.25 atan(0.5) = -0.0795 and lowers chi^2 by
+    c^2 (atan(0.5)^2 - atan(0.0795)^2) = 0.2087 c^2 (by hand), a part in 10^7 of chi^2 (b^2 = 10^8) or
+    less: near the optimum by the relative test. With c = 2 (0.83) Newton's step follows; with c = 10 (20.9,
+    a step of 4.6 standard deviations) Gauss-Newton's does (docs/method.md#solver)."""
+    problem = ScaledArctangentProblem(1e4, scale)
+    found = minimise(problem, np.array([0.5]))
+    assert found.converged and abs(found.x[0]) < 1e-3
+    assert problem.curvatures[0] is False and problem.curvatures[1] is newton   # after the first step
+
+
 @pytest.mark.parametrize("seed", [0, 6])
 def test_the_default_start_reaches_the_optimum_a_start_at_the_truth_reaches(seed):
     """1000-map simulations (two laps): the default start (the tree join) reaches the chi^2 and the map
@@ -695,6 +728,10 @@ def test_cli_writes_the_exact_map_with_covariances(simulated_folder, tmp_path):
     assert "refined 12 maps:" in result.stderr and "from the tree join, 4 iterations, chi^2 " in result.stderr
     written = mapio.read_global_map(tmp_path / "g.csv")
     expected = refine(mapio.read_maps([simulated_folder]))
+    # each step's line also gives chi^2's change, the difference of the library's costs (3 digits)
+    changes = [float(c) for c in re.findall(r"^iteration \d+: chi\^2 = \S+ \(change (\S+)\)$", result.stderr, re.M)]
+    np.testing.assert_allclose(changes, np.diff(expected.costs), rtol=5e-3)
+    assert len(changes) == expected.iterations and "iteration 0: chi^2 = " + f"{expected.costs[0]:.10g}\n" in result.stderr
     np.testing.assert_array_equal(written.features, expected.global_map.features)
     np.testing.assert_array_equal(written.pose_covariances, expected.global_map.pose_covariances)
 

@@ -235,12 +235,17 @@ def given(ctx: click.Context, parameters: dict[str, str]) -> list[str]:
 
 
 def iteration_printer(ctx: click.Context) -> Callable[[int, float], None] | None:
-    """With -v, the exact solve's chi^2 after every step on stderr; else None."""
+    """With -v, the exact solve's chi^2 after every step on stderr, and its change: on a long chain the last
+    steps change it by 1e-11 relative, below the ten digits shown, while they move the estimate by metres
+    (docs/method.md#solver); else None."""
     if not ctx.obj["verbose"]:
         return None
+    previous: list[float] = []
 
     def show(iteration: int, cost: float) -> None:
-        say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}")
+        change = f" (change {cost - previous[0]:+.3g})" if previous else ""
+        previous[:] = [cost]
+        say(ctx, f"iteration {iteration}: chi^2 = {cost:.10g}{change}")
 
     return show
 

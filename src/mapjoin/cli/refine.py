@@ -43,8 +43,8 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     --covariance, --solver and --jobs as `mapjoin join` makes it; --report writes that
     fast join's per-join report, the table `join --report` writes). The global
     map holds the marginal covariance of every feature and pose (cov_* columns in CSV,
-    cov in YAML) unless --no-covariances. With -v, chi^2 is printed after every step; a
-    warning says when the final chi^2 is implausible for its degrees of freedom. A
+    cov in YAML) unless --no-covariances. With -v, chi^2 and its change are printed after
+    every step; a warning says when the final chi^2 is implausible for its degrees of freedom. A
     summary (maps, features, poses, the fast join's minima, iterations, chi^2, time) ends
     on stderr; on a terminal a progress bar shows the fast join.
 

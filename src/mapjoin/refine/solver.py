@@ -31,6 +31,7 @@ _MAX_DAMPING = 1e16  # Marquardt lambda at which the solver gives up looking for
 _HALVINGS = 10       # an overshooting Gauss-Newton step is tried at 1/2 ... 1/2^10 of its length before damping
 _NEWTON_FAILURES = 3  # Newton steps that may fail (no descent, no decrease) before Gauss-Newton for good
 _NEAR = 1e-3          # Newton's steps only after a step that gained at most this (relative): near the optimum
+_WITHIN = 9.0         # ... and lowered chi^2 by at most this (absolute): a step of at most three standard deviations
 
 
 @dataclass
@@ -81,17 +82,24 @@ class _Mode:
         self.newton = False
         self.failures += 1
 
-    def accept(self, ratio: float, gain: float) -> None:
-        """After an accepted step of gain ratio ``ratio`` that lowered chi^2 by ``gain`` (relative):
-        less damping (Nielsen), and near the optimum (a good undamped step that gained at most
-        :data:`_NEAR`) Newton's quadratic convergence. Far from it the second-order term misleads:
-        Newton's steps taken after every good step led the tree's start of a 1000-map simulation
-        (seed 6) into a local minimum 10 % above the optimum that Gauss-Newton reaches from there."""
+    def accept(self, ratio: float, gain: float, lowered: float) -> None:
+        """After an accepted step of gain ratio ``ratio`` that lowered chi^2 by ``gain`` (relative) and by
+        ``lowered`` (absolute): less damping (Nielsen), and near the optimum (a good undamped step that gained at
+        most :data:`_NEAR` and at most :data:`_WITHIN`) Newton's quadratic convergence. Far from it the
+        second-order term misleads: Newton's steps taken after every good step led the tree's start of a
+        1000-map simulation (seed 6) into a local minimum 10 % above the optimum that Gauss-Newton reaches from
+        there. The absolute bound makes "near" mean the same on every problem size: chi^2 is the squared
+        Mahalanobis distance, so a step that lowered it by at most 9 moved the estimate by about three of its
+        standard deviations or less, whereas 1e-3 of chi^2 is 284 (17 standard deviations) at 10^4 maps; there
+        the first Newton step, taken after a Gauss-Newton step that gained 20.7, moved the estimate 2.3 m along
+        the chain's flattest directions where Gauss-Newton's lands within 0.14 m of the optimum, and cost an
+        iteration (docs/method.md#solver)."""
         self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
         if self.damping < 1e-12:
             self.damping = 0.0
         self.growth = 2.0
-        self.newton = self.damping == 0.0 and ratio > 0.5 and self.failures < _NEWTON_FAILURES and gain <= _NEAR
+        self.newton = (self.damping == 0.0 and ratio > 0.5 and self.failures < _NEWTON_FAILURES and gain <= _NEAR
+                       and lowered <= _WITHIN)
 
     def damp(self) -> bool:
         """After a rejected Gauss-Newton step: more damping; False past the limit."""
@@ -107,7 +115,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
     search along it), with Marquardt damping ``lambda diag(J^T J)`` adapted by the gain ratio
     (Nielsen) after one that does not; after a good undamped step, Newton's (``J^T J`` plus
     the second-order term, for quadratic convergence on these non-zero-residual problems)
-    once steps gain at most 1e-3 of chi^2 (near the optimum; farther away its steps can jump to
+    once steps gain at most 1e-3 of chi^2 and at most 9 (near the optimum; farther away its steps can jump to
     another basin), falling back to Gauss-Newton until the next such step if a Newton step is
     not a descent or does not lower the cost (for good after three such failures). An undamped step
     predicted to lower chi^2 by at most ``tolerance`` relative is accepted unless chi^2 rises
@@ -217,7 +225,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             # comparison is rounding noise (it would make where the solver stops random), and the model's
             # minimiser is the better estimate
             mode.accept((cost - trial_cost) / predicted if predicted > 0 else 1.0,
-                        (cost - trial_cost) / cost if cost > 0 else 0.0)
+                        (cost - trial_cost) / cost if cost > 0 else 0.0, cost - trial_cost)
             x, previous = trial, cost
             # the cost change stops the solver only after a full undamped step that was also predicted to
             # change chi^2 that little: a shortened or damped step gains little because it is short, not
