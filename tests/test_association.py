@@ -141,7 +141,7 @@ def test_joins_matched_together_match_as_alone(brute_force, monkeypatch):
     """Three joins in one call (as a tree level) give each join's own association, whether the candidates
     come from all pairs or from the grid's cells."""
     monkeypatch.setattr("mapjoin.association.BRUTE_FORCE_PAIRS", 1 << 30 if brute_force else 0)
-    monkeypatch.setattr("mapjoin.association_grid.ALL_PAIRS", 1 << 30 if brute_force else 0)
+    monkeypatch.setattr("mapjoin.association.grid.ALL_PAIRS", 1 << 30 if brute_force else 0)
     rng = np.random.default_rng(8)
     problems = []
     for _ in range(3):

@@ -1,4 +1,4 @@
-"""Step 2's junction rule (mapjoin.association_junction): the link's variance relative to its own map against the
+"""Step 2's junction rule (mapjoin.association.junction): the link's variance relative to its own map against the
 covariance propagated through finite differences of the pose composition, the rows it picks against a loop, and the
 pairs it adds on simulated trees against the truth."""
 
@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from mapjoin import association
 from mapjoin.association import join_associated, local_ids
-from mapjoin.association_junction import free_pairs, own_link_variances, undrifted
+from mapjoin.association.junction import free_pairs, own_link_variances, undrifted
 from mapjoin.se2 import compose
 from mapjoin.simulation import simulate
 

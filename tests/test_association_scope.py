@@ -1,4 +1,4 @@
-"""Step 6's scope (mapjoin.association_scope): the drift between two sightings against the dense sums over each way
+"""Step 6's scope (mapjoin.association.loop_scope): the drift between two sightings against the dense sums over each way
 along the chain and through its ties, the least over a join's voters against a loop over them, the votes' voters
 against a planted correction, and a loop closure whose far part the correction does not hold against the truth."""
 
@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin.association import match_with_drift
-from mapjoin.association_drift import SightingDrift
-from mapjoin.association_loops import rigid_votes
-from mapjoin.association_scope import beyond_voters, chain_drift, voter_drift
+from mapjoin.association.feature_drift import SightingDrift
+from mapjoin.association.loop_scope import beyond_voters, chain_drift, voter_drift
+from mapjoin.association.loop_votes import rigid_votes
 from mapjoin.se2 import compose
 
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .drift import ChainDrift, drift_variance
+from ..drift import ChainDrift, drift_variance
 
 __all__ = ["SightingDrift"]
 

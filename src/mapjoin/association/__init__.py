@@ -17,7 +17,7 @@ join (sequential and tree) which features of the right piece are features of the
    ``r^T S^-1 r`` is within the ``gate`` quantile of a chi-square with 2 degrees of freedom
    (default 0.999: a true pair is refused once in a thousand).
    A tree join also associates its undrifted features alone, under the link's variance relative to its own map,
-   and adds the pairs of features left unpaired (the junction rule, :mod:`mapjoin.association_junction`).
+   and adds the pairs of features left unpaired (the junction rule, :mod:`mapjoin.association.junction`).
 3. **Nearest neighbour, when clear.** A pair is taken when each of its features is the other's nearest
    candidate and each one's nearest *rival* is at least ``margin`` farther (squared Mahalanobis distance;
    default 9.2 = 2 ln 100: the nearest is a hundred times likelier). A rival is a candidate that is a
@@ -43,28 +43,28 @@ join (sequential and tree) which features of the right piece are features of the
 6. **Loop closures** (:func:`match_with_drift`). Where a map meets features last seen many maps before, the
    chain's drift since then has moved them, relative to the link, by more than the gate and the features'
    spacing. Each feature's drift variance ``D`` since its last sighting (a right piece's feature: up to its
-   first) comes from :mod:`mapjoin.association_drift`, which the hooks fill as the joins are made; among the
+   first) comes from :mod:`mapjoin.association.feature_drift`, which the hooks fill as the joins are made; among the
    features steps 2 to 5 left unpaired, the candidates within the drift's gate vote, two pairs at a time, for
-   the one rigid correction of the link that the drift made (:mod:`mapjoin.association_loops`); a join whose
+   the one rigid correction of the link that the drift made (:mod:`mapjoin.association.loop_votes`); a join whose
    best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other
    correction's agreement) associates its unpaired features again, steps 2 to 5 around the corrected link, and keeps
    a pair where it is clear under the correction with its drift relative to the voters, or under the link with its
-   drift (:mod:`mapjoin.association_scope`). Then the undrifted features the link's correction moved by more than
+   drift (:mod:`mapjoin.association.loop_scope`). Then the undrifted features the link's correction moved by more than
    their noise vote once more, the same way, each with the squared distance it moved its prediction as its spread:
    a correction set by drifted pairs is a drift of its own for the features near the link.
-7. **A strained map so far** (:mod:`mapjoin.association_strain`). Before step 6, a pair of
+7. **A strained map so far** (:mod:`mapjoin.association.strain`). Before step 6, a pair of
    steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
-   feature seen in one map with it lies within its drift (:data:`mapjoin.association_strain.DRIFT_MARGIN`): its
+   feature seen in one map with it lies within its drift (:data:`mapjoin.association.strain.DRIFT_MARGIN`): its
    small offset is no evidence then. ``D`` is taken the shorter way through the chain's ties (a join that matched
    :data:`TIE_SUPPORT` drifted feature ties its map to theirs; a tree join's ties are those inside its pieces)
    plus the strain of the joins that fused features partway between two estimates (a quarter of each pair's
-   squared residual, per feature and per tie; :meth:`mapjoin.association_drift.SightingDrift.settled`,
-   :meth:`~mapjoin.association_drift.SightingDrift.settled_after`).
-8. **A lone drifted pair** (:mod:`mapjoin.association_lone`). After step 7, a pair whose drift is
-   :data:`~mapjoin.association_lone.LONE_DRIFT` times its noise, in a join with fewer than
-   :data:`~mapjoin.association_lone.CHECKED` such pairs (nothing confirms its drift), is left new when another left
+   squared residual, per feature and per tie; :meth:`mapjoin.association.feature_drift.SightingDrift.settled`,
+   :meth:`~mapjoin.association.feature_drift.SightingDrift.settled_after`).
+8. **A lone drifted pair** (:mod:`mapjoin.association.lone`). After step 7, a pair whose drift is
+   :data:`~mapjoin.association.lone.LONE_DRIFT` times its noise, in a join with fewer than
+   :data:`~mapjoin.association.lone.CHECKED` such pairs (nothing confirms its drift), is left new when another left
    feature, even one never seen with the chosen one (its second copy), lies within half its drift
-   (:data:`~mapjoin.association_lone.LONE_MARGIN`) and a rival seen with it is within ``margin`` under the drift.
+   (:data:`~mapjoin.association.lone.LONE_MARGIN`) and a rival seen with it is within ``margin`` under the drift.
 
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
@@ -72,7 +72,7 @@ by map, then by local id.
 
 Cost: :func:`match_features` associates all the joins of a tree level at once (as the tree joins
 them), and the sequential join is a batch of one; candidates are all pairs of a join up to
-:data:`BRUTE_FORCE_PAIRS`, else found with a grid (:mod:`mapjoin.association_grid`). Only a join whose pairs fail
+:data:`BRUTE_FORCE_PAIRS`, else found with a grid (:mod:`mapjoin.association.grid`). Only a join whose pairs fail
 the joint test is searched on its own.
 
 :func:`local_ids` turns a map set with global ids into one with ids local to each map and
@@ -90,23 +90,23 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .association_drift import SightingDrift
-from .association_grid import pairs_within
-from .association_junction import free_pairs, own_link_variances, undrifted
-from .association_lone import LONE_MARGIN, lone_drifted
-from .association_loops import rigid_votes
-from .association_scope import VoterDrift, beyond_voters, voters_drift
-from .association_strain import drift_rivals
-from .consistency import chi2_quantile
-from .covariance import DEFAULT_COVARIANCE, CovarianceMode
-from .joining import join
-from .joins import JoinRecord, Strategy
-from .maps import GlobalMap, LocalMap, locate
-from .onestep import as_complex
+from ..consistency import chi2_quantile
+from ..covariance import DEFAULT_COVARIANCE, CovarianceMode
+from ..joining import join
+from ..joins import JoinRecord, Strategy
+from ..maps import GlobalMap, LocalMap, locate
+from ..onestep import as_complex
+from .feature_drift import SightingDrift
+from .grid import pairs_within
+from .junction import free_pairs, own_link_variances, undrifted
+from .lone import LONE_MARGIN, lone_drifted
+from .loop_scope import VoterDrift, beyond_voters, voters_drift
+from .loop_votes import rigid_votes
+from .strain import drift_rivals
 
 if TYPE_CHECKING:
-    from .joins import _Pieces
-    from .onestep import Solver
+    from ..joins import _Pieces
+    from ..onestep import Solver
 
 __all__ = [
     "DEFAULT_GATE",
@@ -155,7 +155,7 @@ ROUNDS = 4
 #: this many pairs once associated around it
 LOOP_SUPPORT = 4
 #: ... and its pairs of right features agreeing on the correction at least this many times the runner-up's (a
-#: rival association's: :func:`mapjoin.association_loops.rigid_votes`)
+#: rival association's: :func:`mapjoin.association.loop_votes.rigid_votes`)
 LOOP_CLEAR = 2
 #: a join ties its map to the map that last saw its drifted pairs' features when it has at least this many (step 7):
 #: one, since a chain of small maps meets its old features one to three a join (VicPark 6898: with 4, as a loop
@@ -255,7 +255,7 @@ def _candidates(left: np.ndarray, left_join: np.ndarray, predicted: np.ndarray, 
     """Pairs (left row, right row) of the same join whose Euclidean distance is at most ``radius[right]``
     (complex points; rows grouped by join), sorted by left row then right row: for one join with few pairs in
     reach of the right points' bounding box, every such pair at once; else by a grid
-    (:func:`mapjoin.association_grid.pairs_within`)."""
+    (:func:`mapjoin.association.grid.pairs_within`)."""
     if joins == 1 and len(predicted):  # one join: the left points in the right ones' reach, then the outer difference
         reach = float(radius.max())
         rows = ((left.real >= predicted.real.min() - reach) & (left.real <= predicted.real.max() + reach)
@@ -667,8 +667,8 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     then the loop closures among the features left unpaired (:func:`_closed_loops`, step 6), then those among the
     undrifted features still unpaired that the link's correction moved (``moved=True``):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
-    (:mod:`mapjoin.association_drift`), or None for none; ``scope`` gives a loop closure's pairs their drift relative
-    to its voters (:mod:`mapjoin.association_scope`; None: the correction holds for every pair)."""
+    (:mod:`mapjoin.association.feature_drift`), or None for none; ``scope`` gives a loop closure's pairs their drift
+    relative to its voters (:mod:`mapjoin.association.loop_scope`; None: the correction holds for every pair)."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
     found = match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, gate, margin, left_sightings, right_sightings)
@@ -697,7 +697,7 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
 def _unstrained(found: Matches, left: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
                 right: np.ndarray, right_join: np.ndarray, drift: np.ndarray, noise: np.ndarray,
                 left_sightings: np.ndarray | None) -> Matches:
-    """``found`` less the pairs :func:`mapjoin.association_strain.drift_rivals` names (``drift``, ``noise``: each
+    """``found`` less the pairs :func:`mapjoin.association.strain.drift_rivals` names (``drift``, ``noise``: each
     pair's, :func:`_pair_noise`), whose right features are left new and counted ambiguous (``found`` itself when
     none); the right features are predicted through each join's link as ``found`` corrected it."""
     drop = drift_rivals(left, left_join, found.left, _corrected(found, link_xy, link_phi, right, right_join), noise,
@@ -719,11 +719,11 @@ def _pair_noise(left_covariances: np.ndarray, right_covariances: np.ndarray, lef
 def _unconfirmed(found: Matches, left: np.ndarray, left_join: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
                  right: np.ndarray, right_join: np.ndarray, drift: np.ndarray, noise: np.ndarray,
                  left_sightings: np.ndarray | None = None, margin: float = DEFAULT_MARGIN) -> Matches:
-    """``found`` less its lone drifted pairs (:func:`mapjoin.association_lone.lone_drifted`; ``drift``, ``noise``:
+    """``found`` less its lone drifted pairs (:func:`mapjoin.association.lone.lone_drifted`; ``drift``, ``noise``:
     each pair's)
     that have both another left feature of their join within half their drift, seen with the chosen one or not (a
-    second copy: :func:`mapjoin.association_strain.drift_rivals` without ``left_sightings``, margin
-    :data:`mapjoin.association_lone.LONE_MARGIN`), and a rival seen with it within step 3's ``margin`` (the same
+    second copy: :func:`mapjoin.association.strain.drift_rivals` without ``left_sightings``, margin
+    :data:`mapjoin.association.lone.LONE_MARGIN`), and a rival seen with it within step 3's ``margin`` (the same
     function with the sightings; step 8); their right features are left new and counted ambiguous."""
     lone = lone_drifted(right_join[found.right], noise, drift, len(link_xy))
     if not lone.any():
@@ -758,13 +758,13 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     """``found`` with the pairs of the loop closures among the features it left unpaired, or None when there are
     none. Candidate pairs within the drift's gate (the noise, ``D`` of both features and the link's spread)
     whose drift is at least their noise vote for rigid corrections of the link as ``found`` corrected it
-    (:func:`mapjoin.association_loops.rigid_votes`; cells: twice the typical noise, and the turn it makes over
+    (:func:`mapjoin.association.loop_votes.rigid_votes`; cells: twice the typical noise, and the turn it makes over
     the free right features' extent); a join whose best correction has :data:`LOOP_SUPPORT` right features and
     :data:`LOOP_CLEAR` times the runner-up's agreement is associated again, its unpaired features only, around
     its link so corrected (:func:`match_features`: the gate, the clear nearest neighbour, the joint test, the
     rounds); a pair so found is kept when it is clear under the correction with its drift relative to the voters
     (``scope``: the votes within a cell of the correction) or under the link with its drift
-    (:func:`mapjoin.association_scope.beyond_voters`), else counted rejected; a loop closure of fewer than
+    (:func:`mapjoin.association.loop_scope.beyond_voters`), else counted rejected; a loop closure of fewer than
     :data:`LOOP_SUPPORT` pairs is dropped.
 
     ``moved``: the same for the *undrifted* pairs (``D`` of both features below their noise) whose prediction the
@@ -956,7 +956,7 @@ class _Associator:
     from the pieces at the next level). Compact ids (indices of the joins' arrays) are handed out in order of
     first sighting; the tree renames a right piece's features to the left piece's ids, so each input row's
     current id is kept. ``points``: each map's feature positions (sorted by id, complex), ``end_poses`` the
-    maps' end poses, for :class:`mapjoin.association_drift.SightingDrift`."""
+    maps' end poses, for :class:`mapjoin.association.feature_drift.SightingDrift`."""
 
     def __init__(self, covariances: Sequence[np.ndarray], points: Sequence[np.ndarray], end_poses: np.ndarray,
                  gate: float, margin: float = DEFAULT_MARGIN):
@@ -1056,7 +1056,7 @@ class _Associator:
         pairs corrected it: a fused feature sits about halfway), and the chain's ties: a join whose pairs include
         :data:`TIE_SUPPORT` drifted ones (``pair_drift``: each pair's before the join, at least its noise) measured its
         link, at ``junctions[join]``, relative to the map that last saw their left features (``left_ids``, compact;
-        the median), strained by their strains' median (:meth:`mapjoin.association_drift.SightingDrift.tie`)."""
+        the median), strained by their strains' median (:meth:`mapjoin.association.feature_drift.SightingDrift.tie`)."""
         pair_join = right_join[found.right]
         strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
         noise = _pair_noise(self.covariances, right_covariances, left_ids, found.right)
@@ -1147,7 +1147,7 @@ class _Associator:
                         link_xy: np.ndarray, link_phi: np.ndarray, link_map: np.ndarray, right: np.ndarray,
                         right_ids: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray) -> Matches:
         """``found`` (a tree level's association) with the pairs of its joins' undrifted features
-        (:mod:`mapjoin.association_junction`): steps 2-5 among them under each link's variance relative to its own
+        (:mod:`mapjoin.association.junction`): steps 2-5 among them under each link's variance relative to its own
         map, a pair kept when ``found`` left both its features unpaired."""
         lefts, rights = undrifted(self.drift.last_map[left_ids], link_map[left_join], self.drift.first_map[right_ids],
                                   link_map[right_join])
