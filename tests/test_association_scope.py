@@ -45,6 +45,25 @@ def dense(v, p, poses, first, second, f):
 
 
 @settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 12))
+def test_drift_between_two_maps_is_the_dense_sum_either_way_and_broadcasts(seed, n):
+    """SightingDrift.between (the piece of every way: the direct one and those through a tie) against the sum term
+    by term, for every (map, other map) of a grid at once, each row at its own point; 0 between a map and itself."""
+    rng = np.random.default_rng(seed)
+    drift, v, p, poses = random_chain(rng, n, 0)
+    maps, others = rng.integers(0, n, 5), rng.integers(0, n, 4)
+    points = rng.normal(size=5) * 5 + 1j * rng.normal(size=5) * 5
+    found = drift.between(maps[:, None], others[None, :], points[:, None])
+    assert found.shape == (5, 4)
+    for k in range(5):
+        for u in range(4):
+            assert math.isclose(found[k, u], dense(v, p, poses, maps[k], others[u], points[k]), rel_tol=1e-9,
+                                abs_tol=1e-12)
+    assert np.array_equal(drift.between(others[None, :], maps[:, None], points[:, None]), found)
+    assert not drift.between(maps, maps, points).any()
+
+
+@settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(3, 12), ties=st.integers(0, 4))
 def test_chain_drift_is_the_least_dense_sum_over_the_ways(seed, n, ties):
     """D between two sightings is the least of the direct way and, per tie (m, c, s), the junctions from the

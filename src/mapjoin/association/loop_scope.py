@@ -25,7 +25,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..drift import drift_variance
 from .feature_drift import SightingDrift
 from .strain import drift_rivals
 
@@ -46,25 +45,17 @@ def chain_drift(drift: SightingDrift, maps: np.ndarray, others: np.ndarray, poin
     link's.
     ``rows``: each of ``others`` compared with feature ``rows[k]`` of ``maps`` and ``points`` (None: one each), so
     that a feature's way to each tie is summed once however many maps it is compared with."""
-
-    def between(first: np.ndarray, second: np.ndarray, at: np.ndarray) -> np.ndarray:
-        low, high = np.minimum(first, second), np.maximum(first, second)
-        shape = np.broadcast(low, high, at).shape
-        sums = drift.sums[high + 1] - drift.sums[low + 1]
-        return drift_variance(np.broadcast_to(sums, (*shape, 5)).reshape(-1, 5),
-                              np.broadcast_to(at, shape).ravel()).reshape(shape)
-
     if rows is None:
         rows = np.arange(len(others))
-    best = between(maps[rows], others, points[rows])
+    best = drift.between(maps[rows], others, points[rows])
     if not drift.ties or not len(others):
         return best
     old_map, junction, strain = drift.tie_arrays()
     poses = drift.chain.poses
     for near, far in ((old_map, junction), (junction, old_map)):  # the tie taken from either end
         moved = points[:, None] - poses[near] + poses[far]
-        to_tie = between(maps[:, None], near[None, :], points[:, None]) + strain  # per feature, then per comparison
-        way = to_tie[rows] + between(far[None, :], others[:, None], moved[rows])
+        to_tie = drift.between(maps[:, None], near[None, :], points[:, None]) + strain  # per feature, then per comparison
+        way = to_tie[rows] + drift.between(far[None, :], others[:, None], moved[rows])
         best = np.minimum(best, way.min(axis=1))
     return best
 
