@@ -16,9 +16,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin import io as mapio
-from mapjoin.association import (_gate, _joint_distances, _joint_terms, correspondence_rows,
-                                 feature_covariances, inverted,
-                                 join_associated, link_errors, local_ids, match_features, rotated, sighting_bits)
+from mapjoin.association import (correspondence_rows, feature_covariances, inverted, join_associated, link_errors,
+                                 local_ids, match_features, rotated, sighting_bits)
+from mapjoin.association.gate import _gate
+from mapjoin.association.joint import _joint_distances, _joint_terms
 from mapjoin.joining import join
 from mapjoin.maps import LocalMap
 from mapjoin.simulation import simulate
@@ -140,8 +141,8 @@ def match_one(left, left_variances, link_xy, link_phi, link_variances, right, ri
 def test_joins_matched_together_match_as_alone(brute_force, monkeypatch):
     """Three joins in one call (as a tree level) give each join's own association, whether the candidates
     come from all pairs or from the grid's cells."""
-    monkeypatch.setattr("mapjoin.association.BRUTE_FORCE_PAIRS", 1 << 30 if brute_force else 0)
-    monkeypatch.setattr("mapjoin.association_grid.ALL_PAIRS", 1 << 30 if brute_force else 0)
+    monkeypatch.setattr("mapjoin.association.gate.BRUTE_FORCE_PAIRS", 1 << 30 if brute_force else 0)
+    monkeypatch.setattr("mapjoin.association.grid.ALL_PAIRS", 1 << 30 if brute_force else 0)
     rng = np.random.default_rng(8)
     problems = []
     for _ in range(3):
@@ -170,11 +171,11 @@ def test_a_tree_level_settles_joins_without_changing_them(rounds, monkeypatch):
     go on: every level's outcome is consistent (each right row paired once, sorted; the ambiguous counts are the
     undecided rows per join, which no pair uses), and the ids are those of the known-id truth's partition
     wherever the tree found them, as with one round less or more (ROUNDS = 2, 3, 4)."""
-    monkeypatch.setattr("mapjoin.association.ROUNDS", rounds)
-    from mapjoin import association
+    monkeypatch.setattr("mapjoin.association.rounds.ROUNDS", rounds)
+    from mapjoin.association import associator, drifted
 
     seen = []
-    original = association.match_features
+    original = match_features
 
     def checked(*args, **options):
         found = original(*args, **options)
@@ -186,7 +187,8 @@ def test_a_tree_level_settles_joins_without_changing_them(rounds, monkeypatch):
         seen.append(len(args[3]))
         return found
 
-    monkeypatch.setattr(association, "match_features", checked)
+    for caller in (drifted, associator):  # every call: steps 2-5, the loop closures', the junction rule's
+        monkeypatch.setattr(caller, "match_features", checked)
     local, truth = local_ids(simulate(40, seed=4).maps)
     found = join_associated(local, strategy="tree")
     links, missed, _ = link_errors(local, truth, found)
@@ -253,7 +255,7 @@ def test_rounds_find_the_pairs_the_link_error_hid(monkeypatch):
             np.array([(1e-6, 6e-5)]), right, np.full(20, 1e-4), np.zeros(20, np.intp))
     found = match_features(*args)
     assert found.left.tolist() == found.right.tolist() == list(range(20))
-    monkeypatch.setattr("mapjoin.association.ROUNDS", 1)
+    monkeypatch.setattr("mapjoin.association.rounds.ROUNDS", 1)
     assert 0 < len(match_features(*args).right) < 20
 
 

@@ -1,4 +1,4 @@
-"""The association's shortcuts (mapjoin.association): each one leaves the association as it was. Step 6's exit when no
+"""The association's shortcuts (mapjoin.association's rooms): each one leaves the association as it was. Step 6's exit when no
 pair can vote against the pairs that vote, counted by brute force; the rounds' candidate search against every pair
 within the radius; the median against numpy's; the rounds' reuse of a repeated joint test and of the last search, and
 step 6's exit and the pairs' drift asked once per pair, against the association with each shortcut disabled, on
@@ -13,9 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import mapjoin.association as association
 from mapjoin import io as mapio
-from mapjoin.association import join_associated, local_ids
+from mapjoin.association import associator, drifted, gate, join_associated, local_ids, rounds
 from mapjoin.simulation import simulate
 
 values = st.lists(st.sampled_from([0.0, 1e-3, 0.01, 0.1, 0.5, 1.0, 2.0, 10.0]), min_size=1, max_size=6)
@@ -42,7 +41,7 @@ def test_no_vote_is_said_only_where_no_pair_votes(data, left_noise, right_noise,
     right_drift = data.draw(st.lists(st.sampled_from([0.0, 0.01, 0.3, 1.0, 5.0]), min_size=rights, max_size=rights))
     reach = data.draw(st.lists(st.sampled_from([0.0, 0.02, 0.4, 3.0]), min_size=rights, max_size=rights))
     arrays = [np.array(a) for a in (left_noise, left_drift, right_noise, right_drift, reach)]
-    may = association._may_vote(arrays[0], arrays[1], arrays[2], arrays[4] if moved else arrays[3], moved)
+    may = drifted._may_vote(arrays[0], arrays[1], arrays[2], arrays[4] if moved else arrays[3], moved)
     if votes_by_brute_force(left_noise, left_drift, right_noise, right_drift, reach, moved):
         assert may
 
@@ -50,10 +49,10 @@ def test_no_vote_is_said_only_where_no_pair_votes(data, left_noise, right_noise,
 def test_no_vote_where_every_drift_and_move_is_below_the_noise():
     """The exit is taken: features without drift (or a move of their prediction) below their noise vote nowhere."""
     noise = np.array([0.1, 0.2, 0.3])
-    assert not association._may_vote(noise, np.zeros(3), noise, np.zeros(3), False)
-    assert not association._may_vote(noise, np.zeros(3), noise, np.full(3, 0.1), True)
-    assert association._may_vote(noise, np.array([0.0, 0.0, 0.5]), noise, np.zeros(3), False)
-    assert association._may_vote(noise, np.zeros(3), noise, np.array([0.0, 0.0, 0.5]), True)
+    assert not drifted._may_vote(noise, np.zeros(3), noise, np.zeros(3), False)
+    assert not drifted._may_vote(noise, np.zeros(3), noise, np.full(3, 0.1), True)
+    assert drifted._may_vote(noise, np.array([0.0, 0.0, 0.5]), noise, np.zeros(3), False)
+    assert drifted._may_vote(noise, np.zeros(3), noise, np.array([0.0, 0.0, 0.5]), True)
 
 
 points = st.lists(st.tuples(st.floats(-20, 20), st.floats(-20, 20)), min_size=1, max_size=30)
@@ -68,7 +67,7 @@ def test_a_later_search_finds_every_pair_within_its_radius(left, right, radius, 
     left = np.array([complex(*p) for p in left])
     predicted = np.array([complex(*p) for p in right])
     first_radius = np.full(len(predicted), radius)
-    search = association._Searched()
+    search = gate._Searched()
     search(left, np.zeros(len(left), np.intp), predicted, np.zeros(len(predicted), np.intp), first_radius, 1)
     moved = predicted + complex(dx, dy) * radius * abs(shrink)
     second_radius = first_radius * (1 - shrink / 2)
@@ -84,15 +83,15 @@ def test_a_later_search_finds_every_pair_within_its_radius(left, right, radius, 
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.floats(-1e6, 1e6), min_size=1, max_size=40) | st.lists(st.integers(0, 500), min_size=1, max_size=9))
 def test_median_is_numpys(values):
-    assert association._median(np.array(values)) == float(np.median(np.array(values)))
+    assert rounds._median(np.array(values)) == float(np.median(np.array(values)))
 
 
 def associated(maps, strategy: str, monkeypatch, **disabled):
     """The global ids and per-join counts of ``join_associated``, with the shortcuts named in ``disabled`` replaced
-    by functions that never take them."""
+    by functions that never take them (in the room that calls them, :data:`CALLER`)."""
     with monkeypatch.context() as patch:
         for name, replacement in disabled.items():
-            patch.setattr(association, name, replacement)
+            patch.setattr(CALLER[name], name, replacement)
         found = join_associated(maps, strategy=strategy)
     return np.concatenate(found.global_ids), [(r.ambiguous, r.rejected) for r in found.report]
 
@@ -106,13 +105,15 @@ def always_may_vote(*_):
 
 
 def always_search():
-    return association._candidates
+    return gate._candidates
 
 
 def always_asked(pair_drift):
     return pair_drift
 
 
+#: where each shortcut is looked up when the association takes it
+CALLER = {"_repeated": rounds, "_may_vote": drifted, "_Searched": rounds, "_asked_once": associator}
 DISABLED = {"_repeated": never_repeated, "_may_vote": always_may_vote, "_Searched": always_search,
             "_asked_once": always_asked}
 
@@ -136,7 +137,7 @@ def test_shortcuts_change_no_association_of_a_loop_closing_dataset(data_dir, str
     taken = {"_repeated": 0, "_may_vote": 0}
 
     def counted(name):
-        original = getattr(association, name)
+        original = getattr(CALLER[name], name)
 
         def call(*arguments):
             answer = original(*arguments)
@@ -154,7 +155,7 @@ def test_shortcuts_change_no_association_of_a_loop_closing_dataset(data_dir, str
 @given(st.lists(st.lists(st.tuples(st.integers(0, 6), st.integers(0, 6), st.sampled_from([0.5, 1.0])), max_size=12),
                 min_size=1, max_size=5))
 def test_pair_drift_is_asked_once_per_pair_and_answered_as_asked_directly(asks):
-    """association._asked_once over a sequence of pair sets (each right row once, as a join's pairs are): every
+    """associator._asked_once over a sequence of pair sets (each right row once, as a join's pairs are): every
     answer is the function's own for that pair, and of each set only the pairs not in the set before it (same left
     row, right row and noise) are asked."""
     asked = []
@@ -163,7 +164,7 @@ def test_pair_drift_is_asked_once_per_pair_and_answered_as_asked_directly(asks):
         asked.append(set(zip(i.tolist(), j.tolist(), noise.tolist())))
         return i * 100.0 + j + noise / 8
 
-    remembered = association._asked_once(pair_drift)
+    remembered = associator._asked_once(pair_drift)
     before: set = set()
     for pairs in asks:
         pairs = list({j: (i, j, n) for i, j, n in pairs}.values())  # one pair per right row

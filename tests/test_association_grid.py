@@ -1,4 +1,4 @@
-"""The grid's candidate pairs of data association (association_grid.pairs_within) against every pair compared."""
+"""The grid's candidate pairs of data association (association.grid.pairs_within) against every pair compared."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapjoin.association_grid import pairs_within
+from mapjoin.association.grid import pairs_within
 
 
 def brute_force(left, left_join, right, right_join, radius):

@@ -1,4 +1,4 @@
-"""Step 2's junction rule (mapjoin.association_junction): the link's variance relative to its own map against the
+"""Step 2's junction rule (mapjoin.association.junction): the link's variance relative to its own map against the
 covariance propagated through finite differences of the pose composition, the rows it picks against a loop, and the
 pairs it adds on simulated trees against the truth."""
 
@@ -11,9 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapjoin import association
-from mapjoin.association import join_associated, local_ids
-from mapjoin.association_junction import free_pairs, own_link_variances, undrifted
+from mapjoin.association import associator, join_associated, local_ids
+from mapjoin.association.junction import free_pairs, own_link_variances, undrifted
 from mapjoin.se2 import compose
 from mapjoin.simulation import simulate
 
@@ -65,7 +64,7 @@ def test_the_junction_pairs_of_a_simulated_tree_are_true(count, seed, monkeypatc
     local, truth = local_ids(simulate(count, seed=seed).maps)
     true_rows = np.concatenate(truth)
     added = []
-    original = association._Associator._junction_pairs
+    original = associator._Associator._junction_pairs
 
     def checked(self, found, left, left_ids, *rest):
         result = original(self, found, left, left_ids, *rest)
@@ -76,7 +75,7 @@ def test_the_junction_pairs_of_a_simulated_tree_are_true(count, seed, monkeypatc
                 added.append(len(same) > 0)
         return result
 
-    monkeypatch.setattr(association._Associator, "_junction_pairs", checked)
+    monkeypatch.setattr(associator._Associator, "_junction_pairs", checked)
     join_associated(local, strategy="tree")
     assert all(added)
     if (count, seed) == (30, 11):

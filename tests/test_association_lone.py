@@ -1,4 +1,4 @@
-"""Lone drifted pairs in data association (docs/method.md#data-association, step 8): association_lone.lone_drifted
+"""Lone drifted pairs in data association (docs/method.md#data-association, step 8): association.lone.lone_drifted
 against a brute-force count, and a DLR-like join (a marker met again after drift lands beside an old marker mapped
 twice, the copies never seen together) against the truth."""
 
@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin.association import match_with_drift, sighting_bits
-from mapjoin.association_lone import CHECKED, LONE_DRIFT, lone_drifted
+from mapjoin.association.lone import CHECKED, LONE_DRIFT, lone_drifted
 
 
 @settings(max_examples=60, deadline=None)

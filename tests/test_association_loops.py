@@ -1,5 +1,5 @@
-"""Loop closures in data association: the drift since each feature's sighting (mapjoin.association_drift) against
-the dense sum over the junctions, the two-pair rigid votes (mapjoin.association_loops) against a planted correction,
+"""Loop closures in data association: the drift since each feature's sighting (association.feature_drift) against
+the dense sum over the junctions, the two-pair rigid votes (association.loop_votes) against a planted correction,
 and the association of a drifted loop closure (association.match_with_drift) against the truth."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapjoin import association_loops
+from mapjoin.association import loop_votes
 from mapjoin.association import LOOP_SUPPORT, match_features, match_with_drift
-from mapjoin.association_drift import SightingDrift
-from mapjoin.association_loops import DIFFERENT_CELLS, rigid_votes
+from mapjoin.association.feature_drift import SightingDrift
+from mapjoin.association.loop_votes import DIFFERENT_CELLS, rigid_votes
 from mapjoin.se2 import compose
 
 
@@ -192,7 +192,7 @@ def test_cells_count_their_distinct_right_features_and_pairs_as_a_dictionary(see
     coordinates, its distinct pairs of right features and, in the cells with their join's most pairs (where the best
     cell is chosen), its distinct right features (0 elsewhere, and everywhere when not asked for); cells far apart
     (2^21 cells between votes: the key from their spans would pass 2^62, each column is made compact) count alike."""
-    from mapjoin.association_loops import _fullest
+    from mapjoin.association.loop_votes import _fullest
 
     rng = np.random.default_rng(seed)
     join = np.sort(rng.integers(0, 3, votes))
@@ -322,20 +322,20 @@ def test_too_few_moved_features_or_none_in_the_map_make_no_loop_closure(seed, ne
 @settings(max_examples=40, deadline=None)
 @given(st.integers(33, 300), st.integers(0, 2**32 - 1), st.booleans(), st.booleans())
 def test_each_right_features_nearest_are_its_nearest(n, seed, lattice, tree):
-    """The votes' neighbours (association_loops._nearest, brute force in blocks or scipy's k-d tree beyond
+    """The votes' neighbours (loop_votes._nearest, brute force in blocks or scipy's k-d tree beyond
     BRUTE_FORCE) against a full sort of every distance: the same k smallest distances, never the point itself
     (on a lattice, whose ties may be broken either way, the distances still agree)."""
     rng = np.random.default_rng(seed)
     points = (rng.integers(0, 12, n) + 1j * rng.integers(0, 12, n)) * 3.0 if lattice else \
         rng.normal(size=n) * 20 + 1j * rng.normal(size=n) * 20
     points = points + 1e-9 * np.arange(n)  # no two points alike (a lattice's duplicates apart)
-    k = association_loops.NEIGHBOURS
-    saved = association_loops.BRUTE_FORCE
-    association_loops.BRUTE_FORCE = 0 if tree else saved
+    k = loop_votes.NEIGHBOURS
+    saved = loop_votes.BRUTE_FORCE
+    loop_votes.BRUTE_FORCE = 0 if tree else saved
     try:
-        near = association_loops._nearest(points, k)
+        near = loop_votes._nearest(points, k)
     finally:
-        association_loops.BRUTE_FORCE = saved
+        loop_votes.BRUTE_FORCE = saved
     assert near.shape == (n, k) and not (near == np.arange(n)[:, None]).any()
     distances = np.abs(points[:, None] - points[None, :])
     np.fill_diagonal(distances, np.inf)

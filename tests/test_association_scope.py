@@ -1,4 +1,4 @@
-"""Step 6's scope (mapjoin.association_scope): the drift between two sightings against the dense sums over each way
+"""Step 6's scope (mapjoin.association.loop_scope): the drift between two sightings against the dense sums over each way
 along the chain and through its ties, the least over a join's voters against a loop over them, the votes' voters
 against a planted correction, and a loop closure whose far part the correction does not hold against the truth."""
 
@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapjoin.association import match_with_drift
-from mapjoin.association_drift import SightingDrift
-from mapjoin.association_loops import rigid_votes
-from mapjoin.association_scope import beyond_voters, chain_drift, voter_drift
+from mapjoin.association.feature_drift import SightingDrift
+from mapjoin.association.loop_scope import beyond_voters, chain_drift, voter_drift
+from mapjoin.association.loop_votes import rigid_votes
 from mapjoin.se2 import compose
 
 
@@ -42,6 +42,25 @@ def dense(v, p, poses, first, second, f):
     """D over the junctions between maps ``first`` and ``second`` (either order) at point ``f``, term by term."""
     low, high = min(first, second), max(first, second)
     return sum(v[i] + p[i] * abs(f - complex(*poses[i, :2])) ** 2 / 2 for i in range(low + 1, high + 1))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 12))
+def test_drift_between_two_maps_is_the_dense_sum_either_way_and_broadcasts(seed, n):
+    """SightingDrift.between (the piece of every way: the direct one and those through a tie) against the sum term
+    by term, for every (map, other map) of a grid at once, each row at its own point; 0 between a map and itself."""
+    rng = np.random.default_rng(seed)
+    drift, v, p, poses = random_chain(rng, n, 0)
+    maps, others = rng.integers(0, n, 5), rng.integers(0, n, 4)
+    points = rng.normal(size=5) * 5 + 1j * rng.normal(size=5) * 5
+    found = drift.between(maps[:, None], others[None, :], points[:, None])
+    assert found.shape == (5, 4)
+    for k in range(5):
+        for u in range(4):
+            assert math.isclose(found[k, u], dense(v, p, poses, maps[k], others[u], points[k]), rel_tol=1e-9,
+                                abs_tol=1e-12)
+    assert np.array_equal(drift.between(others[None, :], maps[:, None], points[:, None]), found)
+    assert not drift.between(maps, maps, points).any()
 
 
 @settings(max_examples=30, deadline=None)

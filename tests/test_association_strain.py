@@ -1,5 +1,5 @@
-"""A strained map so far in data association: the drift through the chain's ties (association_drift.settled) against
-the dense sums over every way, the drifted pairs' rivals (association_strain.drift_rivals) against a brute-force
+"""A strained map so far in data association: the drift through the chain's ties (feature_drift.settled) against
+the dense sums over every way, the drifted pairs' rivals (strain.drift_rivals) against a brute-force
 loop, a DLR-like join (dense features, a drifted feature landing beside a different one) against the truth, and a
 chain of small maps (VicPark 6898's first 1000) against its true ids."""
 
@@ -20,8 +20,8 @@ from mapjoin.association import (
     match_with_drift,
     sighting_bits,
 )
-from mapjoin.association_drift import SightingDrift
-from mapjoin.association_strain import DRIFT_MARGIN, drift_rivals
+from mapjoin.association.feature_drift import SightingDrift
+from mapjoin.association.strain import DRIFT_MARGIN, drift_rivals
 from mapjoin.se2 import compose
 
 

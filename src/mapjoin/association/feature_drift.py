@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .drift import ChainDrift, drift_variance
+from ..drift import ChainDrift, drift_variance
 
 __all__ = ["SightingDrift"]
 
@@ -137,6 +137,17 @@ class SightingDrift:
         sums = self.sums[self.first_map[ids] + 1] - self.sums[link_map + 2]
         return drift_variance(sums, self.first_point[ids]), sums[:, 1]
 
+    def between(self, first: np.ndarray, second: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """``D`` over the junctions between maps ``first`` and ``second`` (either order along the chain) at the
+        dead-reckoned ``points``, broadcast together: the sums from the lower map's end to the higher's, as
+        :meth:`before` takes them from a sighting to a link. The ways through the chain's ties (:meth:`settled`,
+        :meth:`settled_after`, :func:`mapjoin.association.loop_scope.chain_drift`) are made of such pieces."""
+        low, high = np.minimum(first, second), np.maximum(first, second)
+        shape = np.broadcast(low, high, points).shape
+        sums = self.sums[high + 1] - self.sums[low + 1]
+        return drift_variance(np.broadcast_to(sums, (*shape, 5)).reshape(-1, 5),
+                              np.broadcast_to(points, shape).ravel()).reshape(shape)
+
     def tie_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The chain's ties as arrays: old maps, junctions, strains (the ties added since the last call appended to
         the arrays then made: O(new ties), not O(ties), per join)."""
@@ -183,9 +194,7 @@ class SightingDrift:
             link, first = (value[drifted] if value.ndim else value + np.zeros(len(drifted), np.intp)
                            for value in (link, first))
             seen, point = seen[drifted], point[drifted]
-            low, high = np.minimum(seen[:, None], old_map), np.maximum(seen[:, None], old_map)
-            there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
-                                   np.repeat(point, len(old_map))).reshape(len(seen), len(old_map))
+            there = self.between(seen[:, None], old_map, point[:, None])
             moved = point[:, None] - self.chain.poses[old_map] + self.chain.poses[junction]
             since = self.sums[link + 1][:, None, :] - self.sums[junction + 1][None, :, :]
             through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(
@@ -213,9 +222,7 @@ class SightingDrift:
         if len(drifted):
             old_map, junction, tie_strain = self.tie_arrays()
             first, point, link, last = first[drifted], point[drifted], link_map[drifted], end[drifted]
-            low, high = np.minimum(first[:, None], junction), np.maximum(first[:, None], junction)
-            there = drift_variance((self.sums[high + 1] - self.sums[low + 1]).reshape(-1, 5),
-                                   np.repeat(point, len(old_map))).reshape(len(first), len(old_map))
+            there = self.between(first[:, None], junction, point[:, None])
             moved = point[:, None] - self.chain.poses[junction] + self.chain.poses[old_map]
             since = self.sums[old_map + 1][None, :, :] - self.sums[link + 2][:, None, :]  # masked below unless inside
             through = tie_strain + there + drift_variance(since.reshape(-1, 5), moved.ravel()).reshape(

@@ -1,6 +1,6 @@
 """A loop closure's rigid correction holds near its voters: the drift relative to them scopes its pairs.
 
-Step 6 (:mod:`mapjoin.association_loops`, docs/method.md#data-association) corrects a join's link by the one rigid
+Step 6 (:mod:`mapjoin.association.loop_votes`, docs/method.md#data-association) corrects a join's link by the one rigid
 correction its voting pairs agree on and associates the features left unpaired again around the corrected link. The
 correction is the chain's drift as the *voters* saw it: exact at the maps that saw them, it degrades with the chain
 between those maps and the maps that saw another feature. On DLR's tree with step 2's junction rule, a level-8 loop
@@ -25,9 +25,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .association_drift import SightingDrift
-from .association_strain import drift_rivals
-from .drift import drift_variance
+from .feature_drift import SightingDrift
+from .strain import drift_rivals
 
 __all__ = ["VoterDrift", "beyond_voters", "chain_drift", "voter_drift", "voters_drift"]
 
@@ -40,30 +39,23 @@ def chain_drift(drift: SightingDrift, maps: np.ndarray, others: np.ndarray, poin
                 rows: np.ndarray | None = None) -> np.ndarray:
     """``D`` between the sightings by ``maps`` and by ``others`` (one each) of features at ``points`` (dead-reckoned,
     as seen by ``maps``) over the shorter way: the junctions between the two maps, either way along the chain, or
-    through one of the chain's ties ``(m, c)`` (:meth:`mapjoin.association_drift.SightingDrift.tie`) the junctions
-    from the sighting to one end of the tie, its strain and those from the other end (the feature moved by the two
-    ends' places) to the other map, as :meth:`~mapjoin.association_drift.SightingDrift.settled` takes a link's.
+    through one of the chain's ties ``(m, c)`` (:meth:`mapjoin.association.feature_drift.SightingDrift.tie`) the
+    junctions from the sighting to one end of the tie, its strain and those from the other end (the feature moved by the
+    two ends' places) to the other map, as :meth:`~mapjoin.association.feature_drift.SightingDrift.settled` takes a
+    link's.
     ``rows``: each of ``others`` compared with feature ``rows[k]`` of ``maps`` and ``points`` (None: one each), so
     that a feature's way to each tie is summed once however many maps it is compared with."""
-
-    def between(first: np.ndarray, second: np.ndarray, at: np.ndarray) -> np.ndarray:
-        low, high = np.minimum(first, second), np.maximum(first, second)
-        shape = np.broadcast(low, high, at).shape
-        sums = drift.sums[high + 1] - drift.sums[low + 1]
-        return drift_variance(np.broadcast_to(sums, (*shape, 5)).reshape(-1, 5),
-                              np.broadcast_to(at, shape).ravel()).reshape(shape)
-
     if rows is None:
         rows = np.arange(len(others))
-    best = between(maps[rows], others, points[rows])
+    best = drift.between(maps[rows], others, points[rows])
     if not drift.ties or not len(others):
         return best
     old_map, junction, strain = drift.tie_arrays()
     poses = drift.chain.poses
     for near, far in ((old_map, junction), (junction, old_map)):  # the tie taken from either end
         moved = points[:, None] - poses[near] + poses[far]
-        to_tie = between(maps[:, None], near[None, :], points[:, None]) + strain  # per feature, then per comparison
-        way = to_tie[rows] + between(far[None, :], others[:, None], moved[rows])
+        to_tie = drift.between(maps[:, None], near[None, :], points[:, None]) + strain  # per feature, then per comparison
+        way = to_tie[rows] + drift.between(far[None, :], others[:, None], moved[rows])
         best = np.minimum(best, way.min(axis=1))
     return best
 
@@ -113,8 +105,8 @@ def beyond_voters(left: np.ndarray, left_join: np.ndarray, pair_left: np.ndarray
     half-traces, plus the correction's variance) and its drift from where the prediction is exact: the correction
     with the pair's drift relative to the voters (:func:`voter_drift`), and the link as steps 2-5 corrected it with
     the pair's drift relative to the link. A pair fails one when that drift is at least the noise
-    and a rival left feature seen with the chosen one is nearer than :data:`~mapjoin.association_strain.DRIFT_MARGIN`
-    farther, in squared distance over drift and noise (:func:`mapjoin.association_strain.drift_rivals`, step 7's
+    and a rival left feature seen with the chosen one is nearer than :data:`~mapjoin.association.strain.DRIFT_MARGIN`
+    farther, in squared distance over drift and noise (:func:`mapjoin.association.strain.drift_rivals`, step 7's
     rule, ``left_sightings`` as there)."""
     unclear = np.ones(len(pair_left), dtype=bool)
     for predicted, noise, drift in references:

@@ -1,6 +1,6 @@
 """Drifted pairs that no other pair confirms: a lone drifted pair beside a second copy and a rival is left new.
 
-Step 7 (:mod:`mapjoin.association_strain`) leaves a drifted pair new when a rival *seen in one map with the chosen
+Step 7 (:mod:`mapjoin.association.strain`) leaves a drifted pair new when a rival *seen in one map with the chosen
 feature* lies within the drift. A rival never seen with it is not counted there, because it may be the chosen
 feature mapped twice after a miss (docs/method.md#data-association, step 3). On DLR the last false links are of that
 kind (benchmarks/README.md, "Data association"): a marker met again after about 1 m of drift lands 0.06-0.15 m from
@@ -13,7 +13,7 @@ offset, which the drift makes chance where other features are near.
 :func:`lone_drifted` names those pairs; :mod:`mapjoin.association` leaves one new when both another left feature, seen
 with the chosen one or not, lies within half its drift (:data:`LONE_MARGIN`: a second copy, the map so far unsure
 there) and a rival seen with it is not clear by the clear nearest neighbour's margin under the drift (both asked of
-:func:`mapjoin.association_strain.drift_rivals`; docs/method.md#data-association, step 8). The copy alone would do on
+:func:`mapjoin.association.strain.drift_rivals`; docs/method.md#data-association, step 8). The copy alone would do on
 the six measured cases, but on VicPark's 6898 small maps, whose drift is far wider, it leaves true pairs new.
 """
 

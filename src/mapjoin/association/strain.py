@@ -2,7 +2,7 @@
 
 The clear nearest neighbour of :mod:`mapjoin.association` (step 3) measures distances with the features' own
 covariances and the link's error. A left feature last seen many maps before the link has drifted since, relative
-to the link, by ``D`` (:mod:`mapjoin.association_drift`): where ``D`` exceeds the pair's noise, the pair's small
+to the link, by ``D`` (:mod:`mapjoin.association.feature_drift`): where ``D`` exceeds the pair's noise, the pair's small
 offset is no evidence that it is the right feature rather than a neighbour within the drift. On DLR, whose markers
 lie 0.5-1 m apart, a right feature met again after 4 m of drift lands 0.1-0.3 m from a *different* old feature,
 with its own feature metres away: each such pair passes the gate, the margin and the joint test
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .association_grid import pairs_within
+from .grid import pairs_within
 
 __all__ = ["DRIFT_MARGIN", "drift_rivals"]
 
@@ -36,7 +36,7 @@ def drift_rivals(left: np.ndarray, left_join: np.ndarray, pair_left: np.ndarray,
     ``drift >= noise`` is dropped when a rival left feature ``r`` of the same join (seen in a same map as the chosen
     one: ``left_sightings``, :func:`mapjoin.association.sighting_bits`; without them every other left feature)
     has ``|f_r - x|^2 < |f_i - x|^2 + margin (noise + drift)`` (``margin``: :data:`DRIFT_MARGIN`; step 8 asks with
-    :data:`mapjoin.association_lone.LONE_MARGIN` without sightings, then with step 3's margin and sightings)."""
+    :data:`mapjoin.association.lone.LONE_MARGIN` without sightings, then with step 3's margin and sightings)."""
     pair_left = np.asarray(pair_left, dtype=np.intp)
     drop = np.zeros(len(pair_left), dtype=bool)
     flagged = np.flatnonzero(drift >= noise)

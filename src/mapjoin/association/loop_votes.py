@@ -1,8 +1,8 @@
 """Loop closures in data association: the rigid correction a drifted part of the map so far needs, by votes.
 
 Where a map closes a loop, the features it meets again were last seen many maps before, and the chain's drift
-since then (:mod:`mapjoin.association_drift`) moves all of them, relative to the join's link, by nearly one rigid
-correction: metres on DLR and 8240, far outside the gate and more than the features' spacing, so that no gate
+since then (:mod:`mapjoin.association.feature_drift`) moves all of them, relative to the join's link, by nearly one
+rigid correction: metres on DLR and 8240, far outside the gate and more than the features' spacing, so that no gate
 wide enough to hold the drift can choose partners feature by feature (docs/method.md#data-association, step 6).
 Two candidate pairs ``(i1, j1)``, ``(i2, j2)`` of one join (each within the drift's gate) whose distances agree,
 ``| |f_i1 - f_i2| - |x_j1 - x_j2| |`` within the noise's gate, fix a rigid correction: a turn
@@ -47,7 +47,7 @@ class RigidVotes:
     for it: a true correction of n features has n (n - 1) / 2, chance few) and the ``runner_up``'s agreement (a cell
     far from the best, counting the votes of two pairs that are not among the ``voters`` only). The
     ``voters``: the candidate pairs (rows of ``a``, ``b``) whose votes lie within a cell of the best correction, by
-    ``voter_join``: where the correction is exact (step 6's scope, :mod:`mapjoin.association_scope`)."""
+    ``voter_join``: where the correction is exact (step 6's scope, :mod:`mapjoin.association.loop_scope`)."""
 
     turn: np.ndarray
     offset: np.ndarray

@@ -4,8 +4,8 @@ A tree join's link is its left piece's end pose, and its prior variance there is
 frame: every junction of the piece summed, relative to the piece's *first* map (docs/method.md#data-association,
 step 2; 1.17 m and 0.032 rad at level 5 of the 8240 simulation, 3.4 m at level 6). The sequential join gates the
 same junction with 0.14-0.33 m. That wide prior is right for the piece's oldest features, but those carry their own
-drift ``D`` (:mod:`mapjoin.association_drift`, steps 6-8); the features the link's own map saw, and those the right
-piece's first map saw, are known relative to the link up to that map's end pose and its junction, as a sequential
+drift ``D`` (:mod:`mapjoin.association.feature_drift`, steps 6-8); the features the link's own map saw, and those the
+right piece's first map saw, are known relative to the link up to that map's end pose and its junction, as a sequential
 join's are. Gated under the piece's variance, they meet their neighbours as rivals wherever features are nearer
 than the gate is wide (a 3 m lattice on 8240: the true partner at d^2 = 0.0-0.3, the lattice's neighbours at 5-7,
 inside the clear margin of 9.2), and steps 2-5 leave the whole overlap new.
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .covariance import placed_variances
+from ..covariance import placed_variances
 
 __all__ = ["free_pairs", "own_link_variances", "undrifted"]
 
@@ -32,7 +32,7 @@ def own_link_variances(end_pose_variances: np.ndarray, junction_sums: np.ndarray
     """The variance ``(var_t, p_phi)`` of each link relative to its own map's features: the map's end-pose variance
     (``end_pose_variances``, n x 2: spherical position and heading, in the map's frame, as the tree's first level
     holds them; ``end_points``: the end pose's position in that frame, complex) placed through its junction's
-    posterior (``junction_sums``: rows ``v, p, ...`` of :attr:`mapjoin.association_drift.SightingDrift.sums` for
+    posterior (``junction_sums``: rows ``v, p, ...`` of :attr:`mapjoin.association.feature_drift.SightingDrift.sums` for
     that junction alone) as a join places a point (:func:`mapjoin.covariance.placed_variances`:
     ``v + var_t + |x|^2 p / 2``), the headings' variances summed (``p_phi + p``)."""
     v, p = junction_sums[:, 0], junction_sums[:, 1]

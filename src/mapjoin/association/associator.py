@@ -1,0 +1,296 @@
+"""The hooks :mod:`mapjoin.joining` calls before and after each join of a data association, and the state they keep
+between joins (docs/method.md#data-association).
+
+:class:`_Associator` is the ``associate=`` argument of :func:`mapjoin.joining.join` (its ``Associate`` protocol).
+Before each sequential join (:meth:`~_Associator.next`) or tree level (:meth:`~_Associator.level`) it associates the
+right piece's features with the left piece's (:func:`~mapjoin.association.drifted.match_with_drift`; a tree level
+also by step 2's junction rule, :mod:`mapjoin.association.junction`) and names them by the ids of their matches, the
+others by new ids; after each join it records what the later joins' drift needs
+(:class:`~mapjoin.association.feature_drift.SightingDrift`: the junctions' posteriors, each feature's sightings, the
+chain's ties of step 7). Between joins it keeps each feature's fused covariance and the maps that saw it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..maps import locate
+from .covariance_blocks import fused, rotated
+from .drifted import _corrected, _pair_noise, match_with_drift
+from .feature_drift import SightingDrift
+from .gate import DEFAULT_MARGIN, sighting_bits
+from .junction import free_pairs, own_link_variances, undrifted
+from .loop_scope import voters_drift
+from .rounds import Matches, _median, _same, match_features
+
+if TYPE_CHECKING:
+    from ..joins import _Pieces
+
+__all__ = ["TIE_SUPPORT"]
+
+#: a join ties its map to the map that last saw its drifted pairs' features when it has at least this many (step 7):
+#: one, since a chain of small maps meets its old features one to three a join (VicPark 6898: with 4, as a loop
+#: closure's support, the chain was tied almost nowhere and D summed every junction since; benchmarks/README.md)
+TIE_SUPPORT = 1
+
+
+def _asked_once(pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+                ) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """``pair_drift`` remembering its last pairs and answers: step 7 asks it for a join's pairs, the chain's ties ask
+    it again after step 6, which mostly changed few pairs. A pair's answer is its own (its left row, right row and
+    noise decide it, elementwise), so only the pairs not asked last time are asked (a tree level's step 6 adds its
+    loop closures' and junctions' pairs to thousands)."""
+    last: list = []
+
+    def remembered(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        if last and _same(last[0], i) and _same(last[1], j) and _same(last[3], noise):
+            return last[2]
+        if not (last and len(last[0])):
+            last[:] = [i, j, pair_drift(i, j, noise), noise]
+            return last[2]
+        before_i, before_j, before, before_noise = last
+        span = np.int64(max(int(i.max(initial=0)), int(before_i.max(initial=0))) + 1)
+        keys = before_j.astype(np.int64) * span + before_i
+        order = np.argsort(keys)
+        position, known = locate(keys, j.astype(np.int64) * span + i, order)
+        known &= before_noise[position] == noise
+        answer = np.empty(len(i))
+        answer[known] = before[position[known]]
+        fresh = ~known
+        if fresh.any():
+            answer[fresh] = pair_drift(i[fresh], j[fresh], noise[fresh])
+        last[:] = [i, j, answer, noise]
+        return answer
+
+    return remembered
+
+
+class _Associator:
+    """The hooks :mod:`mapjoin.joining` calls before each join (``associate=``), numbering features as they are
+    matched, and after each sequential join (:meth:`placed`: its posterior, for the drift; the tree's are read
+    from the pieces at the next level). Compact ids (indices of the joins' arrays) are handed out in order of
+    first sighting; the tree renames a right piece's features to the left piece's ids, so each input row's
+    current id is kept. ``points``: each map's feature positions (sorted by id, complex), ``end_poses`` the
+    maps' end poses, for :class:`mapjoin.association.feature_drift.SightingDrift`."""
+
+    def __init__(self, covariances: Sequence[np.ndarray], points: Sequence[np.ndarray], end_poses: np.ndarray,
+                 gate: float, margin: float = DEFAULT_MARGIN):
+        self.gate, self.margin = gate, margin
+        self.offsets = np.concatenate([[0], np.cumsum([len(c) for c in covariances])]).astype(np.intp)
+        self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
+        self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
+        self.row_maps = np.repeat(np.arange(len(covariances)), np.diff(self.offsets))
+        # the chain's drift between sightings and links (each map's rows' positions in its frame: their sightings)
+        self.drift = SightingDrift.of(end_poses, len(self.row_ids))
+        self.row_points = np.concatenate([np.zeros(0, complex), *points])
+        self.links = np.zeros(0, np.intp)  # the tree's last level's junctions (left pieces' end pose rows)
+        self.end_points = end_poses[:, 0] + 1j * end_poses[:, 1]  # each map's end position in its frame
+        self.own_pose_variances = np.zeros((0, 2))  # each map's end-pose variance in its frame (the tree's first level)
+        self.count = 0
+        # each compact id's 2 x 2 covariance relative to the maps that saw it (rows [xx, xy, yy]), in its piece's
+        # frame: the sightings' marginal covariances fused as independent (their common drift is the link's error)
+        self.covariances = np.zeros((max(len(self.row_ids), 1), 3))
+        self.row_sightings = sighting_bits(np.repeat(np.arange(len(covariances)), np.diff(self.offsets)))
+        self.sightings = np.zeros((len(self.covariances), 2), dtype=np.uint64)  # each compact id's maps (bits)
+        self.counts: list[tuple[int, int]] = []  # (ambiguous, rejected) per join, in the report's order
+
+    def _fresh(self, number: int) -> np.ndarray:
+        ids = np.arange(self.count, self.count + number)
+        self.count += number
+        if self.count > len(self.covariances):  # the tree hands out new ids at every level
+            more = max(self.count, len(self.covariances))
+            self.covariances = np.concatenate([self.covariances, np.zeros((more, 3))])
+            self.sightings = np.concatenate([self.sightings, np.zeros((more, 2), dtype=np.uint64)])
+        self.drift = self.drift.grown(self.count)
+        return ids
+
+    def _sighted(self, ids: np.ndarray, covariances: np.ndarray, sightings: np.ndarray, matched: np.ndarray | slice,
+                 new: np.ndarray | slice) -> None:
+        """Features ``ids`` seen with ``covariances`` (in their frame) by maps ``sightings``: fused into the
+        ``matched`` ones, the ``new`` ones (the others; a mask and its negation, or two slices) new."""
+        self.covariances[ids[matched]] = fused(self.covariances[ids[matched]], covariances[matched])
+        self.covariances[ids[new]] = covariances[new]
+        self.sightings[ids[matched]] |= sightings[matched]
+        self.sightings[ids[new]] = sightings[new]
+
+    # sequential strategy -----------------------------------------------------------------
+    def first(self, size: int) -> np.ndarray:
+        """Compact ids of the first map's rows: all new."""
+        ids = self._fresh(size)
+        self.row_ids[:size] = ids
+        self.covariances[ids] = self.row_covariances[:size]
+        self.sightings[ids] = self.row_sightings[:size]
+        self.drift.seen(ids, self.row_maps[:size], self.row_points[:size])
+        return ids
+
+    def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
+        """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums)."""
+        self.drift.placed(k, t_variance, phi_variance)
+
+    def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
+             link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Map ``k`` (rows ``z``, ``var``) against the global map so far (compact ids 0 .. count-1): the order of
+        its rows (matched first, then new, each in input order), their compact ids in that order, and how many
+        are matched."""
+        used = self.count
+        rows = slice(self.offsets[k], self.offsets[k + 1])
+        right_covariances = rotated(self.row_covariances[rows], link_phi)
+        nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
+        drift = (*self.drift.before(slice(None, used), k - 1), nothing, nothing)
+        pair_drift = _asked_once(lambda i, j, noise: self.drift.settled(i, k - 1, level=noise, direct=drift[0][i]))
+
+        found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
+                                 np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
+                                 right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
+                                 self.sightings[:used], self.row_sightings[rows], pair_drift,
+                                 voters_drift(self.drift, None, None))
+        self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
+        left_ids = found.left
+        strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
+                           np.zeros(len(z), np.intp), right_covariances, pair_drift, np.array([k]))
+        matched = np.zeros(len(z), dtype=bool)
+        matched[found.right] = True
+        order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
+        ids = np.empty(len(z), dtype=np.int64)
+        ids[:len(found.right)] = found.left
+        ids[len(found.right):] = self._fresh(len(z) - len(found.right))
+        self._sighted(ids, right_covariances[order], self.row_sightings[rows][order], slice(None, len(found.right)),
+                      slice(len(found.right), None))
+        self.row_ids[self.offsets[k] + order] = ids
+        points, matched_count = self.row_points[rows][order], len(found.right)
+        self.drift.seen_again(ids[:matched_count], k, points[:matched_count], strain)
+        self.drift.seen(ids[matched_count:], k, points[matched_count:])
+        return order, ids, len(found.right)
+
+    def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
+             right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray,
+             pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], junctions: np.ndarray
+             ) -> np.ndarray:
+        """The strain of each of ``found``'s pairs (a quarter of its squared residual around the link as the join's
+        pairs corrected it: a fused feature sits about halfway), and the chain's ties: a join whose pairs include
+        :data:`TIE_SUPPORT` drifted ones (``pair_drift``: each pair's before the join, at least its noise) measured its
+        link, at ``junctions[join]``, relative to the map that last saw their left features (``left_ids``, compact;
+        the median), strained by their strains' median (:meth:`mapjoin.association.feature_drift.SightingDrift.tie`)."""
+        pair_join = right_join[found.right]
+        strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
+        noise = _pair_noise(self.covariances, right_covariances, left_ids, found.right)
+        drifted = pair_drift(found.left, found.right, noise) >= noise
+        for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= TIE_SUPPORT).tolist():
+            pairs = drifted & (pair_join == tying)
+            self.drift.tie(int(_median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),
+                           float(_median(strain[pairs])))
+        return strain
+
+    # tree strategy -----------------------------------------------------------------------
+    def level(self, pieces: _Pieces, level: int) -> _Pieces:
+        """Before a level of the tree: each right piece's features renamed to the ids of their matches in the left
+        piece, the others to new ids (``level`` joins have merged pieces of ``2^(level-1)`` maps)."""
+        if self.count == 0:  # the maps' own (compact local) ids are not global: every row new
+            ids = self.first(len(pieces.feature_ids))
+            self.row_ids[:] = ids
+            pieces = dataclasses.replace(pieces, feature_ids=ids)
+            self.own_pose_variances = pieces.pose_variances.copy()
+        count = pieces.count // 2
+        ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1
+        link = ends[0:2 * count:2]  # each left piece's end pose
+        # the last level's junctions (pose row m: map m's end, pose m + 1) hold their joins' posteriors until moved
+        self.drift.placed(self.links + 1, pieces.pose_variances[self.links, 0], pieces.pose_variances[self.links, 1])
+        self.links = link
+        joined = pieces.feature_piece < 2 * count
+        left = np.flatnonzero(joined & (pieces.feature_piece % 2 == 0))
+        right = np.flatnonzero(joined & (pieces.feature_piece % 2 == 1))
+        right_join = pieces.feature_piece[right] // 2
+        right_covariances = rotated(self.covariances[pieces.feature_ids[right]], pieces.pose_phi[link][right_join])
+        left_join = pieces.feature_piece[left] // 2
+        link_map = pieces.last[0:2 * count:2]  # each join's left piece's last map
+        start = pieces.first[0:2 * count:2]  # ... and its first: the ties inside it
+        left_ids = pieces.feature_ids[left]
+        drift = (*self.drift.before(left_ids, link_map[left_join]),
+                 *self.drift.after(pieces.feature_ids[right], link_map[right_join]))
+        end = pieces.last[1:2 * count:2]  # each join's right piece's last map
+        right_ids = pieces.feature_ids[right]
+
+        @_asked_once
+        def pair_drift(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
+            # compared with the pairs' noise only: the ties are searched for the pairs whose direct ways reach it
+            left_way = (left_ids[i], link_map[left_join[i]], start[left_join[i]])
+            right_way = (right_ids[j], link_map[right_join[j]], end[right_join[j]])
+            drift = self.drift.settled(*left_way, level=np.inf) + self.drift.settled_after(*right_way, level=np.inf)
+            reach = np.flatnonzero(drift >= noise)
+            if len(reach):
+                drift[reach] = (self.drift.settled(*(part[reach] for part in left_way))
+                                + self.drift.settled_after(*(part[reach] for part in right_way)))
+            return drift
+
+        found = match_with_drift(pieces.features[left], self.covariances[left_ids], left_join,
+                                 pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
+                                 pieces.features[right], right_covariances, right_join, drift, self.gate, self.margin,
+                                 self.sightings[left_ids], self.sightings[pieces.feature_ids[right]], pair_drift,
+                                 voters_drift(self.drift, left_ids, right_ids))
+        if level > 1:  # the junction's own features, under the link's variance relative to its own map (step 2)
+            found = self._junction_pairs(found, pieces.features[left], left_ids, left_join, pieces.pose_xy[link],
+                                         pieces.pose_phi[link], link_map, pieces.features[right], right_ids,
+                                         right_covariances, right_join)
+        self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
+        strain = self._tie(found, pieces.features[left], left_ids[found.left], pieces.pose_xy[link],
+                           pieces.pose_phi[link], pieces.features[right], right_join, right_covariances, pair_drift,
+                           link_map + 1)
+        ids = pieces.feature_ids.copy()
+        renamed = self._fresh(len(right))
+        renamed[found.right] = ids[left[found.left]]
+        ids[right] = renamed
+        matched = np.zeros(len(right), dtype=bool)
+        matched[found.right] = True
+        self._sighted(renamed, right_covariances, self.sightings[pieces.feature_ids[right]], matched, ~matched)
+        # a match's last sighting is its right feature's; a new id has its old one's sightings
+        self.drift.merged(renamed[matched], pieces.feature_ids[right][matched])
+        self.drift.strain[renamed[found.right]] = strain
+        self.drift.copied(renamed[~matched], pieces.feature_ids[right][~matched])
+        # every input row of a right piece follows its feature's new id
+        shift = level - 1
+        piece_of_row = np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets)) >> shift
+        moved = np.flatnonzero((piece_of_row % 2 == 1) & (piece_of_row // 2 < count))
+        span = int(max(self.count, 1))
+        keys = pieces.feature_piece.astype(np.int64) * span + pieces.feature_ids
+        position, found_all = locate(keys, piece_of_row[moved].astype(np.int64) * span + self.row_ids[moved])
+        assert found_all.all()
+        self.row_ids[moved] = ids[position]
+        return dataclasses.replace(pieces, feature_ids=ids)
+
+    def _junction_pairs(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, left_join: np.ndarray,
+                        link_xy: np.ndarray, link_phi: np.ndarray, link_map: np.ndarray, right: np.ndarray,
+                        right_ids: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray) -> Matches:
+        """``found`` (a tree level's association) with the pairs of its joins' undrifted features
+        (:mod:`mapjoin.association.junction`): steps 2-5 among them under each link's variance relative to its own
+        map, a pair kept when ``found`` left both its features unpaired."""
+        lefts, rights = undrifted(self.drift.last_map[left_ids], link_map[left_join], self.drift.first_map[right_ids],
+                                  link_map[right_join])
+        if not len(lefts) or not len(rights):
+            return found
+        junction = self.drift.sums[link_map + 1] - self.drift.sums[link_map]
+        own = own_link_variances(self.own_pose_variances[link_map], junction, self.end_points[link_map])
+        near = match_features(left[lefts], self.covariances[left_ids[lefts]], left_join[lefts], link_xy, link_phi,
+                              own, right[rights], right_covariances[rights], right_join[rights], self.gate,
+                              self.margin, self.sightings[left_ids[lefts]], self.sightings[right_ids[rights]])
+        added = free_pairs(found.left, found.right, lefts[near.left], rights[near.right])
+        if not added.any():
+            return found
+        pairs_left = np.concatenate([found.left, lefts[near.left[added]]])
+        pairs_right = np.concatenate([found.right, rights[near.right[added]]])
+        order = np.argsort(pairs_right, kind="stable")
+        undecided = np.setdiff1d(found.undecided, pairs_right)
+        return Matches(pairs_left[order], pairs_right[order], np.bincount(right_join[undecided], minlength=len(link_xy)),
+                       found.rejected, undecided, found.correction)
+
+    def global_ids(self) -> tuple[np.ndarray, np.ndarray]:
+        """Global ids numbered by first sighting: for each compact id (-1 if unused) and for each input row."""
+        final = self.row_ids
+        unique, first = np.unique(final, return_index=True)
+        numbering = np.full(self.count, -1, dtype=np.int64)
+        numbering[unique[np.argsort(first)]] = np.arange(len(unique))
+        return numbering, numbering[final]
