@@ -483,7 +483,8 @@ def test_every_option_of_every_command_keeps_the_boundary(valid, tmp_path, optio
         args += [names[-1], value]
     inputs = [name for name in BASE_LINES[command] if (work / name).is_file() and name in args]  # still read
     invoke(work, args, inputs=tuple(inputs),
-           names=(*names, one_line(value)[:20] or "''", "<stdout>", *BASE_LINES[command][1:]))
+           names=(*names, one_line(value)[:20] or "''", "<stdout>", *BASE_LINES[command][1:],
+                  *(("<stdin>",) if value == "-" else ())))  # an input given as '-' is named <stdin>
 
 
 @settings(FUZZ, max_examples=30)
