@@ -254,8 +254,9 @@ def join_stream(maps: Iterable[LocalMap], covariance: CovarianceMode = DEFAULT_C
     ``chunk`` at a time (module docstring): the same global map and report, with memory bounded by the global
     map; ``chunk`` maps at a time (default :data:`CHUNK`). ``on_inconsistent``: ``warn`` or ``stop`` (``skip`` re-joins the whole chain: join a list instead).
     An error in the input (raised by the iterator) or the chain stops the join before anything is returned.
-    ``confirm``: applied to the result before the policy (the stream keeps no maps; a caller that can read
-    them again confirms the flagged joins on the exact problem, :func:`mapjoin.confirmation.confirm_streamed`).
+    ``confirm``: applied to the result before the policy when a join is flagged (the stream keeps no maps; a
+    caller that can read them again confirms the flagged joins on the exact problem,
+    :func:`mapjoin.confirmation.confirm_streamed`).
     """
     if on_inconsistent == "skip":
         raise ValueError("on_inconsistent='skip' re-joins the whole chain: it needs the maps in memory")
@@ -278,6 +279,6 @@ def join_stream(maps: Iterable[LocalMap], covariance: CovarianceMode = DEFAULT_C
     if chain.last is None:
         raise JoinError("no local maps to join")
     result = chain.result(covariance, solver, gate)
-    if confirm is not None:
+    if confirm is not None and result.report.flagged.any():
         result = confirm(result)
     return StreamedJoin(enforce(result, on_inconsistent, gate, None), origin, read)
