@@ -249,6 +249,23 @@ def test_quiet_refine_without_a_flagged_join_imports_no_confirmation(data_dir, t
                           "mapjoin.io.trajectory", "mapjoin.io.yaml_maps", "mapjoin.io.linearslam"}
 
 
+def test_importing_io_imports_no_format_module_and_each_of_its_names_resolves():
+    """``import mapjoin.io``: its own layers only (paths, registry, inputs, lines, outputs); the names it takes from
+    format modules (``Trajectory``, ``STAB_NOISE``, ...) are the modules' own, imported when asked for."""
+    code = "import json, sys, mapjoin.io; print(json.dumps(sorted(m for m in sys.modules if m.startswith('mapjoin.io.'))))"
+    loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                       check=True).stdout)
+    assert loaded == [f"mapjoin.io.{name}" for name in ("inputs", "lines", "outputs", "paths", "registry")]
+    for name in mapio.__all__:
+        assert getattr(mapio, name) is not None, name
+    from mapjoin.io import mat_maps, tables, trajectory, truth
+
+    assert (mapio.STAB_NOISE, mapio.MinimaTable, mapio.Trajectory, mapio.read_truth_folder) == (
+        mat_maps.STAB_NOISE, tables.MinimaTable, trajectory.Trajectory, truth.read_truth_folder)
+    with pytest.raises(AttributeError):
+        mapio.no_such_name  # noqa: B018
+
+
 def test_every_function_the_format_registry_names_exists():
     """io/registry.FORMATS names its codecs' functions by ``module.function`` (imported on use): each resolves,
     so that a misspelt name fails here, not in a user's command."""

@@ -106,6 +106,10 @@ def __getattr__(name: str) -> Any:
     return value
 
 
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
 log = logging.getLogger("mapjoin")
 
 _TRUTH_FILES = ("truth.yaml", "truth.yml", "truth.csv")  # what `mapjoin simulate` writes into its folder

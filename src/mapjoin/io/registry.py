@@ -80,7 +80,7 @@ class Format:
 class _OnUse:
     """A format module's function named ``module.function`` (``"yaml_maps.read"``), the module imported on the
     first call: a command imports the readers and writers of the formats it reads and writes, not every
-    format's (a join of .mat files no YAML, CSV, Linear SLAM, g2o, trajectory or table module: ~8 ms of its
+    format's (a join of .mat files no YAML, CSV, Linear SLAM, g2o, trajectory or table module: ~7 ms of its
     start-up; tests/test_startup.py)."""
 
     __slots__ = ("reference", "_function")
