@@ -249,6 +249,15 @@ def test_quiet_refine_without_a_flagged_join_imports_no_confirmation(data_dir, t
                           "mapjoin.io.trajectory", "mapjoin.io.yaml_maps", "mapjoin.io.linearslam"}
 
 
+def test_convert_imports_no_join(data_dir, tmp_path):
+    """``convert`` reads and writes maps: the shared options' constants come from below the join strategies
+    (cli/common takes STRATEGIES from joins), so it imports no join module, and only its two formats."""
+    modules = imported("convert", str(data_dir / "535_data_5_local_maps"), "-o", str(tmp_path / "maps.yaml"))
+    assert "mapjoin.cli.convert" in modules and "mapjoin.io.yaml_maps" in modules
+    assert not modules & {"mapjoin.joining", "mapjoin.drift", "mapjoin.streaming", "mapjoin.confirmation",
+                          "mapjoin.refine", "mapjoin.io.csv_maps", "mapjoin.io.linearslam", "mapjoin.io.tables"}
+
+
 def test_importing_io_imports_no_format_module_and_each_of_its_names_resolves():
     """``import mapjoin.io``: its own layers only (paths, registry, inputs, lines, outputs); the names it takes from
     format modules (``Trajectory``, ``STAB_NOISE``, ...) are the modules' own, imported when asked for."""

@@ -18,7 +18,7 @@ from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
 from ..errors import InputError, counted, shown  # noqa: F401  (counted: the commands' common.counted)
 from ..io.numbers import first_unplain
 from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, TRAJECTORY, Kind, by_name, extensions_text, names
-from ..joining import STRATEGIES
+from ..joins import STRATEGIES  # not ..joining: convert, datasets and the like need no join strategy
 from ..maps import LocalMap, Range
 from ..onestep import SOLVERS
 
