@@ -342,7 +342,7 @@ def test_the_streamed_join_confirms_on_its_kept_maps_or_reads_them_again(data_di
 def test_a_stream_keeps_its_maps_while_they_hold_at_most_the_limits_numbers(sizes, limit):
     """KeptMaps passes every map on, in order, and holds them all while their states and covariances hold at
     most ``limit`` numbers (3 + 2m + (3 + 2m)^2 each, counted here by hand), none once past it."""
-    from mapjoin.confirmation import KeptMaps
+    from mapjoin.streaming import KeptMaps
 
     maps = [LocalMap(f"m{k}", k, k + 1, np.zeros(3), np.arange(m, dtype=np.int64), np.zeros((m, 2)), np.ones(m),
                      np.ones(2), np.eye(3 + 2 * m)) for k, m in enumerate(sizes)]

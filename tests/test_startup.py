@@ -3,6 +3,7 @@ certificate that spares scipy.special against scipy's interval, and what each co
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import os
@@ -198,9 +199,96 @@ def test_dense_refines_and_confirmations_import_no_scipy(data_dir, tmp_path):
 def test_the_issues_commands_import_no_numpy_ma(data_dir, tmp_path):
     """numpy.ma (7 ms of start-up) is loaded by np.unique and np.isin without indices: neither DLR 200's join,
     whose confirmation puts two pieces' optima together, nor VicPark 200's refine call them."""
-    for args in (("join", "DLR_200_local_maps"), ("refine", "VicPark_200_local_maps")):
+    for args, solved in ((("join", "DLR_200_local_maps"), "mapjoin.confirmation"),
+                         (("refine", "VicPark_200_local_maps"), "mapjoin.refine.solver")):
         modules = imported("-q", args[0], str(data_dir / args[1]), "-o", str(tmp_path / "out.csv"))
-        assert "mapjoin.confirmation" in modules and "numpy.ma" not in modules, args
+        assert solved in modules and "numpy.ma" not in modules, args
+
+
+#: every format module of mapjoin.io (io/registry.FORMATS names their functions, imported on use)
+_FORMAT_MODULES = {f"mapjoin.io.{name}" for name in ("yaml_maps", "csv_maps", "csv_blocks", "mat_maps", "matfile",
+                                                     "linearslam", "global_maps", "g2o", "tables", "trajectory",
+                                                     "truth", "csvtable", "yamldoc")}
+
+
+@pytest.mark.parametrize("source, used", [
+    ("8240_data_50_local_maps", {"mat_maps", "matfile"}),
+    ("8240.csv", {"csv_blocks", "csv_maps"}),
+    ("8240.yaml", {"yaml_maps"}),
+])
+def test_a_join_imports_the_formats_it_reads_and_writes_only_and_no_confirmation(source, used, data_dir, tmp_path):
+    """A join of .mat, CSV or YAML maps to a CSV global map: its reader's modules and the CSV writer's, no other
+    format's, and, with no join flagged, neither the confirmation nor the exact solve nor
+    statistics (chi2_quantile's NormalDist, asked by no join)."""
+    if source.startswith("8240."):
+        maps = mapio.read_maps([str(data_dir / "8240_data_50_local_maps")])
+        mapio.write_maps(maps, str(tmp_path / source), source.split(".")[1])
+        source = tmp_path / source
+    else:
+        source = data_dir / source
+    modules = imported("join", str(source), "-o", str(tmp_path / "g.csv"))
+    expected = {f"mapjoin.io.{name}" for name in used | {"global_maps", "csvtable", "yamldoc"}}  # the CSV writer's
+    assert modules & _FORMAT_MODULES == expected
+    assert not modules & {"mapjoin.confirmation", "mapjoin.refine", "mapjoin.evaluation", "statistics"}
+
+
+def test_a_join_imports_a_table_or_trajectory_writer_when_asked_for_one(data_dir, tmp_path):
+    """The reverse of the test above: --report and --trajectory do import their writers."""
+    modules = imported("join", str(data_dir / "535_data_5_local_maps"), "-o", str(tmp_path / "g.yaml"),
+                       "--report", str(tmp_path / "r.json"), "--trajectory", str(tmp_path / "t.tum"))
+    assert {"mapjoin.io.tables", "mapjoin.io.trajectory", "mapjoin.io.global_maps", "mapjoin.io.yamldoc"} <= modules
+    assert "mapjoin.io.csv_maps" not in modules and "mapjoin.io.linearslam" not in modules
+
+
+def test_quiet_refine_without_a_flagged_join_imports_no_confirmation(data_dir, tmp_path):
+    """refine VicPark 200 -q (the issue's target; its fast join flags nothing): the exact solve, no confirmation,
+    no chi^2 verdict (-q), no format it does not read or write."""
+    modules = imported("-q", "refine", str(data_dir / "VicPark_200_local_maps"), "-o", str(tmp_path / "x.csv"))
+    assert "mapjoin.refine.solver" in modules
+    assert not modules & {"mapjoin.confirmation", "mapjoin.evaluation", "statistics", "mapjoin.io.tables",
+                          "mapjoin.io.trajectory", "mapjoin.io.yaml_maps", "mapjoin.io.linearslam"}
+
+
+def test_convert_imports_no_join(data_dir, tmp_path):
+    """``convert`` reads and writes maps: the shared options' constants come from below the join strategies
+    (cli/common takes STRATEGIES from joins), so it imports no join module, and only its two formats."""
+    modules = imported("convert", str(data_dir / "535_data_5_local_maps"), "-o", str(tmp_path / "maps.yaml"))
+    assert "mapjoin.cli.convert" in modules and "mapjoin.io.yaml_maps" in modules
+    assert not modules & {"mapjoin.joining", "mapjoin.drift", "mapjoin.streaming", "mapjoin.confirmation",
+                          "mapjoin.refine", "mapjoin.io.csv_maps", "mapjoin.io.linearslam", "mapjoin.io.tables"}
+
+
+def test_importing_io_imports_no_format_module_and_each_of_its_names_resolves():
+    """``import mapjoin.io``: its own layers only (paths, registry, inputs, lines, outputs); the names it takes from
+    format modules (``Trajectory``, ``STAB_NOISE``, ...) are the modules' own, imported when asked for."""
+    code = "import json, sys, mapjoin.io; print(json.dumps(sorted(m for m in sys.modules if m.startswith('mapjoin.io.'))))"
+    loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                       check=True).stdout)
+    assert loaded == [f"mapjoin.io.{name}" for name in ("inputs", "lines", "outputs", "paths", "registry")]
+    for name in mapio.__all__:
+        assert getattr(mapio, name) is not None, name
+    from mapjoin.io import mat_maps, tables, trajectory, truth
+
+    assert (mapio.STAB_NOISE, mapio.MinimaTable, mapio.Trajectory, mapio.read_truth_folder) == (
+        mat_maps.STAB_NOISE, tables.MinimaTable, trajectory.Trajectory, truth.read_truth_folder)
+    with pytest.raises(AttributeError):
+        mapio.no_such_name  # noqa: B018
+
+
+def test_every_function_the_format_registry_names_exists():
+    """io/registry.FORMATS names its codecs' functions by ``module.function`` (imported on use): each resolves,
+    so that a misspelt name fails here, not in a user's command."""
+    from mapjoin.io import registry
+
+    named = [fmt.sniff for fmt in registry.FORMATS] + [fmt.map_number for fmt in registry.FORMATS]
+    named += [function for fmt in registry.FORMATS for kind in (registry.LOCAL_MAPS, registry.GLOBAL_MAP, registry.TRUTH,
+                                                                registry.TABLE, registry.TRAJECTORY)
+              if (codec := fmt.codec(kind)) for function in codec]
+    references = [function.reference for function in named if function is not None]
+    assert len(references) >= 30
+    for reference in references:
+        module, name = reference.rsplit(".", 1)
+        assert callable(getattr(importlib.import_module(f"mapjoin.io.{module}"), name)), reference
 
 
 # ---- the lazily loaded commands ---------------------------------------------------------------------

@@ -25,7 +25,7 @@ a piece's optimum is computed once however many joins read it (docs/method.md#co
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from .refine.dense import Backend
     from .refine.problem import ExactProblem
 
-__all__ = ["BUDGET", "KEEP_VALUES", "MAX_SOLVED", "REREAD_LIMIT", "Estimate", "Increment", "KeptMaps", "Optimum",
+__all__ = ["BUDGET", "MAX_SOLVED", "REREAD_LIMIT", "Estimate", "Increment", "Optimum",
            "Pieces", "chain_backend", "confirm", "confirm_streamed", "increment", "piece_bounds", "variance_factor"]
 
 #: the exact solves of a run's confirmations stop once they have solved this many times the chain's maps
@@ -52,9 +52,6 @@ MAX_SOLVED = 20_000
 #: a streamed join's maps are read again for its confirmation only up to this many maps (a longer stream
 #: keeps its memory bound, and its fast flags)
 REREAD_LIMIT = 100_000
-#: ... and kept as they are joined, not read again, while they hold at most this many numbers (states and
-#: covariances: 16 MB; DLR 200's hold 0.2 M; reading them again took 30-40 ms of its 0.45 s ``join``)
-KEEP_VALUES = 2**21
 
 
 @dataclasses.dataclass(frozen=True)
@@ -313,27 +310,6 @@ def confirm(maps: Sequence[LocalMap], result: JoinResult, strategy: Strategy, ga
                                                      flag=bool(p < gate) or not exact.converged)
     report = tuple(confirmed.get(r.join, r) for r in result.report)
     return dataclasses.replace(result, report=report)
-
-
-class KeptMaps:
-    """The maps of a stream, passed on as they come and kept for :func:`confirm_streamed` (which then need not read
-    them again) while they hold at most ``limit`` numbers (:data:`KEEP_VALUES`); past that they are let go, and the
-    stream's memory stays bounded. ``maps``: those kept, None once let go."""
-
-    def __init__(self, maps: Iterable[LocalMap], limit: int = KEEP_VALUES) -> None:
-        self._source, self._room = iter(maps), limit
-        self.maps: list[LocalMap] | None = []
-
-    def __iter__(self) -> Iterator[LocalMap]:
-        for local_map in self._source:
-            if self.maps is not None:
-                self._room -= local_map.features.size + 3 + (0 if local_map.covariance is None
-                                                              else local_map.covariance.size)
-                if self._room < 0:
-                    self.maps = None
-                else:
-                    self.maps.append(local_map)
-            yield local_map
 
 
 def confirm_streamed(result: JoinResult, read: Callable[[], Sequence[LocalMap]] | None, gate: float,

@@ -47,7 +47,8 @@ __all__ = ["STRATEGIES", "JoinRecord", "JoinResult", "Strategy", "certify_pair",
 log = logging.getLogger("mapjoin")
 
 #: stage 2 of the consistency test, passed in by the callers above (:func:`mapjoin.confirmation.confirm`):
-#: ``(maps, result, strategy, gate)`` -> ``result`` with its failing joins confirmed on the exact problem
+#: ``(maps, result, strategy, gate)`` -> ``result`` with its failing joins confirmed on the exact problem; called
+#: only for a result with a flagged join (so that a caller may import it then: cli/common.confirm)
 Confirm = Callable[[Sequence[LocalMap], "JoinResult", Strategy, float], "JoinResult"]
 
 
@@ -569,7 +570,8 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
     map) or ``skip`` (sequential only: such a map is joined by its features alone or left out; see
     :func:`mapjoin.consistency.enforce`). ``confirm`` (:func:`mapjoin.confirmation.confirm`, passed in
     by the callers above this module): the joins that fail the gate are confirmed on the exact problem
-    before the policy acts (not with ``associate``: the maps' ids are local).
+    before the policy acts (not with ``associate``: the maps' ids are local); it is called only when a join
+    is flagged.
     """
     if associate is not None:
         confirm = None
@@ -583,13 +585,16 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
         result = join_tree(maps, covariance, solver, jobs, progress, associate, gate=gate)
     else:
         raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
-    if confirm is not None:
-        result = confirm(maps, result, strategy, gate)
+    def confirmed(chain: Sequence[LocalMap], joined: JoinResult, joined_by: Strategy) -> JoinResult:
+        flagged = confirm is not None and any(record.flag for record in joined.report)
+        return confirm(chain, joined, joined_by, gate) if flagged else joined
+
+    result = confirmed(maps, result, strategy)
 
     def rejoin(unlinked: frozenset[int], left_out: frozenset[int]) -> JoinResult:
         chain = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
         rejoined = join_sequential(chain, covariance, solver, warn=False, gate=gate, unlinked=unlinked)
-        return rejoined if confirm is None else confirm(chain, rejoined, "sequential", gate)
+        return confirmed(chain, rejoined, "sequential")
 
     return enforce(result, on_inconsistent, gate, rejoin if strategy == "sequential" else None)
 

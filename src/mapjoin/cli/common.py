@@ -18,12 +18,12 @@ from ..covariance import COVARIANCE_MODES, DEFAULT_COVARIANCE
 from ..errors import InputError, counted, shown  # noqa: F401  (counted: the commands' common.counted)
 from ..io.numbers import first_unplain
 from ..io.registry import GLOBAL_MAP, LOCAL_MAPS, TABLE, TRAJECTORY, Kind, by_name, extensions_text, names
-from ..joining import STRATEGIES
+from ..joins import STRATEGIES  # not ..joining: convert, datasets and the like need no join strategy
 from ..maps import LocalMap, Range
 from ..onestep import SOLVERS
 
 if TYPE_CHECKING:
-    from ..joining import JoinRecord
+    from ..joining import JoinRecord, JoinResult, Strategy
     from ..maps import GlobalMap
     from ..refine import RefineResult
 
@@ -267,6 +267,15 @@ def local_map_stream(inputs: tuple[str, ...], input_format: str | None, outputs:
     paths = outputs.guard(mapio.resolve_inputs(inputs))
     with options_for(format="--input-format"):
         yield mapio.iter_map_paths(paths, format=input_format)
+
+
+def confirm(maps: list[LocalMap], result: JoinResult, strategy: Strategy, gate: float) -> JoinResult:
+    """:func:`mapjoin.confirmation.confirm`, the ``confirm`` hook ``join`` and ``refine`` pass on: its module is
+    imported when a join calls it, i.e. when a join is flagged (most joins of the real datasets pass, and need
+    neither it nor the exact solve)."""
+    from ..confirmation import confirm as confirm_flagged
+
+    return confirm_flagged(maps, result, strategy, gate)
 
 
 def say(ctx: click.Context, message: str) -> None:

@@ -8,9 +8,8 @@ import click
 
 from .. import io as mapio
 from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
-from ..confirmation import KEEP_VALUES, KeptMaps, confirm, confirm_streamed
 from ..joining import JoinResult, join as join_maps
-from ..streaming import join_stream
+from ..streaming import KEEP_VALUES, KeptMaps, join_stream
 from ..maps import Range
 from . import common, main
 from .common import (TABLE_EXTENSIONS, covariance_option, gate_option, global_map_format_option,
@@ -108,7 +107,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
 
                 refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
                                           join_progress=progress, progress=common.iteration_printer(ctx),
-                                          gate=gate, on_inconsistent=on_inconsistent, confirm=confirm,
+                                          gate=gate, on_inconsistent=on_inconsistent, confirm=common.confirm,
                                           **common.solve_arguments(max_iterations, tolerance, no_covariances))
                 result, global_map = refined.fast_join, refined.global_map
             elif associate:
@@ -118,7 +117,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
                 global_map = result.global_map
             else:
                 result = join_maps(maps, covariance, solver, strategy, jobs, progress, gate=gate,
-                                   on_inconsistent=on_inconsistent, confirm=confirm)
+                                   on_inconsistent=on_inconsistent, confirm=common.confirm)
                 global_map = result.global_map
     if exact:
         common.warn_if_doubtful(refined)
@@ -163,6 +162,8 @@ def confirm_stream(ctx: click.Context, result: JoinResult, inputs: tuple[str, ..
     """The streamed join's flags confirmed on the exact problem, on its maps as ``kept`` or read again from files
     (not from ``once``, stdin, a FIFO or a pipe, which give their data once: read again, they would block or give
     none)."""
+    from ..confirmation import confirm_streamed  # join_stream calls this only when a join is flagged
+
     maps = kept.maps
     read = (None if once else (lambda: maps) if maps is not None else
             (lambda: common.read_local_maps(inputs, input_format, outputs)))

@@ -7,7 +7,6 @@ import time
 import click
 
 from .. import io as mapio
-from ..confirmation import confirm
 from ..io.registry import GLOBAL_MAP, TABLE, TRAJECTORY
 from . import common, main
 from .common import (covariance_option, gate_option, global_map_format_option, global_map_output_option,
@@ -71,7 +70,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     with progress_bar(ctx, len(maps), "fast join") as progress:
         result = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
                                  join_progress=progress, progress=common.iteration_printer(ctx),
-                                 gate=gate, on_inconsistent=on_inconsistent, confirm=confirm,
+                                 gate=gate, on_inconsistent=on_inconsistent, confirm=common.confirm,
                                  **common.solve_arguments(max_iterations, tolerance, no_covariances))
     elapsed = time.perf_counter() - start
     with outputs, common.options_for(format="--format"):

@@ -37,28 +37,27 @@ from stdin are named ``<stdin>`` likewise. Writers store each map's name.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import sys
 from collections.abc import Iterable, Iterator, Sequence
 from itertools import chain
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
 from ..errors import InputError, counted
 from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate, marginal_variances
 from . import registry
-from .g2o import g2o_feature_offset
 from .inputs import resolve_inputs
 from .lines import text_lines
-from .mat_maps import STAB_NOISE
 from .outputs import Outputs, Parts, check_not_overwriting, is_special, transaction, write_output
 from .paths import STDIN, Source, is_path, read_file, read_once, read_text, source_name
 from .registry import MAP_FORMATS, TABLE_FORMATS, Codec, Format, Kind, detect_format, map_file_name
-from .tables import MinimaTable, read_minima_csv, read_minima_records
-from .trajectory import Trajectory
-from .truth import read_truth_folder
+
+if TYPE_CHECKING:
+    from .tables import MinimaTable
 
 __all__ = [
     "MAP_FORMATS",
@@ -91,6 +90,25 @@ __all__ = [
     "write_trajectory",
     "write_truth",
 ]
+
+#: names of this package that live in a format's module, imported when first asked for (:func:`__getattr__`)
+_FROM_FORMATS = {"STAB_NOISE": "mat_maps", "MinimaTable": "tables", "Trajectory": "trajectory",
+                 "g2o_feature_offset": "g2o", "read_truth_folder": "truth"}
+
+
+def __getattr__(name: str) -> Any:
+    """:data:`_FROM_FORMATS`' names, their module imported on first use (PEP 562): reading and writing local and
+    global maps needs none of those modules."""
+    if name not in _FROM_FORMATS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_FROM_FORMATS[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 
 log = logging.getLogger("mapjoin")
 
@@ -324,6 +342,8 @@ def read_truth(source: Source, format: str | None = None) -> GroundTruth:
     if is_path(source) and os.path.isdir(source):
         folder = os.fspath(source)
         if os.path.exists(os.path.join(folder, "store_robotTrue.mat")):
+            from .truth import read_truth_folder
+
             return read_truth_folder(folder)
         files = [os.path.join(folder, name) for name in _TRUTH_FILES]
         source = next((path for path in files if os.path.isfile(path)), None)
@@ -341,6 +361,8 @@ def write_table(rows: Sequence[Any], target: Source, format: str | None = None) 
 def write_trajectory(global_map: GlobalMap, origin_id: int, target: Source, format: str | None = None) -> None:
     """Write the trajectory of a global map whose first map starts at pose ``origin_id`` (:class:`Trajectory`:
     the origin, then every end pose) as TUM, CSV or JSON (format from ``format`` or the extension)."""
+    from .trajectory import Trajectory
+
     _write_data(Trajectory.of(global_map, origin_id), target, format, registry.TRAJECTORY)
 
 
@@ -356,6 +378,8 @@ def read_minima_table(source: Source) -> MinimaTable:
     if fmt is not None and fmt not in TABLE_FORMATS:
         raise InputError(f"expected a table with the columns a and c_phi ({registry.extensions_text(registry.TABLE)}), "
                          f"not {fmt}", name)
+    from .tables import read_minima_csv, read_minima_records
+
     text = read_text(source, name)
     if fmt is None:
         fmt = "yaml" if text.lstrip()[:1] in ("[", "{", "-", "#", "%") else "csv"

@@ -10,6 +10,7 @@ formats are derived from it. Adding a format: one module (see :mod:`mapjoin.io`)
 
 from __future__ import annotations
 
+import importlib
 import os
 import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -17,7 +18,6 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from ..errors import InputError
-from . import csv_blocks, csv_maps, csvtable, g2o, global_maps, linearslam, mat_maps, tables, trajectory, yaml_maps, yamldoc
 from .paths import STDIN
 
 __all__ = ["FORMATS", "GLOBAL_MAP", "LOCAL_MAPS", "LOCAL_MAP_FILE", "MAP_FORMATS", "TABLE", "TABLE_FORMATS", "TRAJECTORY",
@@ -77,31 +77,62 @@ class Format:
         return getattr(self, kind.field)
 
 
+class _OnUse:
+    """A format module's function named ``module.function`` (``"yaml_maps.read"``), the module imported on the
+    first call: a command imports the readers and writers of the formats it reads and writes, not every
+    format's (a join of .mat files no YAML, CSV, Linear SLAM, g2o, trajectory or table module: ~7 ms of its
+    start-up; tests/test_startup.py)."""
+
+    __slots__ = ("reference", "_function")
+
+    def __init__(self, reference: str):
+        self.reference = reference
+        self._function: Callable | None = None
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        if self._function is None:
+            module, name = self.reference.rsplit(".", 1)
+            self._function = getattr(importlib.import_module(f"{__package__}.{module}"), name)
+        return self._function(*args, **kwargs)
+
+    def __repr__(self) -> str:
+        return f"<mapjoin.io.{self.reference}, imported on use>"
+
+
+def _codec(module: str, read: str | None = None, dump: str | None = None, *, read_files: str | None = None,
+           read_lines: str | None = None) -> Codec:
+    """The :class:`Codec` of the functions so named (``read_lines``: ``module.function`` when another module's)."""
+    def on_use(name: str | None) -> _OnUse | None:
+        return None if name is None else _OnUse(name if "." in name else f"{module}.{name}")
+    return Codec(on_use(read), on_use(dump), on_use(read_files), on_use(read_lines))
+
+
 FORMATS: tuple[Format, ...] = (
-    Format("yaml", "YAML", (".yaml", ".yml"), sniff=yamldoc.looks_like_yaml,
+    Format("yaml", "YAML", (".yaml", ".yml"), sniff=_OnUse("yamldoc.looks_like_yaml"),
            sniff_text="YAML starting with format:, ---, %YAML or #",
-           local_maps=Codec(yaml_maps.read, yaml_maps.dump, read_lines=yaml_maps.read_lines),
-           global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_yaml),
-           truth=Codec(global_maps.read_truth_yaml, global_maps.dump_truth_yaml), table=Codec(None, tables.dump_yaml)),
-    Format("csv", "CSV", (".csv",), sniff=csvtable.names_kind_column, sniff_text="a CSV header naming a kind column",
-           local_maps=Codec(csv_maps.read, csv_maps.dump, read_lines=csv_blocks.read_lines),
-           global_map=Codec(global_maps.read_global_csv, global_maps.dump_global_csv),
-           truth=Codec(global_maps.read_truth_csv, global_maps.dump_truth_csv), table=Codec(None, tables.dump_csv),
-           trajectory=Codec(None, trajectory.dump_csv)),
+           local_maps=_codec("yaml_maps", "read", "dump", read_lines="read_lines"),
+           global_map=_codec("global_maps", "read_global_yaml", "dump_global_yaml"),
+           truth=_codec("global_maps", "read_truth_yaml", "dump_truth_yaml"), table=_codec("tables", None, "dump_yaml")),
+    Format("csv", "CSV", (".csv",), sniff=_OnUse("csvtable.names_kind_column"),
+           sniff_text="a CSV header naming a kind column",
+           local_maps=_codec("csv_maps", "read", "dump", read_lines="csv_blocks.read_lines"),
+           global_map=_codec("global_maps", "read_global_csv", "dump_global_csv"),
+           truth=_codec("global_maps", "read_truth_csv", "dump_truth_csv"), table=_codec("tables", None, "dump_csv"),
+           trajectory=_codec("trajectory", None, "dump_csv")),
     Format("mat", "I-SLSJF .mat", (".mat",), binary=True,
-           local_maps=Codec(mat_maps.read, mat_maps.dump, mat_maps.read_files), one_map_per_file=True, covariance_only=True,
-           map_number=mat_maps.map_number),
-    Format("linearslam", "Linear SLAM", (".txt",), named_only=True, sniff=linearslam.looks_like_linearslam,
-           sniff_text="Linear SLAM text", local_maps=Codec(linearslam.read, linearslam.dump, linearslam.read_files), one_map_per_file=True,
-           covariance_only=True),
-    Format("json", "JSON", (".json",), sniff=global_maps.looks_like_json, sniff_text="JSON starting with {",
-           table=Codec(None, tables.dump_json),
-           global_map=Codec(global_maps.read_global_yaml, global_maps.dump_global_json),  # JSON is read as YAML
-           trajectory=Codec(None, trajectory.dump_json)),
+           local_maps=_codec("mat_maps", "read", "dump", read_files="read_files"), one_map_per_file=True,
+           covariance_only=True, map_number=_OnUse("mat_maps.map_number")),
+    Format("linearslam", "Linear SLAM", (".txt",), named_only=True, sniff=_OnUse("linearslam.looks_like_linearslam"),
+           sniff_text="Linear SLAM text", local_maps=_codec("linearslam", "read", "dump", read_files="read_files"),
+           one_map_per_file=True, covariance_only=True),
+    Format("json", "JSON", (".json",), sniff=_OnUse("global_maps.looks_like_json"), sniff_text="JSON starting with {",
+           table=_codec("tables", None, "dump_json"),
+           global_map=_codec("global_maps", "read_global_yaml", "dump_global_json"),  # JSON is read as YAML
+           trajectory=_codec("trajectory", None, "dump_json")),
     Format("tum", "TUM trajectory", (".tum",), note="timestamp (the pose id) tx ty tz qx qy qz qw, as evo reads it",
-           trajectory=Codec(None, trajectory.dump_tum)),
+           trajectory=_codec("trajectory", None, "dump_tum")),
     Format("g2o", "g2o", (".g2o",), note="VERTEX_SE2 poses and VERTEX_XY features, for g2o's viewer or GTSAM",
-           global_map=Codec(None, g2o.dump)),
+           global_map=_codec("g2o", None, "dump")),
 )
 
 by_name: dict[str, Format] = {fmt.name: fmt for fmt in FORMATS}
