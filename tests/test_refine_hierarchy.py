@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from cli_runner import run
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mapjoin import GlobalMap
 from mapjoin import io as mapio
@@ -22,20 +24,21 @@ def piece_optimum(maps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The exact optimum of the chain ``maps`` alone, in the frame of its first start pose, found by minimise
     from the plain tree join of those maps: (poses, feature ids, features)."""
     problem = ExactProblem(maps)
-    found = minimise(problem, problem.pack(join_tree(maps).global_map), tolerance=0.0)
+    found = minimise(problem, problem.pack(join_tree(maps).global_map))
     assert found.converged, found.reason
     poses, features = problem.unpack(found.x)
     return poses, problem.feature_ids, features
 
 
-@pytest.mark.parametrize("seed", [1, 4])
-def test_settled_pieces_are_each_pieces_own_optimum(seed):
-    """100 simulated maps, the levels of at most 4 pieces settled to convergence: every piece the hook hands
-    on (4 pieces of 32, 32, 32, 4 maps, then 64 and 36) is the optimum of that piece's maps solved on their
-    own from their own tree join, and the levels of more pieces pass unchanged."""
-    maps = simulate(100, seed=seed).maps
+@settings(max_examples=4, deadline=None)
+@given(count=st.integers(20, 64), seed=st.integers(0, 10**6))
+def test_settled_pieces_are_each_pieces_own_optimum(count, seed):
+    """Simulated chains, the levels of at most 4 pieces settled to convergence: every piece the hook hands on
+    (e.g. at 100 maps 4 pieces of 32, 32, 32, 4 maps, then 64 and 36) is the optimum of that piece's maps
+    solved on their own from their own tree join, and the levels of more pieces (and the root) pass unchanged."""
+    maps = simulate(count, seed=seed).maps
     ids = np.unique(np.concatenate([m.feature_ids for m in maps]))
-    settle = Settle(maps, depth=2, iterations=100, tolerance=0.0)
+    settle = Settle(maps, depth=2, iterations=100, tolerance=1e-12)
     seen = []
 
     def recording(pieces, level):
@@ -45,7 +48,7 @@ def test_settled_pieces_are_each_pieces_own_optimum(seed):
         return settled
 
     join_tree(maps, settle=recording)
-    assert [(level, count) for level, count, *_ in settle.levels] == [(5, 4), (6, 2)]
+    assert [count for _, count, *_ in settle.levels] == [c for c in (4, 3, 2) if any(p.count == c for p in seen)]
     assert all(after <= before for _, _, before, after, _ in settle.levels)
     checked = 0
     for pieces in seen:
@@ -62,11 +65,11 @@ def test_settled_pieces_are_each_pieces_own_optimum(seed):
             np.testing.assert_allclose(pieces.pose_xy[at].imag, poses[:, 1], rtol=0, atol=1e-6)
             np.testing.assert_allclose(wrap(pieces.pose_phi[at] - poses[:, 2]), 0.0, rtol=0, atol=1e-8)
             checked += 1
-    assert checked == 6
+    assert checked == sum(count for _, count, *_ in settle.levels) >= 2
 
 
-def truth_started(run_) -> float:
-    """chi^2 of the exact solve started at the simulation's ground truth (the reference optimum), and its map."""
+def truth_started(run_):
+    """The exact solve of a simulation's maps started at its ground truth (the reference optimum)."""
     problem = ExactProblem(run_.maps)
     where = np.searchsorted(run_.truth.feature_ids, problem.feature_ids)
     truth = GlobalMap(feature_ids=problem.feature_ids, features=run_.truth.features[where],
@@ -75,7 +78,7 @@ def truth_started(run_) -> float:
     return refine(run_.maps, truth, covariances=False)
 
 
-def test_the_hierarchical_start_converges_where_the_trees_creeps():
+def test_the_hierarchical_start_converges_where_the_tree_start_creeps():
     """1000 maps (two laps) with three times the default heading noise (0.03 rad a step), seed 2: from the
     tree's start the solve creeps (100 iterations, chi^2 29061.7, not converged; 40 here), from the
     hierarchical start it reaches the optimum that a start at the ground truth reaches (28634.08, in 9)."""
