@@ -67,7 +67,8 @@ class RefineResult:
     :func:`.solver.minimise`). ``seconds``: time of the solve (problem set-up and
     iterations; neither the initial join nor the covariances), ``covariance_seconds``: time
     of the marginal covariances, ``initial_seconds``: time of the fast join that gave the
-    initial value (0 when one was given), ``fast_join``: that join (None when an initial
+    initial value (with the hierarchical start, its pieces' solves too; 0 when one was given), ``fast_join``:
+    that join (None when an initial
     map was given). ``gradient_norm``: max |J^T r| at the optimum (r whitened residuals).
     ``rejected``: steps computed but not taken (they did not lower chi^2, or a Newton step
     was no descent). ``start``: the start the solve started from (:data:`STARTS`; None when an initial
