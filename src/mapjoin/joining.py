@@ -50,6 +50,8 @@ log = logging.getLogger("mapjoin")
 #: ``(maps, result, strategy, gate)`` -> ``result`` with its failing joins confirmed on the exact problem; called
 #: only for a result with a flagged join (so that a caller may import it then: cli/common.confirm)
 Confirm = Callable[[Sequence[LocalMap], "JoinResult", Strategy, float], "JoinResult"]
+#: the tree's hook between levels, ``(pieces, level)`` -> the pieces the next level joins (:func:`join_tree`)
+Settle = Callable[[_Pieces, int], _Pieces]
 
 
 class Associate(Protocol):
@@ -475,12 +477,15 @@ def _join_level(pieces: _Pieces, labels: _Labels, solver: Solver, level: int, as
 
 def _join_levels(pieces: _Pieces, labels: _Labels, solver: Solver, level: int,
                  progress: Callable[[int], None] | None = None, associate: Associate | None = None,
-                 record: TreeRecord | None = None) -> tuple[_Pieces, list[tuple]]:
-    """Join levels from ``level`` on until one piece is left; the joins' report rows."""
+                 record: TreeRecord | None = None, settle: Settle | None = None) -> tuple[_Pieces, list[tuple]]:
+    """Join levels from ``level`` on until one piece is left; the joins' report rows. ``settle``: see
+    :func:`join_tree`."""
     records: list[tuple] = []
     while pieces.count > 1:
         level += 1
         pieces, joined = _join_level(pieces, labels, solver, level, associate, record)
+        if settle is not None:
+            pieces = settle(pieces, level)
         records += joined
         if progress:
             progress(len(records) + 1)
@@ -500,18 +505,22 @@ def _subtree(job: tuple[_Pieces, _Labels, Solver]) -> tuple[_Pieces, list[tuple]
 def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIANCE,
               solver: Solver = "bisection", jobs: int = 1,
               progress: Callable[[int], None] | None = None, associate: Associate | None = None, *,
-              gate: float = DEFAULT_GATE) -> JoinResult:
+              gate: float = DEFAULT_GATE, settle: Settle | None = None) -> JoinResult:
     """Join ``maps`` pairwise, level by level (Remark 8); ``jobs`` processes share the lower levels.
 
     With ``jobs > 1`` the maps are cut into aligned blocks of 2^L maps (at least ``jobs``
     of them), each joined to one piece in a worker, exactly as the single-process tree
     would; the parent joins the blocks' results. Join numbers follow the levels. ``associate``: as for
-    :func:`join_sequential` (in one process only).
+    :func:`join_sequential` (in one process only). ``settle(pieces, level)`` (in one process only) is given
+    each level's joined pieces and returns the pieces the next level joins (the hierarchical start of the
+    exact solve, :mod:`mapjoin.refine.hierarchy`, solves them exactly).
     """
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     if associate is not None and jobs > 1:
         raise ValueError("data association runs the tree in one process (jobs=1)")
+    if settle is not None and jobs > 1:
+        raise ValueError("settling the tree's pieces runs the tree in one process (jobs=1)")
     feature_ids, pieces = _prepare(maps, covariance)
     labels = _Labels.of(maps)
     records: list[tuple] = []
@@ -535,7 +544,8 @@ def join_tree(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COV
         if progress:
             progress(len(records) + 1)
     pieces, upper = _join_levels(pieces, labels, solver, depth,
-                                 (lambda done: progress(done + len(records))) if progress else None, associate, record)
+                                 (lambda done: progress(done + len(records))) if progress else None, associate, record,
+                                 settle)
     records += upper
     records.sort(key=lambda row: row[_LEVEL])  # by level, stable: chain order within a level
     retest = record.retest(chain, partial(solve_widened, solver=solver))
@@ -560,7 +570,7 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
          strategy: Strategy = "sequential", jobs: int = 1,
          progress: Callable[[int], None] | None = None, *, gate: float = DEFAULT_GATE,
          on_inconsistent: Policy = "warn", associate: Associate | None = None,
-         confirm: Confirm | None = None) -> JoinResult:
+         confirm: Confirm | None = None, settle: Settle | None = None) -> JoinResult:
     """Join ``maps`` with ``strategy`` (``jobs`` only matters for the tree; ``associate``: see
     :func:`join_sequential`, used by :func:`mapjoin.association.join_associated`).
 
@@ -571,7 +581,7 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
     :func:`mapjoin.consistency.enforce`). ``confirm`` (:func:`mapjoin.confirmation.confirm`, passed in
     by the callers above this module): the joins that fail the gate are confirmed on the exact problem
     before the policy acts (not with ``associate``: the maps' ids are local); it is called only when a join
-    is flagged.
+    is flagged. ``settle``: the tree's hook between levels (:func:`join_tree`).
     """
     if associate is not None:
         confirm = None
@@ -582,7 +592,7 @@ def join(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAULT_COVARIAN
     if strategy == "sequential":
         result = join_sequential(maps, covariance, solver, progress, gate=gate, associate=associate)
     elif strategy == "tree":
-        result = join_tree(maps, covariance, solver, jobs, progress, associate, gate=gate)
+        result = join_tree(maps, covariance, solver, jobs, progress, associate, gate=gate, settle=settle)
     else:
         raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
     def confirmed(chain: Sequence[LocalMap], joined: JoinResult, joined_by: Strategy) -> JoinResult:

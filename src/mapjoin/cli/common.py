@@ -160,14 +160,19 @@ def summary(ctx: click.Context, message: str, fields: dict[str, object], *, data
                err=data_on_stdout)
 
 
+#: the starts of the exact join, :data:`mapjoin.refine.STARTS` (not imported here: it imports scipy.sparse; a test
+#: checks that they agree): the fast joins' strategies, and the tree with its top pieces solved exactly
+STARTS = (*STRATEGIES, "hierarchical")
 #: the order of the fast joins, which is also the start of the exact join: one option, two names
 strategy_option = click.option(
-    "--strategy", "--start", "strategy", type=click.Choice(STRATEGIES), default=None,
+    "--strategy", "--start", "strategy", type=click.Choice(STARTS), default=None,
     show_default="join: sequential; refine, --refine: tree, sequential with --on-inconsistent skip",
     help="Order of the fast joins (and so the start of the exact join, --refine / refine): each map onto the "
          "global map so far, or neighbours pairwise, level by level (faster, less accurate: README, "
          "'Strategies'). On long runs with loop closures the sequential start drifts and the exact solve can "
-         "creep or end in a worse local minimum, where the tree's start reaches the optimum.")
+         "creep or end in a worse local minimum, where the tree's start reaches the optimum. hierarchical "
+         "(exact solve only): the tree with the root's two pieces solved exactly before their join, for very "
+         "long runs where the tree's start does not converge (slower: docs, 'Hierarchical start').")
 #: refine's default start, :data:`mapjoin.refine.DEFAULT_START` (not imported here: it imports scipy.sparse;
 #: a test checks that they agree)
 REFINE_START = "tree"
@@ -177,6 +182,9 @@ def start_of(strategy: str | None, refining: bool, on_inconsistent: str) -> str:
     """The fast join's strategy: the one given, else for a join that starts the exact solve refine's
     default start (sequential under --on-inconsistent skip, which re-joins the chain map by map, as
     :func:`mapjoin.refine.default_start`), else sequential."""
+    if strategy == "hierarchical" and not refining:
+        raise click.UsageError("--start hierarchical solves the tree's top pieces exactly: it starts the exact "
+                               "join only; add --refine")
     if strategy is not None:
         return strategy
     return REFINE_START if refining and on_inconsistent != "skip" else "sequential"

@@ -20,18 +20,26 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from ..covariance import DEFAULT_COVARIANCE, CovarianceMode, spherical_summary
 from ..consistency import DEFAULT_GATE, Policy
-from ..joining import Confirm, JoinResult, Strategy, without_features, join
+from ..joining import STRATEGIES, Confirm, JoinResult, Strategy, without_features, join
 from ..maps import GlobalMap, LocalMap, Provenance
 from ..onestep import Solver
+from .hierarchy import HIERARCHICAL, Settle
 from .problem import ExactProblem
 from .solver import TOLERANCE, Minimum, minimise
 
-__all__ = ["DEFAULT_START", "TOLERANCE", "RefineResult", "default_start", "exact_cost", "join_and_refine", "refine"]
+__all__ = ["DEFAULT_START", "STARTS", "TOLERANCE", "RefineResult", "Start", "default_start", "exact_cost",
+           "join_and_refine", "refine"]
+
+#: the starts of the exact solve: a fast join's strategy, or the tree join with its top levels' pieces solved
+#: exactly (:mod:`.hierarchy`, docs/method.md#hierarchical-start)
+Start = Literal["sequential", "tree", "hierarchical"]
+STARTS: tuple[str, ...] = (*STRATEGIES, HIERARCHICAL)
 
 #: the fast join the exact solve starts from unless told: measured to lead it to the optimum (the one a start
 #: at the ground truth reaches) on the real datasets and on 1000- and 10^4-map simulations, where the
@@ -59,10 +67,11 @@ class RefineResult:
     :func:`.solver.minimise`). ``seconds``: time of the solve (problem set-up and
     iterations; neither the initial join nor the covariances), ``covariance_seconds``: time
     of the marginal covariances, ``initial_seconds``: time of the fast join that gave the
-    initial value (0 when one was given), ``fast_join``: that join (None when an initial
+    initial value (with the hierarchical start, its pieces' solves too; 0 when one was given), ``fast_join``:
+    that join (None when an initial
     map was given). ``gradient_norm``: max |J^T r| at the optimum (r whitened residuals).
     ``rejected``: steps computed but not taken (they did not lower chi^2, or a Newton step
-    was no descent). ``start``: the fast join's strategy the solve started from (None when an initial
+    was no descent). ``start``: the start the solve started from (:data:`STARTS`; None when an initial
     map was given).
     """
 
@@ -80,7 +89,7 @@ class RefineResult:
     gradient_norm: float = math.nan
     rejected: int = 0
     fast_join: JoinResult | None = None
-    start: Strategy | None = None
+    start: Start | None = None
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -98,7 +107,7 @@ class RefineResult:
                    rejected=found.rejected)
 
 
-def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy | None = None,
+def join_and_refine(maps: Sequence[LocalMap], *, start: Start | None = None,
                     covariance: CovarianceMode = DEFAULT_COVARIANCE, solver: Solver = "bisection", jobs: int = 1,
                     join_progress: Callable[[int], None] | None = None, max_iterations: int = 100,
                     tolerance: float = TOLERANCE, covariances: bool = True,
@@ -110,12 +119,17 @@ def join_and_refine(maps: Sequence[LocalMap], *, start: Strategy | None = None,
     the skip policy leaves out keeps only its end pose in the refinement too; ``confirm``: see
     :func:`mapjoin.joining.join`), then refine that to the
     exact least-squares join (:func:`refine` with the other arguments). The result holds
-    the fast join (``fast_join``) and its time (``initial_seconds``)."""
+    the fast join (``fast_join``) and its time (``initial_seconds``). ``start="hierarchical"``: the tree
+    join with its top levels' pieces solved exactly (:class:`.hierarchy.Settle`; in one process, ``jobs=1``),
+    for long runs where the tree's start leaves the solve creeping (docs/method.md#hierarchical-start)."""
     maps = list(maps)
     start = start or default_start(on_inconsistent)
+    if start not in STARTS:
+        raise ValueError(f"unknown start {start!r}; expected one of {', '.join(STARTS)}")
     began = time.perf_counter()
-    fast = join(maps, covariance, solver, start, jobs, join_progress, gate=gate, on_inconsistent=on_inconsistent,
-                confirm=confirm)
+    settle = Settle(maps) if start == HIERARCHICAL else None
+    fast = join(maps, covariance, solver, "tree" if settle else start, jobs, join_progress, gate=gate,
+                on_inconsistent=on_inconsistent, confirm=confirm, settle=settle)
     left_out = {r.join for r in fast.report if r.action == "left out"}
     maps = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
     initial_seconds = time.perf_counter() - began
