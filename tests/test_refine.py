@@ -772,6 +772,10 @@ def test_join_refine_warns_as_refine_does_and_quiet_runs_skip_the_chi2_interval(
 def test_cli_reports_non_convergence_refuses_to_overwrite_and_has_examples(simulated_folder, tmp_path):
     result = run("refine", simulated_folder, "--max-iterations", "0", "-o", str(tmp_path / "g.csv"))
     assert result.exit_code == 3 and "did not converge (max iterations reached after 0 iterations, chi^2" in result.stderr
+    assert result.stderr.rstrip().endswith("; try --start hierarchical")   # the default start: the tree's
+    again = run("refine", simulated_folder, "--max-iterations", "0", "--start", "hierarchical", "-o",
+                str(tmp_path / "h.csv"))
+    assert again.exit_code == 3 and "did not converge" in again.stderr and "try --start" not in again.stderr
     target = Path(simulated_folder) / "localmap_1.yaml"
     before = target.read_text()
     result = CliRunner().invoke(main, ["refine", simulated_folder, "-o", str(target)])

@@ -377,8 +377,11 @@ def exit_if_not_converged(ctx: click.Context, result: RefineResult, output: str)
     from ..errors import EXIT_NOT_CONVERGED
 
     where = "stdout" if output == "-" else output
+    # the tree's pieces keep their drift until the top join, where Gauss-Newton can creep (docs/method.md#solver)
+    hint = "; try --start hierarchical" if result.start == "tree" else ""
     click.echo(f"mapjoin: error: the exact join did not converge ({result.reason} after {result.iterations} "
-               f"iterations, chi^2 = {result.cost:.10g}): {where} holds the last iterate, not the optimum", err=True)
+               f"iterations, chi^2 = {result.cost:.10g}): {where} holds the last iterate, not the optimum{hint}",
+               err=True)
     ctx.exit(EXIT_NOT_CONVERGED)
 
 
