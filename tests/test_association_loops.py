@@ -398,6 +398,19 @@ def brute_force_votes(left, right, a, b, centre, noise, turning, turn_cell, offs
     return best, len(centres), voters, runner_up(votes), runner_up(rivals)
 
 
+def agree_with_brute_force(left, right, a, b, noise, turning):
+    """rigid_votes' best cell, voters and runner-up of one join (centred on the right piece) against
+    brute_force_votes'; (the votes, the runner-up over every vote)."""
+    centre = right.mean()
+    votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise, turning,
+                        np.array([0.01]), np.array([0.15]), 1)
+    best, ties, voters, every, rival = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
+    assert (votes.agreement[0], votes.support[0]) == best
+    if ties == 1:  # else either is the best
+        assert set(votes.voters.tolist()) == voters and votes.runner_up[0] == rival
+    return votes, every
+
+
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000), bend=st.sampled_from([0.0, 0.002, 0.004, 0.008]))
 def test_the_runner_up_is_a_rival_association_as_counted_by_brute_force(seed, bend):
@@ -407,13 +420,7 @@ def test_the_runner_up_is_a_rival_association_as_counted_by_brute_force(seed, be
     rng = np.random.default_rng(seed)
     left, right, a, b = bent(rng, bend=bend)
     noise, turning = np.full(len(a), 2 * 0.03**2), np.full(len(a), 0.5)
-    centre = right.mean()
-    votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise, turning,
-                        np.array([0.01]), np.array([0.15]), 1)
-    best, ties, voters, every, rival = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
-    assert (votes.agreement[0], votes.support[0]) == best
-    if ties == 1:  # else either is the best
-        assert set(votes.voters.tolist()) == voters and votes.runner_up[0] == rival
+    votes, every = agree_with_brute_force(left, right, a, b, noise, turning)
     assert votes.runner_up[0] <= every
 
 
@@ -427,13 +434,7 @@ def test_votes_of_pairs_with_unequal_noise_are_those_counted_by_brute_force(seed
     left, right, a, b = bent(rng, bend=0.002)
     noise = 2 * 0.03**2 * np.exp(rng.uniform(-np.log(spread), 0.0, len(a)))
     turning = np.full(len(a), 0.5)
-    centre = right.mean()
-    votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise, turning,
-                        np.array([0.01]), np.array([0.15]), 1)
-    best, ties, voters, _, rival = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
-    assert (votes.agreement[0], votes.support[0]) == best
-    if ties == 1:  # else either is the best
-        assert set(votes.voters.tolist()) == voters and votes.runner_up[0] == rival
+    agree_with_brute_force(left, right, a, b, noise, turning)
 
 
 def test_a_bent_piece_closes_its_loop_where_its_own_pairs_vote_beyond_the_best():

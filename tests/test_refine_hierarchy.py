@@ -8,11 +8,11 @@ import pytest
 from cli_runner import run
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_refine import refined_from_the_truth
 
-from mapjoin import GlobalMap
 from mapjoin import io as mapio
 from mapjoin.joining import join_tree
-from mapjoin.refine import STARTS, join_and_refine, refine
+from mapjoin.refine import STARTS, join_and_refine
 from mapjoin.refine.hierarchy import Settle
 from mapjoin.refine.problem import ExactProblem
 from mapjoin.refine.solver import minimise
@@ -68,22 +68,12 @@ def test_settled_pieces_are_each_pieces_own_optimum(count, seed):
     assert checked == sum(count for _, count, *_ in settle.levels) >= 2
 
 
-def truth_started(run_):
-    """The exact solve of a simulation's maps started at its ground truth (the reference optimum)."""
-    problem = ExactProblem(run_.maps)
-    where = np.searchsorted(run_.truth.feature_ids, problem.feature_ids)
-    truth = GlobalMap(feature_ids=problem.feature_ids, features=run_.truth.features[where],
-                      feature_variances=np.ones(problem.n_features), pose_ids=problem.pose_ids,
-                      poses=run_.truth.poses[problem.pose_ids], pose_variances=np.ones((problem.n_maps, 2)))
-    return refine(run_.maps, truth, covariances=False)
-
-
 def test_the_hierarchical_start_converges_where_the_tree_start_creeps():
     """1000 maps (two laps) with three times the default heading noise (0.03 rad a step), seed 2: from the
     tree's start the solve creeps (100 iterations, chi^2 29061.7, not converged; 40 here), from the
     hierarchical start it reaches the optimum that a start at the ground truth reaches (28634.08, in 9)."""
     run_ = simulate(1000, seed=2, odometry_noise=(0.05, 0.02, 0.03))
-    reference = truth_started(run_)
+    reference = refined_from_the_truth(run_)
     tree = join_and_refine(run_.maps, start="tree", covariances=False, max_iterations=40)
     hierarchical = join_and_refine(run_.maps, start="hierarchical", covariances=False)
     assert reference.converged and not tree.converged and tree.cost > reference.cost * (1 + 1e-3)

@@ -159,6 +159,18 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
     refused_here = False    # an undamped step was refused at the current x
     kept = None             # the last point's undamped factor, kept for the chord test (:func:`_chord`)
 
+    def accepted(at: np.ndarray, newton: bool) -> tuple:
+        """The problem linearised at an accepted point (with the second-order term where ``newton``; else
+        None), its chi^2 recorded and reported."""
+        if newton:
+            linear = problem.linearise(at, curvature=True)
+        else:
+            linear = (*problem.linearise(at), None)
+        costs.append(linear[2])
+        if progress:
+            progress(len(costs) - 1, linear[2])
+        return linear
+
     def stop(reason: str, converged: bool = False, factor: object = None) -> Minimum:
         """Where the solver is now (x and its linearisation), and why it stops there."""
         return Minimum(x, data, gradient, cost, costs, len(costs) - 1, converged, reason, rejected, factor)
@@ -170,13 +182,8 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             chord = _chord(problem, *kept, x, gradient, cost, relative, tolerance)
             if chord is not None:   # a full undamped step of negligible gain, taken
                 x, data, second = chord, None, None
-                if mode.newton:     # should it not settle, Newton's step follows: with its second-order term
-                    data, gradient, cost, second = problem.linearise(x, curvature=True)
-                else:
-                    data, gradient, cost = problem.linearise(x)
-                costs.append(cost)
-                if progress:
-                    progress(len(costs) - 1, cost)
+                # should it not settle, Newton's step follows: with its second-order term
+                data, gradient, cost, second = accepted(x, mode.newton)
                 after = problem.solve(kept[0], -gradient)
                 kept = None
                 if np.max(np.abs(after), initial=0.0) <= tolerance * (1.0 + np.max(np.abs(x), initial=0.0)):
@@ -238,13 +245,8 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             near = undamped and not shortened and not done and predicted <= math.sqrt(relative) * previous
             kept = (factor, float(np.max(np.abs(step), initial=0.0))) if near else None
             data = second = factor = None    # the last point's normal matrix freed before the new one is made
-            if mode.newton and not done:     # the second-order term only where a Newton step follows
-                data, gradient, cost, second = problem.linearise(x, curvature=True)
-            else:
-                data, gradient, cost = problem.linearise(x)
-            costs.append(cost)
-            if progress:
-                progress(len(costs) - 1, cost)
+            # the second-order term only where a Newton step follows
+            data, gradient, cost, second = accepted(x, mode.newton and not done)
             if done:
                 return stop("relative cost change below tolerance", True)
         elif mode.newton:
