@@ -772,10 +772,12 @@ def test_join_refine_warns_as_refine_does_and_quiet_runs_skip_the_chi2_interval(
 def test_cli_reports_non_convergence_refuses_to_overwrite_and_has_examples(simulated_folder, tmp_path):
     result = run("refine", simulated_folder, "--max-iterations", "0", "-o", str(tmp_path / "g.csv"))
     assert result.exit_code == 3 and "did not converge (max iterations reached after 0 iterations, chi^2" in result.stderr
-    assert result.stderr.rstrip().endswith("; try --start hierarchical")   # the default start: the tree's
-    again = run("refine", simulated_folder, "--max-iterations", "0", "--start", "hierarchical", "-o",
-                str(tmp_path / "h.csv"))
-    assert again.exit_code == 3 and "did not converge" in again.stderr and "try --start" not in again.stderr
+    # the default start's solve did not converge: the hierarchical start was tried too, and said so
+    assert "), from the hierarchical join (the tree join's solve did not converge), 0 iterations" in result.stderr
+    assert "try --start" not in result.stderr
+    again = run("refine", simulated_folder, "--max-iterations", "0", "--start", "tree", "-o", str(tmp_path / "h.csv"))
+    assert again.exit_code == 3 and again.stderr.rstrip().endswith("; try --start hierarchical"), again.stderr
+    assert "), from the tree join, 0 iterations" in again.stderr   # a start given is not replaced
     target = Path(simulated_folder) / "localmap_1.yaml"
     before = target.read_text()
     result = CliRunner().invoke(main, ["refine", simulated_folder, "-o", str(target)])

@@ -71,7 +71,8 @@ def test_settled_pieces_are_each_pieces_own_optimum(count, seed):
 def test_the_hierarchical_start_converges_where_the_tree_start_creeps():
     """1000 maps (two laps) with three times the default heading noise (0.03 rad a step), seed 2: from the
     tree's start the solve creeps (100 iterations, chi^2 29061.7, not converged; 40 here), from the
-    hierarchical start it reaches the optimum that a start at the ground truth reaches (28634.08, in 9)."""
+    hierarchical start it reaches the optimum that a start at the ground truth reaches (28634.08, in 9);
+    with no start given, the same after the tree's solve fails."""
     run_ = simulate(1000, seed=2, odometry_noise=(0.05, 0.02, 0.03))
     reference = refined_from_the_truth(run_)
     tree = join_and_refine(run_.maps, start="tree", covariances=False, max_iterations=40)
@@ -81,6 +82,11 @@ def test_the_hierarchical_start_converges_where_the_tree_start_creeps():
     assert hierarchical.cost == pytest.approx(reference.cost, rel=1e-9)
     np.testing.assert_allclose(hierarchical.global_map.features, reference.global_map.features, rtol=0, atol=1e-6)
     assert hierarchical.fast_join.global_map.provenance.strategy == "tree"
+    # no start given: the default (tree) start's solve did not converge, so the hierarchical start is tried
+    default = join_and_refine(run_.maps, covariances=False, max_iterations=40)
+    assert default.converged and (default.start, default.abandoned) == ("hierarchical", "tree")
+    assert default.cost == hierarchical.cost and default.initial_seconds > hierarchical.initial_seconds
+    assert (tree.start, tree.abandoned) == ("tree", None)   # a start given is not replaced
 
 
 @pytest.mark.parametrize("name, optimum", [("VicPark_200_local_maps", 3643.434939),
@@ -102,6 +108,8 @@ def test_the_cli_starts_from_the_hierarchical_join_only_when_refining(simulated_
     result = run("refine", simulated_folder, "--start", "hierarchical", "--no-covariances", "-o",
                  str(tmp_path / "a.csv"))
     assert result.exit_code == 0 and "), from the hierarchical join, " in result.stderr, result.stderr
+    result = run("refine", simulated_folder, "--no-covariances", "--json", "-o", str(tmp_path / "d.csv"))
+    assert '"start": "tree", "abandoned_start": null' in result.stdout, result.stdout   # converged from the tree
     result = run("join", simulated_folder, "--strategy", "hierarchical", "--refine", "--json", "-o",
                  str(tmp_path / "b.csv"))
     assert result.exit_code == 0 and '"strategy": "hierarchical"' in result.stdout, result.stderr

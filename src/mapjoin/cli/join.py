@@ -69,7 +69,7 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
       mapjoin join ../shared/data/DLR_200_local_maps --refine -o dlr_exact.yaml
       mapjoin join maps/ --associate --associations ids.csv -o global.csv
     """
-    strategy = common.start_of(strategy, exact, on_inconsistent)
+    given, strategy = strategy, common.start_of(strategy, exact, on_inconsistent)
     common.check_jobs(jobs, strategy)
     if not exact and (solve_options := common.given(ctx, common.REFINE_OPTIONS)):
         raise click.UsageError(f"{solve_options[0]} is an option of the exact solve; add --refine")
@@ -105,11 +105,11 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
             if exact:
                 from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
-                refined = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
-                                          join_progress=progress, progress=common.iteration_printer(ctx),
+                refined = join_and_refine(maps, start=given and strategy, covariance=covariance, solver=solver,
+                                          jobs=jobs, join_progress=progress, progress=common.iteration_printer(ctx),
                                           gate=gate, on_inconsistent=on_inconsistent, confirm=common.confirm,
                                           **common.solve_arguments(max_iterations, tolerance, no_covariances))
-                result, global_map = refined.fast_join, refined.global_map
+                result, global_map, strategy = refined.fast_join, refined.global_map, refined.start
             elif associate:
                 from ..association import join_associated
 

@@ -57,7 +57,7 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     """
     from ..refine import join_and_refine  # scipy.sparse: imported only when refining
 
-    strategy = common.start_of(strategy, True, on_inconsistent)
+    given, strategy = strategy, common.start_of(strategy, True, on_inconsistent)
     common.check_jobs(jobs, strategy)
     outputs = mapio.Outputs(files={"-o": output, "--report": report_path, "--trajectory": trajectory_path})
     common.check_output_formats((output, output_format, GLOBAL_MAP, "--format"), (report_path, None, TABLE, None),
@@ -68,8 +68,8 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
     maps = common.read_local_maps(inputs, input_format, outputs)
     read = time.perf_counter() - start
     with progress_bar(ctx, len(maps), "fast join") as progress:
-        result = join_and_refine(maps, start=strategy, covariance=covariance, solver=solver, jobs=jobs,
-                                 join_progress=progress, progress=common.iteration_printer(ctx),
+        result = join_and_refine(maps, start=given and strategy, covariance=covariance, solver=solver,
+                                 jobs=jobs, join_progress=progress, progress=common.iteration_printer(ctx),
                                  gate=gate, on_inconsistent=on_inconsistent, confirm=common.confirm,
                                  **common.solve_arguments(max_iterations, tolerance, no_covariances))
     elapsed = time.perf_counter() - start
@@ -80,17 +80,19 @@ def refine(ctx: click.Context, inputs: tuple[str, ...], output: str, output_form
         common.write_trajectory(result.global_map, maps[0].start_id, trajectory_path)
     common.warn_if_doubtful(result)
     g, joins = result.global_map, result.fast_join.report
+    abandoned = f" (the {result.abandoned} join's solve did not converge)" if result.abandoned else ""
     counts = common.join_counts(joins)
     two = counts["two_minima"]
     common.summary(ctx, f"refined {common.counted(len(maps), 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
              f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(joins), 'join')} ({two} with two "
-             f"minima, {common.inconsistency(counts)}), from the {strategy} join, "
+             f"minima, {common.inconsistency(counts)}), from the {result.start} join{abandoned}, "
              f"{common.counted(result.iterations, 'iteration')}, chi^2 "
              f"{result.costs[0]:.6f} -> {result.cost:.6f} ({result.reason}), {elapsed:.3f} s (read {read:.3f} s, fast join "
              f"{result.initial_seconds:.3f} s, solve {result.seconds:.3f} s, covariances "
              f"{result.covariance_seconds:.3f} s) -> {'stdout' if output == '-' else output}",
                    {"maps": len(maps), "features": len(g.feature_ids), "poses": len(g.pose_ids), "joins": len(joins),
-                    "start": strategy, "two_minima": two, "inconsistent": counts["inconsistent"],
+                    "start": result.start, "abandoned_start": result.abandoned, "two_minima": two,
+                    "inconsistent": counts["inconsistent"],
                     "iterations": result.iterations, "chi2_initial": result.costs[0],
                     "chi2": result.cost, "reason": result.reason, "converged": result.converged,
                     "degrees_of_freedom": result.degrees_of_freedom, "seconds": elapsed, "read_seconds": read,

@@ -16,6 +16,7 @@ join --refine`` and ``mapjoin refine`` run; :func:`refine` starts from a given m
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -35,6 +36,8 @@ from .solver import TOLERANCE, Minimum, minimise
 
 __all__ = ["DEFAULT_START", "STARTS", "TOLERANCE", "RefineResult", "Start", "default_start", "exact_cost",
            "join_and_refine", "refine"]
+
+log = logging.getLogger("mapjoin")
 
 #: the starts of the exact solve: a fast join's strategy, or the tree join with its top levels' pieces solved
 #: exactly (:mod:`.hierarchy`, docs/method.md#hierarchical-start)
@@ -72,7 +75,9 @@ class RefineResult:
     map was given). ``gradient_norm``: max |J^T r| at the optimum (r whitened residuals).
     ``rejected``: steps computed but not taken (they did not lower chi^2, or a Newton step
     was no descent). ``start``: the start the solve started from (:data:`STARTS`; None when an initial
-    map was given).
+    map was given). ``abandoned``: the default start whose solve did not converge, when this is the
+    hierarchical start's solve tried after it (:func:`join_and_refine`); its whole time is in
+    ``initial_seconds``.
     """
 
     global_map: GlobalMap
@@ -90,6 +95,7 @@ class RefineResult:
     rejected: int = 0
     fast_join: JoinResult | None = None
     start: Start | None = None
+    abandoned: Start | None = None
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -121,21 +127,35 @@ def join_and_refine(maps: Sequence[LocalMap], *, start: Start | None = None,
     exact least-squares join (:func:`refine` with the other arguments). The result holds
     the fast join (``fast_join``) and its time (``initial_seconds``). ``start="hierarchical"``: the tree
     join with its top levels' pieces solved exactly (:class:`.hierarchy.Settle`; in one process, ``jobs=1``),
-    for long runs where the tree's start leaves the solve creeping (docs/method.md#hierarchical-start)."""
+    for long runs where the tree's start leaves the solve creeping (docs/method.md#hierarchical-start).
+    With no ``start`` given, a solve from the default tree start that does not converge is tried again
+    from the hierarchical start (one process), and the result says so (``abandoned``)."""
     maps = list(maps)
-    start = start or default_start(on_inconsistent)
+    given, start = start, start or default_start(on_inconsistent)
     if start not in STARTS:
         raise ValueError(f"unknown start {start!r}; expected one of {', '.join(STARTS)}")
+
+    def solved_from(start: Start, jobs: int) -> RefineResult:
+        began = time.perf_counter()
+        settle = Settle(maps) if start == HIERARCHICAL else None
+        fast = join(maps, covariance, solver, "tree" if settle else start, jobs, join_progress, gate=gate,
+                    on_inconsistent=on_inconsistent, confirm=confirm, settle=settle)
+        left_out = {r.join for r in fast.report if r.action == "left out"}
+        chain = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
+        initial_seconds = time.perf_counter() - began
+        result = refine(chain, fast.global_map, max_iterations=max_iterations, tolerance=tolerance,
+                        covariances=covariances, progress=progress)
+        return dataclasses.replace(result, initial_seconds=initial_seconds, fast_join=fast, start=start)
+
     began = time.perf_counter()
-    settle = Settle(maps) if start == HIERARCHICAL else None
-    fast = join(maps, covariance, solver, "tree" if settle else start, jobs, join_progress, gate=gate,
-                on_inconsistent=on_inconsistent, confirm=confirm, settle=settle)
-    left_out = {r.join for r in fast.report if r.action == "left out"}
-    maps = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
-    initial_seconds = time.perf_counter() - began
-    result = refine(maps, fast.global_map, max_iterations=max_iterations, tolerance=tolerance,
-                    covariances=covariances, progress=progress)
-    return dataclasses.replace(result, initial_seconds=initial_seconds, fast_join=fast, start=start)
+    result = solved_from(start, jobs)
+    if result.converged or given is not None or start != "tree":
+        return result
+    log.warning("the exact join from the tree join did not converge (%s after %d iterations, chi^2 = %.10g): "
+                "trying the hierarchical start", result.reason, result.iterations, result.cost)
+    spent = time.perf_counter() - began
+    retried = solved_from(HIERARCHICAL, 1)
+    return dataclasses.replace(retried, initial_seconds=spent + retried.initial_seconds, abandoned=start)
 
 
 def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_iterations: int = 100,
