@@ -140,15 +140,16 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     counts = common.join_counts(result.report)
     two = counts["two_minima"]
     g = global_map
+    abandoned = f" (the {refined.abandoned} join's solve did not converge)" if exact and refined.abandoned else ""
     common.summary(ctx, f"joined {common.counted(count, 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
                         f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
                         f"({two} with two minima, {common.inconsistency(counts)}), covariance {covariance}, "
-                        f"{strategy}, read {read:.3f} s, joined {elapsed - read:.3f} s -> "
+                        f"{strategy}{abandoned}, read {read:.3f} s, joined {elapsed - read:.3f} s -> "
                         f"{'stdout' if output == '-' else output}",
                    {"maps": count, "features": len(g.feature_ids), "poses": len(g.pose_ids),
                     "joins": len(result.report), "two_minima": two,
                     "inconsistent": counts["inconsistent"], "covariance": covariance,
-                    "strategy": strategy,
+                    "strategy": strategy, **({"abandoned_start": refined.abandoned} if exact else {}),
                     **({"chi2_initial": refined.costs[0], "chi2": refined.cost, "iterations": refined.iterations,
                         "converged": refined.converged} if exact else {}),
                     "read_seconds": read, "join_seconds": elapsed - read, "output": output},
