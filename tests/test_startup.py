@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 
+import click
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -17,7 +18,7 @@ from hypothesis import strategies as st
 
 from mapjoin import io as mapio
 from mapjoin.__main__ import BLAS_THREAD_VARIABLES, one_blas_thread
-from mapjoin.cli import COMMAND_MODULES, main
+from mapjoin.cli import COMMAND_MODULES, COMMAND_SUMMARIES, main
 from mapjoin.evaluation import CHI2_LEVEL, chi2_interval, chi2_surely_inside
 from mapjoin.joining import join
 from mapjoin.refine.dense import DENSE_UNKNOWNS, DENSE_WORK, backend_for
@@ -312,6 +313,34 @@ def test_help_lists_every_command_with_its_short_help():
     for name in COMMAND_MODULES:
         short = main.commands[name].get_short_help_str(limit=200)
         assert any(line.split(None, 1) == [name, short] for line in listed), name
+
+
+def test_command_summaries_are_the_first_paragraphs_of_the_commands_help():
+    """COMMAND_SUMMARIES, which ``mapjoin --help`` lists, holds every command's and only theirs, each the first
+    paragraph of the command's help (click shortens that paragraph to the listed line)."""
+    assert set(COMMAND_SUMMARIES) == set(COMMAND_MODULES)
+    for name, summary in COMMAND_SUMMARIES.items():
+        assert " ".join(main.commands[name].help.split("\n\n")[0].split()) == summary, name
+
+
+@pytest.mark.parametrize("width", [30, 45, 52, 60, 80, 120, 200])
+def test_help_lists_the_commands_as_click_lists_their_modules_commands(width):
+    """At any width (narrow ones shorten the summaries with "..."), the list made from COMMAND_SUMMARIES equals
+    click's own list made from the commands themselves (every command's module imported)."""
+    ctx = click.Context(main, info_name="mapjoin")
+    from_summaries, from_commands = click.HelpFormatter(width=width), click.HelpFormatter(width=width)
+    main.format_commands(ctx, from_summaries)
+    click.Group.format_commands(main, ctx, from_commands)
+    assert "Commands:" in from_commands.getvalue()
+    assert from_summaries.getvalue() == from_commands.getvalue()
+
+
+def test_help_imports_no_command_module_and_no_numpy():
+    """``mapjoin --help`` lists the commands by their summaries: no command's module, no numpy."""
+    modules = imported("--help")
+    assert "mapjoin.cli" in modules
+    assert not {m for m in modules if m.startswith("mapjoin.cli.") and m != "mapjoin.cli.messages"}
+    assert not {m for m in modules if m.split(".")[0] in ("numpy", "scipy", "yaml")}
 
 
 def test_dense_module_needs_no_scipy():

@@ -52,6 +52,14 @@ class MapjoinGroup(click.Group):
             name = f"{shown_name(os.fsdecode(error.filename))}: " if error.filename else ""
             raise click.ClickException(one_line(f"{name}{error.strerror or error}")) from error
 
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The list of commands in ``mapjoin --help``: each command's summary (:data:`COMMAND_SUMMARIES`) shortened
+        by click as it shortens the command's own help, so that listing the commands imports none of their modules
+        (nor numpy and the library with them: most of ``--help``'s time)."""
+        listed = [click.Command(name, help=COMMAND_SUMMARIES[name]) if name in COMMAND_SUMMARIES
+                  else self.commands[name] for name in self.list_commands(ctx)]
+        click.Group(commands=listed).format_commands(ctx, formatter)
+
 
 def _show_version(ctx: click.Context, _parameter: click.Parameter, value: bool) -> None:
     """``--version``: the version is looked up only when asked for (see mapjoin.__version__)."""
@@ -107,11 +115,27 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
     ctx.obj = {"quiet": quiet, "verbose": verbose, "warnings": handler}
 
 
-#: each command's module in this package: imported when the command is first looked up (to run it, show its
-#: help, or list it in ``mapjoin --help``), so that a command pays for its own imports only
+#: each command's module in this package: imported when the command is first looked up (to run it or show its
+#: help; ``mapjoin --help`` lists it by its summary), so that a command pays for its own imports only
 COMMAND_MODULES = {"build": "build", "check-minima": "check_minima", "compare": "compare", "convert": "convert",
                    "datasets": "datasets", "evaluate": "evaluate", "join": "join", "merge": "merge", "plot": "plot",
                    "plot-join": "plot", "plot-minima": "plot", "refine": "refine", "simulate": "simulate"}
+#: each command's summary, the first paragraph of its help (its docstring's), for the list of ``mapjoin --help``
+#: (:meth:`MapjoinGroup.format_commands`); tests/test_startup.py checks them against the commands
+COMMAND_SUMMARIES = {
+    "build": "Build local maps from raw odometry and feature observations.",
+    "check-minima": "Count and locate a join's local minima (Theorem 2).",
+    "compare": "Compare two global maps (.csv, .yaml) entity by entity.",
+    "convert": "Convert local maps: I-SLSJF .mat, Linear SLAM, YAML, CSV.",
+    "datasets": "List and fetch the public local-map datasets, verified.",
+    "evaluate": "Evaluate a global map (.csv or .yaml) against ground truth.",
+    "join": "Join a chain of local maps into one global map.",
+    "merge": "Merge global maps, each in its own frame, into one.",
+    "plot": "Draw maps: features, trajectories, uncertainty.",
+    "plot-join": "Draw one join's cost curve f1(phi) and its minima.",
+    "plot-minima": "Draw a report's joins on Theorem 2's minima diagram.",
+    "refine": "Join local maps exactly: the least-squares optimum.",
+    "simulate": "Simulate a robot run, with ground truth, as local maps."}
 
 
 class LazyCommands(MutableMapping):
