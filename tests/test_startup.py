@@ -335,12 +335,14 @@ def test_help_lists_the_commands_as_click_lists_their_modules_commands(width):
     assert from_summaries.getvalue() == from_commands.getvalue()
 
 
-def test_help_imports_no_command_module_and_no_numpy():
-    """``mapjoin --help`` lists the commands by their summaries: no command's module, no numpy."""
-    modules = imported("--help")
+@pytest.mark.parametrize("option", ["--help", "--version"])
+def test_help_and_version_import_no_command_module_no_numpy_and_no_logging(option):
+    """``mapjoin --help`` lists the commands by their summaries: no command's module, no numpy; it and
+    ``--version`` end before the group's callback, which sets up logging."""
+    modules = imported(option)
     assert "mapjoin.cli" in modules
-    assert not {m for m in modules if m.startswith("mapjoin.cli.") and m != "mapjoin.cli.messages"}
-    assert not {m for m in modules if m.split(".")[0] in ("numpy", "scipy", "yaml")}
+    assert not {m for m in modules if m.startswith("mapjoin.cli.")}
+    assert not {m for m in modules if m.split(".")[0] in ("numpy", "scipy", "yaml", "logging")}
 
 
 def test_dense_module_needs_no_scipy():

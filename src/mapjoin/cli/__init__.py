@@ -12,7 +12,6 @@ input is read and writes them all or none.
 from __future__ import annotations
 
 import importlib
-import logging
 import os
 from collections.abc import Iterator, MutableMapping
 
@@ -100,6 +99,10 @@ def main(ctx: click.Context, quiet: bool, verbose: int) -> None:
       mapjoin build raw.g2o -o maps/ --maps 100
       mapjoin datasets fetch vicpark-200
     """
+    import logging  # here, not at the top: ``mapjoin --help`` and ``--version`` end before this runs
+
+    from .messages import StderrHandler
+
     logger = logging.getLogger("mapjoin")
     saved = logger.handlers[:], logger.propagate, logger.level
     handler = StderrHandler(every_warning=verbose > 0)
@@ -166,5 +169,3 @@ class LazyCommands(MutableMapping):
 
 
 main.commands = LazyCommands(COMMAND_MODULES)
-
-from .messages import StderrHandler  # noqa: E402
