@@ -173,11 +173,11 @@ class BlockPattern:
     def mirror(self, data: np.ndarray) -> np.ndarray:
         """``data`` holding the lower triangle (its slots above the diagonal ignored) made the whole symmetric
         CSC data in place: each slot above the diagonal takes its mirror's value, a chunk at a time (numpy makes
-        a 64-bit copy of 32-bit indices). Returns ``data``. In place, as every reader of the lower triangle
-        ignores the slots above it: no second array of the matrix's size (a fresh 84 MB at 10^4 maps), and half
-        the entries copied."""
+        a 64-bit copy of 32-bit indices; ``take`` and ``put`` took 34 ms where indexing took 42 at 10^4 maps).
+        Returns ``data``. In place, as every reader of the lower triangle ignores the slots above it: no second
+        array of the matrix's size (a fresh 84 MB at 10^4 maps), and half the entries copied."""
         for a in range(0, self.upper.size, _CHUNK):
-            data[self.upper[a:a + _CHUNK]] = data[self.twin[a:a + _CHUNK]]
+            data.put(self.upper[a:a + _CHUNK], data.take(self.twin[a:a + _CHUNK]))
         return data
 
     def matrix(self, data: np.ndarray) -> sp.csc_matrix:
