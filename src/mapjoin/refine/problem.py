@@ -384,7 +384,7 @@ class ExactProblem:
 
     def linearise(self, x: np.ndarray, curvature: bool = False):
         """``(data, gradient, chi^2[, curvature data])`` at ``x``: the lower triangle of J^T J in its CSC
-        layout (the slots above the diagonal hold zeros; :meth:`normal_matrix` mirrors it), J^T r
+        layout (the slots above the diagonal hold zeros until :meth:`normal_matrix` mirrors it), J^T r
         (natural order), and with ``curvature`` the same of the second-order term ``sum_i r_i d^2 r_i
         / dx^2`` (J^T J plus it is half the Hessian of chi^2).
 
@@ -392,8 +392,7 @@ class ExactProblem:
         rotation by the base angle (:func:`.groups.own_blocks`); the base pose's columns are
         combinations of the own columns (:func:`.groups.base_blocks`); so a map costs one
         matrix-vector product and O(d^2) elementwise work. Only the lower triangle is
-        accumulated (one ``bincount``), and mirrored only when factorised (:meth:`normal_matrix`),
-        so that the mirror is not held between factorisations.
+        accumulated (one ``bincount``), and mirrored only when factorised (:meth:`normal_matrix`, in place).
         """
         self._prepare()
         x = np.asarray(x, dtype=float)
@@ -423,8 +422,10 @@ class ExactProblem:
 
     def normal_matrix(self, data: np.ndarray) -> sp.csc_matrix:
         """J^T J (from its lower triangle ``data``, see :meth:`linearise`) as a symmetric CSC matrix in the
-        factor's order: entry (position[i], position[j]) is (i, j)."""
-        return self._pattern.matrix(self._pattern.mirrored(data))
+        factor's order: entry (position[i], position[j]) is (i, j). Its data is ``data`` itself, whose slots
+        above the diagonal take their mirrors' values (:meth:`.sparse.BlockPattern.mirror`; every reader of
+        ``data`` reads only the lower triangle)."""
+        return self._pattern.matrix(self._pattern.mirror(data))
 
     def factorise(self, data: np.ndarray, damping: float = 0.0) -> Factor | dense.DenseFactor:
         """The factor of ``J^T J + damping diag(J^T J)``: SuperLU's (:mod:`.factor`, in the fill-reducing
