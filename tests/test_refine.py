@@ -647,6 +647,27 @@ def test_a_newton_step_follows_only_a_step_of_at_most_three_standard_deviations(
     assert problem.curvatures[0] is False and problem.curvatures[1] is newton   # after the first step
 
 
+@pytest.mark.parametrize("scale, stops_at_once", [(1e-3, True), (1e-1, False)])
+def test_a_full_step_the_data_do_not_resolve_stops_the_solver(scale, stops_at_once):
+    """Residuals ``(c atan x, 10)`` from x = 3 (by hand): Gauss-Newton's step -atan(3) (1 + 9) = -12.49 lands at
+    x = -9.49, where atan(x)^2 = 2.149 exceeds atan(3)^2 = 1.560, and is predicted to lower chi^2 (about 100) by
+    c^2 atan(3)^2. With c = 1e-3 that is 1.6e-6: the optimum x = 0, whose standard deviation is 1 / c = 1000, is
+    0.003 of it away, and chi^2 is 1.6e-6 above its optimum (1.6e-8 relative): the solver stops at once, converged,
+    instead of creeping on halved steps (it did, for 21 iterations, at the optimum of 10^5 simulated maps). With
+    c = 0.1 (a predicted 0.016) the data resolve the difference and the solver goes on to the optimum."""
+    problem = ScaledArctangentProblem(10.0, scale)
+    found = minimise(problem, np.array([3.0]))
+    optimum = problem.b ** 2
+    assert found.converged
+    if stops_at_once:
+        assert found.reason == "predicted decrease below the data's resolution" and found.iterations == 0
+        assert found.x[0] == 3.0 and abs(found.x[0]) <= 0.01 / scale          # within 0.01 standard deviations
+        assert 0 < found.cost - optimum <= 1e-4 and found.cost - optimum <= 1e-6 * optimum
+    else:
+        assert found.reason != "predicted decrease below the data's resolution" and abs(found.x[0]) < 1e-3
+        assert found.cost - optimum <= TOLERANCE * optimum
+
+
 @pytest.mark.parametrize("seed", [0, 6])
 def test_the_default_start_reaches_the_optimum_a_start_at_the_truth_reaches(seed):
     """1000-map simulations (two laps): the default start (the tree join) reaches the chi^2 and the map

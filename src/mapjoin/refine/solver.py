@@ -32,6 +32,8 @@ _HALVINGS = 10       # an overshooting Gauss-Newton step is tried at 1/2 ... 1/2
 _NEWTON_FAILURES = 3  # Newton steps that may fail (no descent, no decrease) before Gauss-Newton for good
 _NEAR = 1e-3          # Newton's steps only after a step that gained at most this (relative): near the optimum
 _WITHIN = 9.0         # ... and lowered chi^2 by at most this (absolute): a step of at most three standard deviations
+_RESOLVED = 1e-4      # a full Gauss-Newton step predicted to gain at most this (absolute) lands within a hundredth of a
+                      # standard deviation in every unknown: if it raises chi^2, the solver stops (:func:`minimise`)
 
 
 @dataclass
@@ -126,7 +128,12 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
     accepted full undamped step (neither halved nor damped) lowered chi^2 by at most
     ``tolerance`` relative and was predicted to; when an undamped step is at most
     ``tolerance * (1 + max |x|)`` in every unknown; or when an undamped step predicted to lower
-    chi^2 by at most ``tolerance`` relative raises it by more (these two not taken). A halved
+    chi^2 by at most ``tolerance`` relative raises it by more (these two not taken); or when a full
+    Gauss-Newton step predicted to lower chi^2 by at most 1e-4 (and at most ``sqrt(tolerance)``
+    relative) raises it (not taken): the predicted decrease is the squared Mahalanobis distance to
+    the model's optimum, so that optimum is within a hundredth of a standard deviation in every unknown, and
+    the halved steps that would follow only creep along directions the data leave flat (on 10^5 simulated
+    maps, 21 iterations of gains about 5e-7 each after the optimum was reached). A halved
     or damped step gains little because it is short, not because the optimum is near: its
     cost change never stops the solver (it used to, 1e-4 m short on a 1000-map simulation).
     After a full undamped step that gained at most ``sqrt(tolerance)`` (near the optimum, where
@@ -216,6 +223,11 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
         trial_cost = problem.cost(trial)
         negligible = small and undamped
         shortened = False
+        if (mode.plain and not negligible and trial_cost >= cost
+                and predicted <= min(_RESOLVED, math.sqrt(relative) * cost)):
+            # the model's optimum is within a hundredth of a standard deviation and its full step does not reach
+            # it: halved steps would only creep along directions the data leave flat
+            return stop("predicted decrease below the data's resolution", True, factor)
         if trial_cost >= cost and not negligible and mode.plain:
             shorter = _halved(problem, x, step, cost)
             if shorter is not None:
