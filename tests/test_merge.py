@@ -495,8 +495,8 @@ def test_results_beyond_the_global_ranges_and_coincident_points_are_errors_namin
 
 
 
-@pytest.mark.parametrize("b_pose,expected", [(2**63 - 1, "B: 1 pose id also in the maps before it would be given new "
-                                                         "ids above 9223372036854775807"), (5, None)])
+@pytest.mark.parametrize("b_pose,expected", [(2**63 - 1, ("B: 1 pose id also in the maps before it would be given "
+                                                          "new ids above 9223372036854775807")), (5, None)])
 def test_ids_at_the_top_of_the_64_bit_range_are_renumbered_or_refused(b_pose, expected):
     """Ids 2^63 - 1 (valid ids) made the first new id 2^63: OverflowError, a traceback, even when nothing was
     to be renamed. Now a map merges (its ids kept) when no new id is needed, and a clash that needs one
