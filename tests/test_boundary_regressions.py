@@ -647,3 +647,36 @@ def test_an_exact_solve_lost_to_rounding_names_the_maps(tmp_path, args, naming):
         "m3,2,3,feature,0,-281115920.0308918,58397061.87318683,,1e+29,\n")
     refused(tmp_path, *args, naming=naming)
     assert not (tmp_path / "j.csv").exists()
+
+
+def test_an_association_gate_singular_to_rounding_leaves_the_features_new(tmp_path):
+    """A heading variance of 1e12 rad^2 carried 1e9 m makes each gate's 2 x 2 covariance u var_phi u^T (1e30 m^2,
+    rank one) to rounding: its determinant came out 0 or negative, numpy warned (divide by zero, invalid value)
+    and the distances were inf or NaN. Such a gate now takes no candidate: the second map's features stay new
+    (13 global ids for 5 + 8 features), and numpy says nothing."""
+    import warnings
+
+    (tmp_path / "far.csv").write_text("\n".join([
+        "map,start_id,end_id,kind,id,x,y,phi,var_xy,var_phi,i,j,cov",
+        "m1,0,1,pose,1,-1000000000.0,-0.6520394668202627,-2.737741716774767,1e-06,1000000000000.0,,,",
+        "m1,0,1,feature,1000,-0.5320856831477929,-1.744981474024664,,1.0,,,,",
+        "m1,0,1,feature,1001,-3.0623729576797434,-2.852686775909452,,0.00949162257699445,,,,",
+        "m1,0,1,feature,1002,3.1889374134422965,0.1474066747959366,,0.0096016742814155,,,,",
+        "m1,0,1,feature,1003,-3.25705423049768,1e-300,,0.004676911621654133,,,,",
+        "m1,0,1,feature,1004,-1.1248329323261252,-1000000000.0,,0.009460694942786844,,,,",
+        "m2,1,2,pose,2,2.5465191595604875,0.00635192498676318,-1.7175794628116634,0.00662721325684245,1e-30,,,",
+        "m2,1,2,feature,2000,1.1095502826655732,1000000.0,,1e-30,,,,",
+        "m2,1,2,feature,2001,-3.775395813289647,999999999.9,,0.005372774091011107,,,,",
+        "m2,1,2,feature,2002,4.849153615380315,3.38739401312972,,1e-12,,,,",
+        "m2,1,2,feature,2003,-2.928689501920787,3.019141557291144,,1e-06,,,,",
+        "m2,1,2,feature,2004,1000000.0,999999999.9,,0.006066263372810623,,,,",
+        "m2,1,2,feature,2005,0.4315005075429399,0.0,,0.004576798127665752,,,,",
+        "m2,1,2,feature,2006,-0.30181517929345425,-1000000000.0,,0.005647609064848839,,,,",
+        "m2,1,2,feature,2007,1000000.0,-1.0,,0.005507566420921683,,,,",
+    ]) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code, lines = run(tmp_path, "join", "far.csv", "--associate", "-o", "j.csv", "--associations", "ids.csv")
+    assert code == 0, lines
+    ids = (tmp_path / "ids.csv").read_text().splitlines()[1:]
+    assert sorted(int(row.split(",")[2]) for row in ids) == list(range(13)), ids
