@@ -680,3 +680,36 @@ def test_an_association_gate_singular_to_rounding_leaves_the_features_new(tmp_pa
     assert code == 0, lines
     ids = (tmp_path / "ids.csv").read_text().splitlines()[1:]
     assert sorted(int(row.split(",")[2]) for row in ids) == list(range(13)), ids
+
+
+def test_a_yaml_value_nested_deeper_than_repr_goes_is_named_in_one_line(tmp_path):
+    """`features: [[[[...]]]]` 1000 deep parsed (PyYAML) and then its error message's repr of the value raised
+    RecursionError: a traceback. The value is now described instead."""
+    (tmp_path / "deep.yaml").write_text(
+        "format: mapjoin/local-map\nversion: 1\nstart_id: 0\nend_id: 1\n"
+        "end_pose: {x: 1.0, y: 0.0, phi: 0.0, var_xy: 0.01, var_phi: 0.001}\n"
+        f"features: {'[' * 1000}{']' * 1000}\n")
+    line = refused(tmp_path, "join", "deep.yaml", "-o", "j.csv", naming="deep.yaml, line 6, field features[0]")
+    assert "nested too deep to show" in line and len(line) < 200, line
+
+
+@pytest.mark.parametrize("entry", [(0, 0), (2, 4), (4, 2)])
+def test_a_mat_covariance_holding_inf_is_refused_without_numpy_warnings(tmp_path, entry):
+    """The Cholesky check of a stack of covariances, one holding inf, divided inf by inf (numpy's RuntimeWarning
+    on stderr beside the one-line error). The finite check names it; numpy says nothing."""
+    import warnings
+
+    from mapjoin.io import matfile
+
+    state = np.array([[0, 1.0], [0, 0.5], [0, 0.1], [7, 2.0], [7, 1.0]])
+    covariance = np.diag([0.01, 0.01, 0.001, 0.02, 0.02])
+    folder = tmp_path / "m"
+    folder.mkdir()
+    (folder / "localmap_1.mat").write_bytes(matfile.dump({"localmap_st": state, "localmap_P": covariance}))
+    covariance[entry] = np.inf
+    (folder / "localmap_2.mat").write_bytes(matfile.dump({"localmap_st": state, "localmap_P": covariance}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        line = refused(tmp_path, "join", "m", "--strategy", "tree", "--covariance", "marginal", "-o", "j.csv",
+                       naming="m/localmap_2.mat")
+    assert "inf" in line, line

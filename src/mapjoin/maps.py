@@ -433,7 +433,8 @@ def _conditional_shares(matrices: np.ndarray) -> np.ndarray | None:
         factor = np.linalg.cholesky(matrices)
     except np.linalg.LinAlgError:
         return None
-    return np.diagonal(factor, axis1=-2, axis2=-1) ** 2 / np.diagonal(matrices, axis1=-2, axis2=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a stack holding inf or NaN fails the finite check first
+        return np.diagonal(factor, axis1=-2, axis2=-1) ** 2 / np.diagonal(matrices, axis1=-2, axis2=-1)
 
 
 def _indefinite(stack: np.ndarray) -> np.ndarray:
