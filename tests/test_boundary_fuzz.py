@@ -495,3 +495,56 @@ def test_mutated_stdin_keeps_the_boundary(valid, tmp_path, data, name):
     stdin = data.draw(text_mutation((valid / name).read_bytes()))
     invoke(work, ["join", "-", "--input-format", name.split(".")[1], "-o", "out.csv"], stdin=stdin,
            names=("<stdin>",))
+
+
+# ---------------------------------------------------------------------------------------
+# Valid maps whose values are extreme together (each in range): what an outside fuzz found (issue fuzzwide)
+
+EDGE_COORDINATES = (0.0, 1.0, -3.0, 1e-300, 1e6, 1e9, -1e9)
+EDGE_VARIANCES = (1e-30, 1e-12, 0.01, 1e6, 1e12, 1e30)
+EDGE_ANGLES = (0.0, 3.141592653589793, -1e6, 1e6)
+
+EDGE_COMMANDS: list[list[str]] = [
+    ["join", "edge.yaml", "-o", "out.csv", "--report", "report.csv"],
+    ["join", "edge.yaml", "--strategy", "tree", "-o", "out.csv"],
+    ["join", "edge.yaml", "--associate", "-o", "out.csv"],
+    ["join", "edge.yaml", "--on-inconsistent", "skip", "-o", "out.csv"],
+    ["refine", "edge.yaml", "--max-iterations", "5", "-o", "out.csv"],
+]
+
+
+@st.composite
+def edge_maps(draw) -> str:
+    """A YAML chain of 2-3 maps, features shared by id, every number drawn from the edges of its accepted range;
+    some maps with a full covariance: a diagonal one, or a rank-one one to rounding (which must be refused)."""
+    documents = []
+    for k in range(draw(st.integers(2, 3))):
+        number = st.sampled_from(EDGE_COORDINATES)
+        variance = st.sampled_from(EDGE_VARIANCES)
+        ids = draw(st.lists(st.integers(0, 4), min_size=1, max_size=3, unique=True))
+        pose = (draw(number), draw(number), draw(st.sampled_from(EDGE_ANGLES)), draw(variance), draw(variance))
+        features = [(i, draw(number), draw(number), draw(variance)) for i in ids]
+        lines = ["---", "format: mapjoin/local-map", "version: 1", f"start_id: {k}", f"end_id: {k + 1}",
+                 "end_pose: {x: %r, y: %r, phi: %r, var_xy: %r, var_phi: %r}" % pose, "features:",
+                 *("- {id: %d, x: %r, y: %r, var: %r}" % feature for feature in features)]
+        covariance = draw(st.sampled_from([None, None, "diagonal", "rank one"]))
+        if covariance:
+            d = 3 + 2 * len(features)
+            diagonal = [pose[3], pose[3], pose[4], *(v for *_, v in features for _ in range(2))]
+            rows = ([[diagonal[i] if i == j else 0.0 for j in range(d)] for i in range(d)] if covariance == "diagonal"
+                    else [[0.01 * (1 + i) * (1 + j) for j in range(d)] for i in range(d)])
+            lines += ["covariance:", *(f"- [{', '.join(map(repr, row))}]" for row in rows)]
+        documents.append("\n".join(lines))
+    return "\n".join(documents) + "\n"
+
+
+@FUZZ
+@given(text=edge_maps(), command=st.integers(0, len(EDGE_COMMANDS) - 1))
+def test_valid_maps_with_extreme_values_together_keep_the_boundary(tmp_path, text, command):
+    """Each value is accepted; together (a heading variance of 1e30 carried 1e9 m, variances 60 orders apart, a
+    covariance singular to rounding) they made tracebacks (numpy's LinAlgError), numpy warnings and errors that
+    named no file. A failure must now be one line naming the file or its maps (``edge.yaml#...``)."""
+    work = tmp_path / f"w{len(list(tmp_path.iterdir()))}"
+    work.mkdir()
+    (work / "edge.yaml").write_text(text)
+    invoke(work, EDGE_COMMANDS[command], inputs=("edge.yaml",), names=("edge.yaml",))

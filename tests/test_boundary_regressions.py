@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_outputs import run as run_in
 
 from mapjoin.cli import main
@@ -515,3 +517,199 @@ def test_integer_options_take_ascii_digits_only(maps, args, option, value):
     code, lines = run(maps, *args, value)  # in-process: click's usage lines before it (`python -m mapjoin`: one line)
     assert code == 2 and option in lines[-1] and f"ASCII digits, got '{value}'" in lines[-1], lines
     assert not any((maps / name).exists() for name in ("s.yaml", "w", "j.csv", "p.png", "b"))
+
+
+# ---------------------------------------------------------------------------------------
+# An outside fuzz of valid-looking maps at the edges of the accepted values (issue fuzzwide)
+
+#: a 3x3 covariance of rank one to rounding (eigenvalues 1e29, then +-1e12 of rounding noise), from the fuzz:
+#: numpy's Cholesky factorises it, its inverse does not exist (LinAlgError: Singular matrix)
+ROUNDED_RANK_ONE = [[7.757644815196646e+27, -1.4865856513241328e+28, -2.2239373610078087e+28],
+                    [-1.4865856513241328e+28, 2.848721424308696e+28, 4.2616972664712814e+28],
+                    [-2.2239373610078087e+28, 4.2616972664712814e+28, 6.3755140941716395e+28]]
+
+
+def _one_map(covariance: list[list[float]] | None, *, name: str = "m", start: int = 0) -> str:
+    lines = ["---", "format: mapjoin/local-map", "version: 1", f"name: {name}", f"start_id: {start}",
+             f"end_id: {start + 1}", "end_pose: {x: 1.0, y: 0.5, phi: 0.2, var_xy: 0.01, var_phi: 0.001}",
+             "features: []"]
+    if covariance is not None:
+        lines += ["covariance:"] + [f"- [{', '.join(map(repr, row))}]" for row in covariance]
+    return "\n".join(lines) + "\n"
+
+
+def test_the_rounded_rank_one_covariance_has_a_cholesky_factor_but_no_inverse():
+    """What made the traceback: an independent look at the matrix the next test gives the command line."""
+    matrix = np.array(ROUNDED_RANK_ONE)
+    np.linalg.cholesky(matrix)
+    eigenvalues = np.linalg.eigvalsh(matrix)
+    assert eigenvalues[0] / eigenvalues[-1] < 1e-15
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.inv(matrix)
+
+
+@pytest.mark.parametrize("args", [["join", "m.yaml", "-o", "j.csv"], ["join", "m.yaml", "--strategy", "tree",
+                                                                      "-o", "j.csv"],
+                                  ["refine", "m.yaml", "-o", "j.csv"], ["convert", "m.yaml", "-o", "c.csv"]])
+def test_a_covariance_singular_to_rounding_is_refused_naming_the_file_line_and_share(tmp_path, args):
+    """It passed the positive-definiteness check (numpy's Cholesky factorised it), then the information mode's
+    inverse raised LinAlgError: a traceback. It is now refused where it is read, naming the entry that the
+    entries before it determine and its share of its variance."""
+    (tmp_path / "m.yaml").write_text(_one_map([[0.01, 0, 0], [0, 0.01, 0], [0, 0, 0.001]], name="a")
+                                     + _one_map(ROUNDED_RANK_ONE, name="b", start=1))
+    line = refused(tmp_path, *args, naming="m.yaml")
+    assert re.search(r"m\.yaml, line 2[12], field covariance: expected a positive definite matrix, but it is singular "
+                     r"to rounding: entry [12]'s variance given the entries before it is [0-9.e+-]+ of its own "
+                     r"\(at least 1e-12\)", line), line
+    assert not {"j.csv", "c.csv"} & {p.name for p in tmp_path.iterdir()}
+
+
+@settings(max_examples=60, deadline=None, derandomize=os.environ.get("CI") == "true", database=None)
+@given(size=st.sampled_from([3, 5, 7]), seed=st.integers(0, 2**32 - 1), spread=st.floats(0, 14),
+       dependent=st.booleans())
+def test_covariances_are_refused_iff_an_entry_is_a_combination_of_others_whatever_their_units(size, seed, spread,
+                                                                                               dependent):
+    """Scale-free: a well-conditioned correlation matrix under standard deviations 10^-spread .. 10^spread
+    (variances over nearly the whole accepted range) is accepted; one whose last entry is a combination of the
+    others (to rounding) is refused, as eigenvalues of its correlation matrix show (an independent witness)."""
+    from mapjoin.maps import CONDITIONAL_SHARE, LocalMap
+
+    rng = np.random.default_rng(seed)
+    factor = rng.normal(size=(size, size)) + 3 * np.eye(size)
+    if dependent:
+        factor[-1] = rng.normal(size=size - 1) @ factor[:-1]
+    correlation = factor @ factor.T
+    deviations = 10.0 ** rng.uniform(-spread, spread, size)
+    covariance = correlation * deviations[:, None] * deviations[None, :]
+    covariance = (covariance + covariance.T) / 2
+    normalised = covariance / np.sqrt(np.outer(np.diag(covariance), np.diag(covariance)))
+    eigenvalues = np.linalg.eigvalsh(normalised)
+    m = (size - 3) // 2
+    arguments = ("m", 0, 1, [1.0, 0.0, 0.1], list(range(m)), np.tile([2.0, 1.0], (m, 1)), [0.02] * m, [0.01, 0.001])
+    if eigenvalues[0] > 1e-9 * eigenvalues[-1]:
+        LocalMap(*arguments, covariance)
+    elif eigenvalues[0] < CONDITIONAL_SHARE * 1e-2 * eigenvalues[-1]:
+        with pytest.raises(InputError, match="m, covariance: expected a positive definite matrix"):
+            LocalMap(*arguments, covariance)
+
+
+def test_the_real_covariances_are_far_from_singular_to_rounding(data_dir):
+    """The datasets' least share (1.6e-4, the 8240 simulation) is eight orders above the bound."""
+    from mapjoin.maps import CONDITIONAL_SHARE
+
+    for name in ("535_data_5_local_maps", "8240_data_50_local_maps", "DLR_200_local_maps", "VicPark_200_local_maps"):
+        from mapjoin import io as mapio
+
+        for local_map in mapio.read_maps(str(data_dir / name)):
+            covariance = local_map.covariance
+            shares = np.diag(np.linalg.cholesky(covariance)) ** 2 / np.diag(covariance)
+            assert shares.min() > 1e6 * CONDITIONAL_SHARE, (name, local_map.name, shares.min())
+
+
+@pytest.mark.parametrize("args", [["join"], ["join", "--strategy", "tree"], ["join", "--refine"],
+                                  ["refine", "--start", "sequential"]])
+def test_a_join_beyond_the_global_ranges_names_the_maps_joined(tmp_path, args):
+    """A heading variance of 1e30 rad^2 (in range) carried to a feature 1e9 m away (in range) gives a variance near
+    1e48 m^2, beyond the global maps' 1e40: the error named "global map" and an index, no file. Now it names
+    the maps joined, the field and the value."""
+    (tmp_path / "big.yaml").write_text(
+        "format: mapjoin/local-map\nversion: 1\nstart_id: 0\nend_id: 1\n"
+        "end_pose: {x: 1.0, y: 0.0, phi: 0.0, var_xy: 0.01, var_phi: 1.0e+30}\nfeatures:\n"
+        "- {id: 1, x: 1.0, y: 1.0, var: 0.01}\n---\nformat: mapjoin/local-map\nversion: 1\nstart_id: 1\nend_id: 2\n"
+        "end_pose: {x: 1.0, y: 0.0, phi: 0.0, var_xy: 0.01, var_phi: 0.001}\nfeatures:\n"
+        "- {id: 2, x: 1.0e+9, y: 0.0, var: 0.01}\n")
+    line = refused(tmp_path, args[0], "big.yaml", *args[1:], "-o", "j.csv", naming="big.yaml#1 ... big.yaml#2")
+    found = re.search(r"their join gives (\w+) outside the accepted values: expected finite variances in "
+                      r"\[1e-40, 1e\+40\], got ([0-9.e+]+)", line)
+    assert found and found.group(1) in ("feature_variances", "pose_variances"), line
+    assert 1e40 < float(found.group(2)) <= 1e30 * (1e9 + 2) ** 2, line  # at most var_phi * distance^2
+    assert not (tmp_path / "j.csv").exists()
+
+
+@pytest.mark.parametrize("args,naming", [
+    (["refine", "s.csv", "-o", "j.csv"], "s.csv#m1 ... s.csv#m2 (2 maps): their join gives feature_variances outside"),
+    (["join", "w.csv", "--on-inconsistent", "skip", "-o", "j.csv"],
+     "w.csv#m1 ... w.csv#m2 (2 maps): the normal equations of the exact join are singular")])
+def test_an_exact_solve_lost_to_rounding_names_the_maps(tmp_path, args, naming):
+    """Variances 1e-30 and 1e30 on one feature (each in range) leave the exact solve to rounding: a negative
+    marginal variance (named "global map", no file) or singular normal equations in a flagged join's
+    confirmation (named nothing at all). Both now name the maps."""
+    header = "map,start_id,end_id,kind,id,x,y,phi,var_xy,var_phi\n"
+    (tmp_path / "s.csv").write_text(
+        header + "m1,0,1,pose,1,1.0,0.0,0.0,0.01,0.001\nm1,0,1,feature,1,1.0,1.0,,0.01,\nm1,0,1,feature,2,2.0,1.0,,1e+30,\n"
+        "m2,1,2,pose,2,1.0,0.0,0.0,0.01,0.001\nm2,1,2,feature,1,0.0,1.0,,0.01,\nm2,1,2,feature,2,1.0,1e9,,1e-30,\n")
+    (tmp_path / "w.csv").write_text(
+        header + "m1,0,1,pose,1,1.0,59966908.75412725,-1.0705663794155362,0.006932947168914299,1e-30\n"
+        "m1,0,1,feature,0,1e-09,-1000000000.0,,0.002708842663638487,\n"
+        "m2,1,2,pose,2,163442613.23725843,1e-30,1000000.0,0.0023973698652508322,0.0007356256382746153\n"
+        "m2,1,2,feature,0,-323118458.365921,-465932701.00110793,,1e-29,\n"
+        "m3,2,3,pose,3,3.0,-68908355.04375333,1.1906040069804078,0.0064991824375832,0.0004964035472255722\n"
+        "m3,2,3,feature,0,-281115920.0308918,58397061.87318683,,1e+29,\n")
+    refused(tmp_path, *args, naming=naming)
+    assert not (tmp_path / "j.csv").exists()
+
+
+def test_an_association_gate_singular_to_rounding_leaves_the_features_new(tmp_path):
+    """A heading variance of 1e12 rad^2 carried 1e9 m makes each gate's 2 x 2 covariance u var_phi u^T (1e30 m^2,
+    rank one) to rounding: its determinant came out 0 or negative, numpy warned (divide by zero, invalid value)
+    and the distances were inf or NaN. Such a gate now takes no candidate: the second map's features stay new
+    (13 global ids for 5 + 8 features), and numpy says nothing."""
+    import warnings
+
+    (tmp_path / "far.csv").write_text("\n".join([
+        "map,start_id,end_id,kind,id,x,y,phi,var_xy,var_phi,i,j,cov",
+        "m1,0,1,pose,1,-1000000000.0,-0.6520394668202627,-2.737741716774767,1e-06,1000000000000.0,,,",
+        "m1,0,1,feature,1000,-0.5320856831477929,-1.744981474024664,,1.0,,,,",
+        "m1,0,1,feature,1001,-3.0623729576797434,-2.852686775909452,,0.00949162257699445,,,,",
+        "m1,0,1,feature,1002,3.1889374134422965,0.1474066747959366,,0.0096016742814155,,,,",
+        "m1,0,1,feature,1003,-3.25705423049768,1e-300,,0.004676911621654133,,,,",
+        "m1,0,1,feature,1004,-1.1248329323261252,-1000000000.0,,0.009460694942786844,,,,",
+        "m2,1,2,pose,2,2.5465191595604875,0.00635192498676318,-1.7175794628116634,0.00662721325684245,1e-30,,,",
+        "m2,1,2,feature,2000,1.1095502826655732,1000000.0,,1e-30,,,,",
+        "m2,1,2,feature,2001,-3.775395813289647,999999999.9,,0.005372774091011107,,,,",
+        "m2,1,2,feature,2002,4.849153615380315,3.38739401312972,,1e-12,,,,",
+        "m2,1,2,feature,2003,-2.928689501920787,3.019141557291144,,1e-06,,,,",
+        "m2,1,2,feature,2004,1000000.0,999999999.9,,0.006066263372810623,,,,",
+        "m2,1,2,feature,2005,0.4315005075429399,0.0,,0.004576798127665752,,,,",
+        "m2,1,2,feature,2006,-0.30181517929345425,-1000000000.0,,0.005647609064848839,,,,",
+        "m2,1,2,feature,2007,1000000.0,-1.0,,0.005507566420921683,,,,",
+    ]) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code, lines = run(tmp_path, "join", "far.csv", "--associate", "-o", "j.csv", "--associations", "ids.csv")
+    assert code == 0, lines
+    ids = (tmp_path / "ids.csv").read_text().splitlines()[1:]
+    assert sorted(int(row.split(",")[2]) for row in ids) == list(range(13)), ids
+
+
+def test_a_yaml_value_nested_deeper_than_repr_goes_is_named_in_one_line(tmp_path):
+    """`features: [[[[...]]]]` 1000 deep parsed (PyYAML) and then its error message's repr of the value raised
+    RecursionError: a traceback. The value is now described instead."""
+    (tmp_path / "deep.yaml").write_text(
+        "format: mapjoin/local-map\nversion: 1\nstart_id: 0\nend_id: 1\n"
+        "end_pose: {x: 1.0, y: 0.0, phi: 0.0, var_xy: 0.01, var_phi: 0.001}\n"
+        f"features: {'[' * 1000}{']' * 1000}\n")
+    line = refused(tmp_path, "join", "deep.yaml", "-o", "j.csv", naming="deep.yaml, line 6, field features[0]")
+    assert "nested too deep to show" in line and len(line) < 200, line
+
+
+@pytest.mark.parametrize("entry", [(0, 0), (2, 4), (4, 2)])
+def test_a_mat_covariance_holding_inf_is_refused_without_numpy_warnings(tmp_path, entry):
+    """The Cholesky check of a stack of covariances, one holding inf, divided inf by inf (numpy's RuntimeWarning
+    on stderr beside the one-line error). The finite check names it; numpy says nothing."""
+    import warnings
+
+    from mapjoin.io import matfile
+
+    state = np.array([[0, 1.0], [0, 0.5], [0, 0.1], [7, 2.0], [7, 1.0]])
+    covariance = np.diag([0.01, 0.01, 0.001, 0.02, 0.02])
+    folder = tmp_path / "m"
+    folder.mkdir()
+    (folder / "localmap_1.mat").write_bytes(matfile.dump({"localmap_st": state, "localmap_P": covariance}))
+    covariance[entry] = np.inf
+    (folder / "localmap_2.mat").write_bytes(matfile.dump({"localmap_st": state, "localmap_P": covariance}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        line = refused(tmp_path, "join", "m", "--strategy", "tree", "--covariance", "marginal", "-o", "j.csv",
+                       naming="m/localmap_2.mat")
+    assert "inf" in line, line

@@ -8,6 +8,7 @@ import io
 import json
 import logging
 import math
+import re
 import warnings
 
 import numpy as np
@@ -491,3 +492,25 @@ def test_results_beyond_the_global_ranges_and_coincident_points_are_errors_namin
         for maps, associate in (([big_a, big_b], False), ([same_a, same_b], True)):
             with pytest.raises(JoinError, match="^B: "):
                 mapjoin.merge(maps, associate=associate)
+
+
+
+@pytest.mark.parametrize("b_pose,expected", [(2**63 - 1, ("B: 1 pose id also in the maps before it would be given "
+                                                          "new ids above 9223372036854775807")), (5, None)])
+def test_ids_at_the_top_of_the_64_bit_range_are_renumbered_or_refused(b_pose, expected):
+    """Ids 2^63 - 1 (valid ids) made the first new id 2^63: OverflowError, a traceback, even when nothing was
+    to be renamed. Now a map merges (its ids kept) when no new id is needed, and a clash that needs one
+    beyond 2^63 - 1 is a JoinError naming the map."""
+    top = 2**63 - 1
+    points = [[0.0, 0.0], [4.0, 0.0], [0.0, 3.0], [5.0, 5.0]]
+    a = GlobalMap([1, 2, 3, top], points, [0.01] * 4, [top], [[1.0, 0.0, 0.0]], [[0.01, 0.001]], name="A")
+    shifted = [[x + 1.0, y - 2.0] for x, y in points] + [[-7.0, 2.0]]  # B's frame: A's moved by (1, -2)
+    b = GlobalMap([1, 2, 3, top, 4], shifted, [0.01] * 5, [b_pose], [[2.0, -2.0, 0.0]], [[0.01, 0.001]], name="B")
+    if expected is None:
+        merged = mapjoin.merge([a, b]).global_map
+        assert sorted(merged.feature_ids.tolist()) == [1, 2, 3, 4, top] and sorted(merged.pose_ids) == [5, top]
+        np.testing.assert_allclose(merged.features[merged.feature_ids == 4][0], [-8.0, 4.0], atol=1e-9)
+        np.testing.assert_allclose(merged.poses[merged.pose_ids == 5][0], [1.0, 0.0, 0.0], atol=1e-9)
+    else:
+        with pytest.raises(JoinError, match="^" + re.escape(expected)):
+            mapjoin.merge([a, b])

@@ -140,3 +140,20 @@ def test_far_from_the_chains_optimum_it_gives_up_without_solving_by_lu():
     problem.solve = lambda factor, rhs: solved_by.append(factor.cholesky) or solve(factor, rhs)
     assert extend(problem, x, maps[30]) is None
     assert solved_by and all(solved_by)
+
+
+def test_a_singular_update_gives_up_as_a_singular_factor_does(monkeypatch):
+    """I + W C singular to rounding (the outside fuzz met it in `join` of a chain with coordinates near 1e9 m and
+    variances from 1e-30 to 1e30: numpy's LinAlgError, a traceback, from a flagged join's confirmation) is a
+    give-up (None, the caller solves the union whole), as a singular factor of the chain's Hessian is. The
+    fuzz's chain depends on every digit of its 13 x 13 covariances, so numpy's solve is made to fail as it did."""
+    maps = _chain(3)
+    problem = ExactProblem(maps[:9])
+    optimum = minimise(problem, problem.pack(join(maps[:9]).global_map))
+    assert extend(problem, optimum.x, maps[9]) is not None
+
+    def singular(matrix, rhs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(np.linalg, "solve", singular)
+    assert extend(problem, optimum.x, maps[9]) is None

@@ -31,8 +31,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .consistency import p_values
+from .errors import JoinError
 from .joining import JoinRecord, JoinResult, Strategy, join_tree
-from .maps import GlobalMap, LocalMap, locate
+from .maps import GlobalMap, LocalMap, locate, span
 from .se2 import compose, relative, to_frame, transform, wrap
 from .streaming import CompactReport
 
@@ -217,12 +218,15 @@ class Pieces:
             return Optimum(0.0, 0, True), Estimate(np.array([m.end_id]), m.end_pose[None, :], m.feature_ids,
                                                    m.features)
         from .refine.problem import ExactProblem  # scipy.sparse: only when a join is confirmed
-        from .refine.solver import minimise
+        from .refine.solver import Singular, minimise
 
         self.solved += stop - first
         self._last = None   # the last problem released before the next is made
         problem = ExactProblem(run, backend=self._backend)
-        found = minimise(problem, start.values(problem, run[0].start_id), max_iterations=self._max_iterations)
+        try:
+            found = minimise(problem, start.values(problem, run[0].start_id), max_iterations=self._max_iterations)
+        except Singular as error:  # the solver knows no map names
+            raise JoinError(f"{span([m.name for m in run])}: {error}") from None
         self._last = (first, stop), problem, found.x
         poses, features = problem.unpack(found.x)
         return (Optimum(found.cost, problem.n_residuals - problem.n_unknowns, found.converged),

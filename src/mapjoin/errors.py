@@ -22,7 +22,10 @@ def shown(value: object, limit: int = ECHO_LIMIT, *, quoted: bool = True) -> str
     """How an error message shows a value taken from the input: text as its ``repr`` (``quoted``; else as
     it is), anything else as ``str``, control characters escaped so that the message stays one line; cut
     to ``limit`` characters with ``...`` so that a 3 MB token does not become a 3 MB message."""
-    text = repr(value) if isinstance(value, str) and quoted else str(value)
+    try:
+        text = repr(value) if isinstance(value, str) and quoted else str(value)
+    except RecursionError:  # a container nested deeper than Python's repr goes (YAML's [[[[...]]]])
+        text = f"a {type(value).__name__} nested too deep to show"
     text = text if text.isprintable() else repr(text)[1:-1]
     return text if len(text) <= limit else text[:limit - 3] + "..."
 

@@ -37,7 +37,7 @@ from .covariance import (DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_var
                          squared_norm, translation_variance)
 from .drift import Retest, SequentialRecord, TreeRecord
 from .joins import STRATEGIES, JoinRecord, JoinResult, Strategy, _Pieces
-from .maps import GlobalMap, LocalMap, Provenance, first_duplicate, locate
+from .maps import GlobalMap, LocalMap, Provenance, first_duplicate, joined_map, locate
 from .onestep import Solver, as_complex, global_orientation, linked_cost, point_constants
 from .se2 import wrap
 
@@ -261,7 +261,7 @@ def _prepare(maps: Sequence[LocalMap], covariance: CovarianceMode) -> tuple[np.n
 
 def _global_map(maps: Sequence[LocalMap], feature_ids: np.ndarray, pieces: _Pieces, covariance: str,
                 solver: str, strategy: str) -> GlobalMap:
-    return GlobalMap(
+    return joined_map(
         feature_ids=feature_ids[pieces.feature_ids],
         features=np.column_stack([pieces.features.real, pieces.features.imag]),
         feature_variances=pieces.feature_variances, pose_ids=np.array([m.end_id for m in maps]),

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .covariance import fuse, placed_variances, squared_norm
-from .errors import InputError, JoinError
+from .errors import InputError, JoinError, counted
 from .maps import GlobalMap, Provenance
 from .onestep import as_complex, solve
 from .registration import GATE_PROBABILITY, MIN_COMMON, consensus, registration_problem, transform_variances
@@ -98,12 +98,24 @@ def _check_other_frame(merged: GlobalMap, other: GlobalMap, names: str) -> None:
                         f"map again, in the same frame (each map merged must be in its own frame)")
 
 
-def _fresh(ids: np.ndarray, taken: np.ndarray, start: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """``ids`` with those in ``taken`` replaced by new ids from ``start`` on; the mask replaced, the next start."""
+#: the largest id a map holds (ids are 64-bit integers)
+_MAX_ID = 2**63 - 1
+
+
+def _fresh(ids: np.ndarray, taken: np.ndarray, start: int, name: str, kind: str
+           ) -> tuple[np.ndarray, np.ndarray, int]:
+    """``ids`` with those in ``taken`` replaced by new ids from ``start`` on; the mask replaced, the next start.
+    JoinError naming map ``name`` when the new ids would not fit the maps' 64-bit ids."""
     clash = np.isin(ids, taken)
+    count = int(clash.sum())
+    if not count:
+        return ids.copy(), clash, start
+    if start + count - 1 > _MAX_ID:
+        raise JoinError(f"{name}: {counted(count, kind + ' id')} also in the maps before it would be given new ids "
+                        f"above {start - 1}, beyond 64-bit ids (at most 2^63 - 1); renumber its {kind}s")
     renamed = ids.copy()
-    renamed[clash] = start + np.arange(int(clash.sum()))
-    return renamed, clash, start + int(clash.sum())
+    renamed[clash] = start + np.arange(count)
+    return renamed, clash, start + count
 
 
 def _correspondences(merged: GlobalMap, other: GlobalMap, names: str, associate: bool, min_common: int,
@@ -173,7 +185,8 @@ def merge(maps: Sequence[GlobalMap], associate: bool = False, *, min_common: int
         new[in_b] = False
         placed = turn * zb[new] + t
         placed_var = placed_variances(t_variance, phi_variance, other.feature_variances[new], squared_norm(zb[new]))
-        feature_ids, feature_clash, next_feature = _fresh(other.feature_ids[new], merged.feature_ids, next_feature)
+        feature_ids, feature_clash, next_feature = _fresh(other.feature_ids[new], merged.feature_ids, next_feature,
+                                                              other.name, "feature")
 
         pose_xy = as_complex(other.poses)
         poses = np.column_stack([(turn * pose_xy + t).real, (turn * pose_xy + t).imag,
@@ -181,7 +194,7 @@ def merge(maps: Sequence[GlobalMap], associate: bool = False, *, min_common: int
         pose_variances = np.column_stack([
             placed_variances(t_variance, phi_variance, other.pose_variances[:, 0], squared_norm(pose_xy)),
             other.pose_variances[:, 1] + phi_variance])
-        pose_ids, pose_clash, next_pose = _fresh(other.pose_ids, merged.pose_ids, next_pose)
+        pose_ids, pose_clash, next_pose = _fresh(other.pose_ids, merged.pose_ids, next_pose, other.name, "pose")
 
         features = merged.features.copy()
         variances = merged.feature_variances.copy()

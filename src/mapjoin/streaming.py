@@ -30,7 +30,7 @@ from .covariance import DEFAULT_COVARIANCE, CovarianceMode, batch_spherical_vari
 from .drift import SequentialRecord
 from .errors import JoinError
 from .joining import JoinRecord, JoinResult, _join_segment, _Pieces, _Segment, check_chain, pose_twice
-from .maps import GlobalMap, LocalMap, Provenance
+from .maps import LocalMap, Provenance, joined_map
 from .onestep import Solver, as_complex
 from .stream_calibration import StreamCalibration
 
@@ -241,7 +241,7 @@ class _Chain:
                           var_xy=np.array([var_xy]), var_phi=np.array([var_phi]))
         poses = self.poses.arrays({"id": np.int64})
         features = self.positions[self.known_index]
-        global_map = GlobalMap(
+        global_map = joined_map(
             feature_ids=self.known_ids, features=np.column_stack([features.real, features.imag]),
             feature_variances=self.position_variances[self.known_index], pose_ids=poses["id"],
             poses=np.column_stack([poses["xy"].real, poses["xy"].imag, poses["phi"]]),

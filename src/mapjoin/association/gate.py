@@ -164,7 +164,11 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
                            + scale[right_join[j], None] * right_covariances[j])
     xx, xy, yy = own_covariances[:, 0] + sxx[j], own_covariances[:, 1] + sxy[j], own_covariances[:, 2] + syy[j]
     det = xx * yy - xy * xy  # S^-1 in closed form (as inverted), its quadratic form (as _mahalanobis)
-    d2 = (yy / det) * r.real**2 + 2 * (-xy / det) * r.real * r.imag + (xx / det) * r.imag**2
+    # det <= 0: S singular to rounding (a heading variance carried far, u link_phiphi u^T, dwarfs the rest and the
+    # rest is lost): no candidate, the feature stays new
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        d2 = np.where(det > 0, (yy / det) * r.real**2 + 2 * (-xy / det) * r.real * r.imag + (xx / det) * r.imag**2,
+                      np.inf)
     gated = d2 <= g2
     i, j, d2 = i[gated], j[gated], d2[gated]
     taken = _clear(j, i, d2, left_sightings, margin) & _clear(i, j, d2, right_sightings, margin)

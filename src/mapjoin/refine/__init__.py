@@ -28,11 +28,12 @@ import numpy as np
 from ..covariance import DEFAULT_COVARIANCE, CovarianceMode, spherical_summary
 from ..consistency import DEFAULT_GATE, Policy
 from ..joining import STRATEGIES, Confirm, JoinResult, Strategy, without_features, join
-from ..maps import GlobalMap, LocalMap, Provenance
+from ..errors import JoinError
+from ..maps import GlobalMap, LocalMap, Provenance, joined_map, span
 from ..onestep import Solver
 from .hierarchy import HIERARCHICAL, Settle
 from .problem import ExactProblem
-from .solver import TOLERANCE, Minimum, minimise
+from .solver import TOLERANCE, Minimum, Singular, minimise
 
 __all__ = ["DEFAULT_START", "STARTS", "TOLERANCE", "RefineResult", "Start", "default_start", "exact_cost",
            "join_and_refine", "refine"]
@@ -138,13 +139,16 @@ def join_and_refine(maps: Sequence[LocalMap], *, start: Start | None = None,
     def solved_from(start: Start, jobs: int) -> RefineResult:
         began = time.perf_counter()
         settle = Settle(maps) if start == HIERARCHICAL else None
-        fast = join(maps, covariance, solver, "tree" if settle else start, jobs, join_progress, gate=gate,
-                    on_inconsistent=on_inconsistent, confirm=confirm, settle=settle)
-        left_out = {r.join for r in fast.report if r.action == "left out"}
-        chain = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
-        initial_seconds = time.perf_counter() - began
-        result = refine(chain, fast.global_map, max_iterations=max_iterations, tolerance=tolerance,
-                        covariances=covariances, progress=progress)
+        try:  # the exact solves (the hierarchical start's, a confirmation's, the refinement) know no map names
+            fast = join(maps, covariance, solver, "tree" if settle else start, jobs, join_progress, gate=gate,
+                        on_inconsistent=on_inconsistent, confirm=confirm, settle=settle)
+            left_out = {r.join for r in fast.report if r.action == "left out"}
+            chain = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
+            initial_seconds = time.perf_counter() - began
+            result = refine(chain, fast.global_map, max_iterations=max_iterations, tolerance=tolerance,
+                            covariances=covariances, progress=progress)
+        except Singular as error:
+            raise JoinError(f"{span([m.name for m in maps])}: {error}") from None
         return dataclasses.replace(result, initial_seconds=initial_seconds, fast_join=fast, start=start)
 
     began = time.perf_counter()
@@ -188,7 +192,7 @@ def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_it
         pose_covariances = feature_covariances = None
         pose_variances, feature_variances = problem.variances(initial)
     covariance_seconds = time.perf_counter() - start if covariances else 0.0
-    global_map = GlobalMap(
+    global_map = joined_map(
         feature_ids=problem.feature_ids, features=features, feature_variances=feature_variances,
         pose_ids=problem.pose_ids, poses=poses, pose_variances=pose_variances,
         provenance=Provenance(tuple(m.name for m in maps), "full", "gauss-newton", "exact"),

@@ -137,8 +137,8 @@ def extend(problem: ExactProblem, x: np.ndarray, local_map: LocalMap, *, toleran
     minimised over the new map's own (see the module docstring). Converged as :func:`.solver.minimise`
     judges (a step at most ``tolerance * (1 + max |x|)`` in every unknown, or a step predicted to change
     chi^2 by at most ``tolerance`` relative that changed it by at most that); None if a step raises chi^2
-    beyond rounding, a step is more than a quarter of the one two steps before, the factor of the chain's Hessian is
-    singular, or ``max_steps`` steps do not settle."""
+    beyond rounding, a step is more than a quarter of the one two steps before, the factor of the chain's Hessian (or
+    the update's I + W C) is singular, or ``max_steps`` steps do not settle."""
     term = SharedTerm(problem, local_map)
     columns = term.columns
     relative = max(tolerance, math.sqrt(problem.n_residuals + len(columns)) * np.finfo(float).eps)
@@ -165,7 +165,11 @@ def extend(problem: ExactProblem, x: np.ndarray, local_map: LocalMap, *, toleran
     for steps in range(max_steps):
         # (A + E C E^T)^-1 b = y - Z C d, with y = A^-1 b and (I + W C) d = y's rows of E
         y = problem.solve(factor, -gradient)
-        step = y - Z @ (matrix @ np.linalg.solve(identity + W @ matrix, y[columns]))
+        try:
+            correction = np.linalg.solve(identity + W @ matrix, y[columns])
+        except np.linalg.LinAlgError:  # I + W C singular to rounding: no extension, as for a singular factor
+            return None
+        step = y - Z @ (matrix @ correction)
         lengths.append(float(np.max(np.abs(step), initial=0.0)))
         if not math.isfinite(lengths[-1]):
             return None

@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import JoinError
 from .problem import ExactProblem
 
-__all__ = ["TOLERANCE", "Minimum", "minimise"]
+__all__ = ["TOLERANCE", "Minimum", "Singular", "minimise"]
 
 #: default stopping tolerance: relative chi^2 change, and step size relative to (1 + largest |unknown|);
 #: 1e-12 puts the solution within ~1e-7 m of the optimum on the real datasets from either fast join
@@ -34,6 +34,11 @@ _NEAR = 1e-3          # Newton's steps only after a step that gained at most thi
 _WITHIN = 9.0         # ... and lowered chi^2 by at most this (absolute): a step of at most three standard deviations
 _RESOLVED = 1e-4      # a full Gauss-Newton step predicted to gain at most this (absolute) lands within a hundredth of a
                       # standard deviation in every unknown: if it raises chi^2, the solver stops (:func:`minimise`)
+
+
+class Singular(JoinError):
+    """Normal equations singular to rounding (e.g. variances 60 orders of magnitude apart). The solver knows no
+    map names; :func:`mapjoin.refine.join_and_refine` names the maps."""
 
 
 @dataclass
@@ -209,7 +214,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             rejected += 1
             continue
         if not finite:
-            raise JoinError("the normal equations of the exact join are singular")
+            raise Singular("the normal equations of the exact join are singular")
         # the model's decrease, -g.step + damping step.D.step (the gain ratio's denominator)
         predicted = -(step @ gradient) + mode.damping * (step * step) @ problem.diagonal(data)
         small = 0 <= predicted <= relative * cost
@@ -281,7 +286,7 @@ def _step(problem: ExactProblem, data: np.ndarray, gradient: np.ndarray, mode: _
         return factor, problem.solve(factor, -gradient)
     except RuntimeError:          # SuperLU: exactly singular
         if not mode.newton:
-            raise JoinError("the normal equations of the exact join are singular") from None
+            raise Singular("the normal equations of the exact join are singular") from None
         return factor, None
 
 
