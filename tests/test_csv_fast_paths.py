@@ -15,7 +15,9 @@ import io
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapjoin.io.csvtable import Table, _rows, to_text
+import numpy as np
+
+from mapjoin.io.csvtable import Table, _rows, numeric_kind_text, to_text
 
 pieces = st.sampled_from(["a", "1.5", "-2e-3", ",", "\n", "\n\n", " ", "\t", "x,y", "é", '"', '""', "\r\n", "\r",
                           "map", "kind"])
@@ -65,3 +67,22 @@ def test_written_text_is_the_csv_writers_with_lf_record_ends(rows):
         csv.writer(buffer, lineterminator="\r\n").writerow(row)
         expected.append(buffer.getvalue()[:-2] + "\n")
     assert to_text(rows) == "".join(expected)
+
+
+numeric_columns = st.integers(0, 6).flatmap(lambda count: st.lists(st.one_of(
+    st.none(),
+    st.lists(st.floats(width=64), min_size=count, max_size=count).map(lambda v: np.array(v, dtype=float)),
+    st.lists(st.integers(-2**63, 2**63 - 1), min_size=count, max_size=count).map(lambda v: np.array(v, dtype=np.int64)),
+), min_size=1, max_size=8).map(lambda columns: (count, columns)))
+
+
+@settings(max_examples=300, deadline=None)
+@given(numeric_columns, st.sampled_from(["feature", "pose"]))
+def test_numeric_rows_are_written_as_the_csv_module_writes_them(counted, kind):
+    """Integer and float columns (nan, infinities, -0.0, subnormals, the int64 extremes; None: empty cells) as
+    ``csv.writer`` writes the rows ``[kind, *values]`` of their Python numbers, with LF line ends."""
+    count, columns = counted
+    buffer = io.StringIO()
+    rows = [[kind, *(None if column is None else column[i].item() for column in columns)] for i in range(count)]
+    csv.writer(buffer, lineterminator="\n").writerows(rows)
+    assert numeric_kind_text(kind, count, columns) == buffer.getvalue()

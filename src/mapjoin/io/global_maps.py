@@ -184,8 +184,8 @@ def _csv_parts(header: tuple[str, ...], kinds: list[tuple[str, list[np.ndarray |
     for kind, columns in kinds:
         count = len(columns[0])
         for start in range(0, count, _ROWS_PER_PART):
-            block = [None if column is None else column[start:start + _ROWS_PER_PART].tolist() for column in columns]
-            yield csvtable.to_text(csvtable.kind_rows(kind, min(_ROWS_PER_PART, count - start), block))
+            block = [None if column is None else column[start:start + _ROWS_PER_PART] for column in columns]
+            yield csvtable.numeric_kind_text(kind, min(_ROWS_PER_PART, count - start), block)
 
 
 def _covariance_columns(blocks: np.ndarray | None, size: int) -> list[np.ndarray | None]:

@@ -145,7 +145,7 @@ def extend(problem: ExactProblem, x: np.ndarray, local_map: LocalMap, *, toleran
     x = np.array(x, dtype=float)
     data, gradient, cost, second = problem.linearise(x, curvature=True)
     try:
-        factor = problem.factorise(data + second)
+        factor = problem.factorise(data, second=second)
         if isinstance(factor, DenseFactor) and not factor.cholesky:
             # not positive definite (the chain not at a minimum): the dense backend would solve each step by LU of
             # the whole matrix; Gauss-Newton's matrix is positive definite

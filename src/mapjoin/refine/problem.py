@@ -371,7 +371,10 @@ class ExactProblem:
             angle_targets.append(grouping.entries(np.full(w, w - 1), np.arange(w), node_of, offset_of, placed,
                                                   full, csc).ravel())
         self._gradient_columns = np.concatenate(gradient_columns)
-        self._angle_targets = np.concatenate(angle_targets)
+        # the second-order term's own slots (its base angles' rows: 0.5 M at 10^4 maps), not all of J^T J's
+        # (a fresh 84 MB array and a second for J^T J plus it, at each Newton step); the padding's last
+        self._curvature_slots, self._curvature_index = np.unique(np.concatenate(angle_targets), return_inverse=True)
+        self._curvature_count = int(np.searchsorted(self._curvature_slots, self._pattern.nnz))
         # the blocks' buffer is made by each linearisation (its 88 MB at 10^4 maps not held through the
         # factorisations); the gradient's is small
         self._buffer_size, self._gradient_buffer = block_offset, np.empty(gradient_offset)
@@ -385,8 +388,9 @@ class ExactProblem:
     def linearise(self, x: np.ndarray, curvature: bool = False):
         """``(data, gradient, chi^2[, curvature data])`` at ``x``: the lower triangle of J^T J in its CSC
         layout (the slots above the diagonal hold zeros until :meth:`normal_matrix` mirrors it), J^T r
-        (natural order), and with ``curvature`` the same of the second-order term ``sum_i r_i d^2 r_i
-        / dx^2`` (J^T J plus it is half the Hessian of chi^2).
+        (natural order), and with ``curvature`` the second-order term ``sum_i r_i d^2 r_i / dx^2`` (J^T J plus
+        it is half the Hessian of chi^2) in its own slots of that layout only (:attr:`curvature_slots`;
+        :meth:`factorise` adds it).
 
         Per map, with ``Lambda = P_k^-1``: the own columns' block is ``B^T Lambda B``, B the
         rotation by the base angle (:func:`.groups.own_blocks`); the base pose's columns are
@@ -417,8 +421,16 @@ class ExactProblem:
         gradient = np.bincount(self._gradient_columns, self._gradient_buffer, minlength=self.n_unknowns + 1)[:-1]
         if not curvature:
             return data, gradient, cost
-        second = np.bincount(self._angle_targets, np.concatenate(extra), minlength=pattern.nnz + 1)[:-1]
+        second = np.bincount(self._curvature_index, np.concatenate(extra),
+                             minlength=len(self._curvature_slots))[:self._curvature_count]
         return data, gradient, cost, second
+
+    @property
+    def curvature_slots(self) -> np.ndarray:
+        """The slots of J^T J's CSC data (lower triangle) that the second-order term of :meth:`linearise` fills,
+        one per value, ascending."""
+        self._prepare()
+        return self._curvature_slots[:self._curvature_count]
 
     def normal_matrix(self, data: np.ndarray) -> sp.csc_matrix:
         """J^T J (from its lower triangle ``data``, see :meth:`linearise`) as a symmetric CSC matrix in the
@@ -427,9 +439,26 @@ class ExactProblem:
         ``data`` reads only the lower triangle)."""
         return self._pattern.matrix(self._pattern.mirror(data))
 
-    def factorise(self, data: np.ndarray, damping: float = 0.0) -> Factor | dense.DenseFactor:
+    def factorise(self, data: np.ndarray, damping: float = 0.0, second: np.ndarray | None = None
+                  ) -> Factor | dense.DenseFactor:
         """The factor of ``J^T J + damping diag(J^T J)``: SuperLU's (:mod:`.factor`, in the fill-reducing
-        order), or the dense backend's (:func:`.dense.factorise`); raises RuntimeError if singular."""
+        order), or the dense backend's (:func:`.dense.factorise`); raises RuntimeError if singular. With
+        ``second`` (the second-order term of :meth:`linearise`), of Newton's matrix J^T J plus it: added into
+        ``data``'s own slots for the factorisation and their values put back after it, the same numbers as
+        ``data + second`` in full without a second copy of J^T J (the slots above the diagonal, which no
+        reader of ``data`` reads, are left holding Newton's)."""
+        if second is None:
+            return self._factorise(data, damping)
+        slots = self.curvature_slots
+        kept = data[slots]
+        data[slots] += second
+        try:
+            return self._factorise(data, damping)
+        finally:
+            data[slots] = kept
+
+    def _factorise(self, data: np.ndarray, damping: float) -> Factor | dense.DenseFactor:
+        """The factor of ``data`` (J^T J's layout) damped by ``damping diag``, by the problem's backend."""
         if damping:
             data = data.copy()
             data[self._pattern.diagonal] *= 1.0 + damping

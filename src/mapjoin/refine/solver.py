@@ -203,7 +203,7 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
                 continue
             kept = None
         factor = None   # the previous step's factor is freed before the next is made
-        factor, step = _step(problem, data + second if mode.newton else data, gradient, mode)
+        factor, step = _step(problem, data, second if mode.newton else None, gradient, mode)
         finite = step is not None and bool(np.all(np.isfinite(step)))
         undamped = mode.damping == 0.0          # the model's own minimiser: the only step that measures the optimum
         scale = 1.0 + np.max(np.abs(x), initial=0.0)
@@ -276,13 +276,14 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
                 return stop("no step lowers the cost (damping limit reached)")
 
 
-def _step(problem: ExactProblem, data: np.ndarray, gradient: np.ndarray, mode: _Mode
+def _step(problem: ExactProblem, data: np.ndarray, second: np.ndarray | None, gradient: np.ndarray, mode: _Mode
           ) -> tuple[object, np.ndarray | None]:
-    """The factor of the normal matrix ``data`` (damped as ``mode`` says) and the step
-    ``-(data)^-1 gradient``; a Newton step of a singular matrix is None (Gauss-Newton's: an error)."""
+    """The factor of the normal matrix ``data`` (plus the second-order term ``second`` for Newton's, damped as
+    ``mode`` says) and the step ``-(matrix)^-1 gradient``; a Newton step of a singular matrix is None
+    (Gauss-Newton's: an error)."""
     factor = None
     try:
-        factor = problem.factorise(data, mode.damping)
+        factor = problem.factorise(data, mode.damping, second)
         return factor, problem.solve(factor, -gradient)
     except RuntimeError:          # SuperLU: exactly singular
         if not mode.newton:
