@@ -129,14 +129,15 @@ def join_and_refine(maps: Sequence[LocalMap], *, start: Start | None = None,
     the fast join (``fast_join``) and its time (``initial_seconds``). ``start="hierarchical"``: the tree
     join with its top levels' pieces solved exactly (:class:`.hierarchy.Settle`; in one process, ``jobs=1``),
     for long runs where the tree's start leaves the solve creeping (docs/method.md#hierarchical-start).
-    With no ``start`` given, a solve from the default tree start that does not converge is tried again
-    from the hierarchical start (one process), and the result says so (``abandoned``)."""
+    With no ``start`` given, a solve from the default tree start that does not converge (or stalls:
+    :func:`.solver.minimise`'s ``stall``) is tried again from the hierarchical start (one process), and the
+    result says so (``abandoned``)."""
     maps = list(maps)
     given, start = start, start or default_start(on_inconsistent)
     if start not in STARTS:
         raise ValueError(f"unknown start {start!r}; expected one of {', '.join(STARTS)}")
 
-    def solved_from(start: Start, jobs: int) -> RefineResult:
+    def solved_from(start: Start, jobs: int, stall: bool) -> RefineResult:
         began = time.perf_counter()
         settle = Settle(maps) if start == HIERARCHICAL else None
         try:  # the exact solves (the hierarchical start's, a confirmation's, the refinement) know no map names
@@ -146,32 +147,33 @@ def join_and_refine(maps: Sequence[LocalMap], *, start: Start | None = None,
             chain = [without_features(m) if k in left_out else m for k, m in enumerate(maps)]
             initial_seconds = time.perf_counter() - began
             result = refine(chain, fast.global_map, max_iterations=max_iterations, tolerance=tolerance,
-                            covariances=covariances, progress=progress)
+                            covariances=covariances, progress=progress, stall=stall)
         except Singular as error:
             raise JoinError(f"{span([m.name for m in maps])}: {error}") from None
         return dataclasses.replace(result, initial_seconds=initial_seconds, fast_join=fast, start=start)
 
     began = time.perf_counter()
-    result = solved_from(start, jobs)
-    if result.converged or given is not None or start != "tree":
+    fallback = given is None and start == "tree"
+    result = solved_from(start, jobs, stall=fallback)
+    if result.converged or not fallback:
         return result
     log.warning("the exact join from the tree join did not converge (%s after %d iterations, chi^2 = %.10g): "
                 "trying the hierarchical start", result.reason, result.iterations, result.cost)
     spent = time.perf_counter() - began
-    retried = solved_from(HIERARCHICAL, 1)
+    retried = solved_from(HIERARCHICAL, 1, stall=False)
     return dataclasses.replace(retried, initial_seconds=spent + retried.initial_seconds, abandoned=start)
 
 
 def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_iterations: int = 100,
            tolerance: float = TOLERANCE, covariances: bool = True,
-           progress: Callable[[int, float], None] | None = None) -> RefineResult:
+           progress: Callable[[int, float], None] | None = None, stall: bool = False) -> RefineResult:
     """Solve the exact least-squares joining problem of the chain ``maps``.
 
     Starts from ``initial`` (which must hold every pose and feature; extra ones are
     ignored) or else from the fast join :data:`DEFAULT_START` (:func:`join_and_refine`, which
     needs a chain); the steps and the stopping rules are those of :func:`.solver.minimise`.
     ``covariances``: compute the marginal covariances (else the initial map's variances
-    are kept).
+    are kept). ``stall``: give up on a creep (:func:`.solver.minimise`).
     """
     if initial is None:
         return join_and_refine(maps, max_iterations=max_iterations, tolerance=tolerance, covariances=covariances,
@@ -180,7 +182,7 @@ def refine(maps: Sequence[LocalMap], initial: GlobalMap | None = None, *, max_it
     start = time.perf_counter()
     problem = ExactProblem(maps)
     found = minimise(problem, problem.pack(initial), max_iterations=max_iterations, tolerance=tolerance,
-                     progress=progress)
+                     progress=progress, stall=stall)
     seconds = time.perf_counter() - start
 
     poses, features = problem.unpack(found.x)

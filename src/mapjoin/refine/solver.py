@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import JoinError
 from .problem import ExactProblem
 
-__all__ = ["TOLERANCE", "Minimum", "Singular", "minimise"]
+__all__ = ["STALL_ITERATIONS", "TOLERANCE", "Minimum", "Singular", "minimise"]
 
 #: default stopping tolerance: relative chi^2 change, and step size relative to (1 + largest |unknown|);
 #: 1e-12 puts the solution within ~1e-7 m of the optimum on the real datasets from either fast join
@@ -32,6 +32,9 @@ _HALVINGS = 10       # an overshooting Gauss-Newton step is tried at 1/2 ... 1/2
 _NEWTON_FAILURES = 3  # Newton steps that may fail (no descent, no decrease) before Gauss-Newton for good
 _NEAR = 1e-3          # Newton's steps only after a step that gained at most this (relative): near the optimum
 _WITHIN = 9.0         # ... and lowered chi^2 by at most this (absolute): a step of at most three standard deviations
+#: a solve asked to watch for stalling (:func:`minimise`'s ``stall``) gives up when its last this many accepted steps
+#: lowered chi^2 by less than :data:`_WITHIN` in all
+STALL_ITERATIONS = 10
 _RESOLVED = 1e-4      # a full Gauss-Newton step predicted to gain at most this (absolute) lands within a hundredth of a
                       # standard deviation in every unknown: if it raises chi^2, the solver stops (:func:`minimise`)
 
@@ -116,7 +119,7 @@ class _Mode:
 
 
 def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100, tolerance: float = TOLERANCE,
-             progress: Callable[[int, float], None] | None = None) -> Minimum:
+             progress: Callable[[int, float], None] | None = None, stall: bool = False) -> Minimum:
     """Minimise chi^2 of ``problem`` from ``x``: Gauss-Newton (``J^T J``), undamped while steps
     lower the cost (an overshooting one is first halved up to ten times: a backtracking line
     search along it), with Marquardt damping ``lambda diag(J^T J)`` adapted by the gain ratio
@@ -148,7 +151,10 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
     lands from Newton's), and the last if the chord step after it is at most that in every unknown (else
     the solver goes on as usual). On the real datasets this saves the factorisation of the step that only
     confirms convergence.
-    Stops unconverged after ``max_iterations`` accepted steps or at the damping limit. The
+    Stops unconverged after ``max_iterations`` accepted steps or at the damping limit; with ``stall``, also
+    when the last :data:`STALL_ITERATIONS` accepted steps lowered chi^2 by less than 9 in all (three standard
+    deviations: a creep the data cannot tell from standing still, e.g. towards a worse local minimum; for a
+    caller that has another start to try). The
     relative tolerances on chi^2 are at least its rounding, ``sqrt(residuals)`` machine
     epsilons, so that ``tolerance=0`` means "to rounding" rather than a damped search for what
     rounding hides. ``progress(iteration, cost)`` is called with the initial chi^2 (iteration
@@ -266,6 +272,8 @@ def minimise(problem: ExactProblem, x: np.ndarray, *, max_iterations: int = 100,
             data, gradient, cost, second = accepted(x, mode.newton and not done)
             if done:
                 return stop("relative cost change below tolerance", True)
+            if stall and len(costs) > STALL_ITERATIONS and costs[-STALL_ITERATIONS - 1] - cost < _WITHIN:
+                return stop(f"stalled (chi^2 lowered by less than {_WITHIN:g} in {STALL_ITERATIONS} iterations)")
         elif mode.newton:
             mode.abandon_newton()       # Newton's model failed here: Gauss-Newton for now
             rejected += 1
