@@ -16,7 +16,12 @@ imports, reading the maps and writing the global map included): `mapjoin join DA
 LOCAL --associate -o g.csv`, LOCAL being the dataset's maps with ids local to each map (local_ids) written to a
 temporary folder as MAT files, the two run in turn --repeat times (medians).
 
+A third table, always, is the case a user (or an outside check) tries first: `mapjoin simulate --local-ids` at its
+defaults, ``--seeds`` seeds (0, 1, ...) of 30, 50 and 100 maps, both strategies, against the simulation's true
+correspondence: totals of the links, the missed and the false ones, and how many runs made a false link.
+
     PYTHONPATH=src python benchmarks/association.py [DATASETS...] [--repeat N] [--non-target NAME ...] [--commands]
+        [--seeds K]
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import compile_mapjoin, dataset_arguments, median_seconds, whole_command, write_section  # noqa: E402
@@ -35,8 +42,11 @@ from mapjoin import io as mapio  # noqa: E402
 from mapjoin.association import DEFAULT_GATE, AssociatedJoin, join_associated, link_errors, local_ids  # noqa: E402
 from mapjoin.joining import join  # noqa: E402
 from mapjoin.maps import LocalMap  # noqa: E402
+from mapjoin.simulation import simulate  # noqa: E402
 
 DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps")
+#: the simulations' sizes (maps) of the third table
+SIMULATED_MAPS = (30, 50, 100)
 
 
 
@@ -80,16 +90,39 @@ def commands_table(data: Path, datasets: list[str], repeat: int) -> list[str]:
     return lines
 
 
+def simulations_table(seeds: int) -> list[str]:
+    """The default simulations' table: per size and strategy, the association of ``seeds`` seeded runs of
+    :func:`mapjoin.simulation.simulate` (its defaults, ids made local) against their true ids, summed."""
+    lines = ["", f"Default simulations (`simulate(maps, seed=s)`, s = 0..{seeds - 1}, ids local to each map; "
+             "totals over the seeds):", "",
+             "| maps | strategy | true links | missed | recall | false links | runs with a false link |",
+             "|---:|---|---:|---:|---:|---:|---:|"]
+    for count in SIMULATED_MAPS:
+        runs = [local_ids(simulate(count, seed=seed).maps) for seed in range(seeds)]
+        for strategy in ("sequential", "tree"):
+            errors = np.array([link_errors(local, truth, join_associated(local, strategy=strategy))
+                               for local, truth in runs])
+            links, missed, false = errors.sum(axis=0).tolist()
+            row = (f"| {count} | {strategy} | {links} | {missed} | {100 * (links - missed) / links:.2f} % | {false} | "
+                   f"{int((errors[:, 2] > 0).sum())} of {seeds} |")
+            print(row, flush=True)
+            lines.append(row)
+    return lines
+
+
 def main() -> None:
     def options(parser) -> None:
         parser.add_argument("--non-target", action="append", default=[], metavar="NAME",
                             help="a dataset that is no target, sequential only, one run (repeatable)")
         parser.add_argument("--commands", action="store_true",
                             help="also time the whole commands, `join` against `join --associate` (a second table)")
+        parser.add_argument("--seeds", type=int, default=8, metavar="K",
+                            help="seeds of each default simulation in the third table (default 8)")
 
     args = dataset_arguments(__doc__, DATASETS, options)
     also = "".join(f" --non-target {name}" for name in args.non_target)
     also += " --commands" if args.commands else ""
+    also += f" --seeds {args.seeds}" if args.seeds != 8 else ""
     lines = [f"Measured with `PYTHONPATH=src python benchmarks/association.py --repeat {args.repeat}{also}` "
              f"(load average {os.getloadavg()[0]:.2f} at the start; gate {DEFAULT_GATE}, default covariance mode).", "",
              "In one process, maps loaded (the association's own cost):", "",
@@ -115,6 +148,7 @@ def main() -> None:
         lines.append(row)
     if args.commands:
         lines += commands_table(args.data, list(args.datasets), args.repeat)
+    lines += simulations_table(args.seeds)
     write_section("association", "\n".join(lines))
 
 
