@@ -300,8 +300,8 @@ def test_local_ids_round_trip():
 @given(seed=st.integers(0, 10_000), count=st.integers(2, 14), strategy=st.sampled_from(["sequential", "tree"]))
 def test_noise_free_simulations_are_associated_without_false_matches(seed, count, strategy):
     """Exact local maps: no false match between features the maps' declared covariances tell apart, and every
-    correspondence missed was left new on purpose (ambiguous or rejected: a true pair is always in the gate); when
-    every one is found, the global map is the known-id join's (same features and poses).
+    correspondence missed was left new on purpose (ambiguous, rejected or guarded: a true pair is always in the
+    gate); when every one is found, the global map is the known-id join's (same features and poses).
 
     The estimates are exact but their declared covariances are not zero, so two features 0.4-1.2 m apart that no
     piece of a join sees together are one feature to the gate (about 1% of 13-map runs: seeds 22, 81, 119, 183,
@@ -323,7 +323,7 @@ def test_noise_free_simulations_are_associated_without_false_matches(seed, count
             assert len(merged) == 2 and abs(complex(*(where[0] - where[1]))) < 2 * radius
     if false:  # a feature seen again beside its merged twin is left new as neither: the count below needs none
         return
-    assert missed <= sum(r.ambiguous + r.rejected for r in found.report)
+    assert missed <= sum(r.ambiguous + r.rejected + r.guarded for r in found.report)
     if missed == 0:
         known = join(maps, strategy=strategy).global_map
         mine = join(found.relabel(local), strategy=strategy).global_map
@@ -348,7 +348,8 @@ def unmet(name, strategy, measured):
     unmet("8240_data_50_local_maps", "sequential", "recall 97.4 %, no false link (the last join's 7 links: a lattice "
           "whose translations tie with the true correction, genuinely; docs/method.md#data-association)"),
     unmet("8240_data_50_local_maps", "tree", "recall 97.4 %, no false link (the 7 links of the lattice's tie at map 49)"),
-    unmet("simulation", "sequential", "recall 75.6 %, 10 false links (features closer than the noise)"),
+    unmet("simulation", "sequential", "recall 77.8 %, 5 false links (old features met again after the chain drifted "
+          "metres, beside other features: docs/method.md#data-association, step 9)"),
     unmet("simulation", "tree", "recall 61.0 %, 6 false links")])
 def test_target_recall_99_percent_without_false_links(data_dir, name, strategy, caplog):
     """Issue 13's target: at least 99 % of the true links recovered, no false one; then the global map equals
@@ -394,7 +395,7 @@ def test_cli_writes_one_association_row_per_feature_and_report_columns(tmp_path)
     truth = mapio.read_truth(str(folder / "truth.yaml"))
     assert {int(r["global_id"]) for r in true} <= set(truth.feature_ids.tolist())
     header = open(tmp_path / "joins.csv").readline().strip().split(",")
-    assert header[-2:] == ["ambiguous", "rejected"]
+    assert header[-3:] == ["ambiguous", "rejected", "guarded"]
 
 
 def test_cli_refuses_association_options_without_associate(tmp_path, simulated_folder):

@@ -66,9 +66,10 @@ class Associate(Protocol):
         """Compact ids of the first map's rows."""
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
-             link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray, int]:
-        """Map ``k`` against the map so far: its rows' order (matched first), their compact ids, how many match."""
+             link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray,
+             solve: Callable[[np.ndarray, np.ndarray], _Joins]) -> tuple[np.ndarray, np.ndarray, int, _Joins]:
+        """Map ``k`` against the map so far: its rows' order (matched first), their compact ids, how many match, and
+        the join of those (``solve(compact ids, rows of z)``: the join reads the association's own statistic)."""
 
     def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
         """Join ``k`` placed map ``k``'s start with these posterior variances."""
@@ -119,6 +120,11 @@ class _Joins:
     phi_variance: np.ndarray
     t_variance: np.ndarray
     rows: list[tuple]
+
+    @property
+    def cost(self) -> float:
+        """The first join's minimum f_1(phi*) (the sequential strategy's one join)."""
+        return self.rows[0][_COST]
 
 
 def _solve_joins(pair: np.ndarray | None, count: int, z0: np.ndarray, var0: np.ndarray, z1: np.ndarray,
@@ -389,20 +395,25 @@ def _join_segment(segment: _Segment, maps: Sequence[LocalMap], positions: np.nda
     for k in range(1, len(maps)):
         join_number = number + k - 1
         rows = slice(starts[k], starts[k + 1])
+        local_map = maps[k]
+        # the join's arguments after its common features' (its link and report label)
+        given = (pose_xy[k - 1], pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1], solver,
+                 [(local_map.name, local_map.start_id, local_map.end_id, local_map.size)], join_number, warn,
+                 join_number not in unlinked)
         if associate is not None:  # map k's rows: its matches of the map so far first, then its new features
-            order_k, ids[rows], common = associate.next(k, positions, position_variances, pose_xy[k - 1],
-                                                       pose_phi[k - 1], (var_xy[k - 1], var_phi[k - 1]), z[rows],
-                                                       var[rows])
+            z_k, var_k = z[rows], var[rows]
+            order_k, ids[rows], common, joins = associate.next(
+                k, positions, position_variances, pose_xy[k - 1], pose_phi[k - 1], (var_xy[k - 1], var_phi[k - 1]),
+                z_k, var_k, lambda left, right: _solve_joins(None, 1, positions[left], position_variances[left],
+                                                             z_k[right], var_k[right], *given))
             for array in (z, var, information, squared):
                 array[rows] = array[rows][order_k]
             ends_common[k] = starts[k] + common
         common = ends_common[k] - starts[k]
-        shared, local_map = ids[starts[k]:ends_common[k]], maps[k]
+        shared = ids[starts[k]:ends_common[k]]
         z0, var0 = positions[shared], position_variances[shared]
-        joins = _solve_joins(None, 1, z0, var0, z[rows][:common], var[rows][:common], pose_xy[k - 1],
-                             pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1], solver,
-                             [(local_map.name, local_map.start_id, local_map.end_id, local_map.size)], join_number,
-                             warn, join_number not in unlinked)
+        if associate is None:
+            joins = _solve_joins(None, 1, z0, var0, z[rows][:common], var[rows][:common], *given)
         if record is not None:
             record.joined(z0, var0, pose_xy[k - 1], pose_phi[k - 1], var_xy[k - 1], var_phi[k - 1],
                           joins.t_variance, joins.phi_variance)

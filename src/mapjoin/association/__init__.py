@@ -66,6 +66,13 @@ join (sequential and tree) which features of the right piece are features of the
    feature, even one never seen with the chosen one (its second copy), lies within half its drift
    (:data:`~mapjoin.association.lone.LONE_MARGIN`) and a rival seen with it is within ``margin`` under the drift.
 
+9. **The join's own consistency** (:mod:`mapjoin.association.guard`, sequential joins). The one-step join of the
+   pairs is solved; when it fails the chi-square check's gate and one pair's residual over its spherical variances
+   lies beyond the association's gate under the join's robust variance factor, the join is associated again with
+   every drift :data:`~mapjoin.association.guard.GUARD_DRIFT` times larger, which replaces the first association
+   when it keeps at least half of its pairs (the report's ``guarded``: the pairs it left out). Once a guard left
+   pairs out, the chain's drift is too small: every later join associates with it widened.
+
 The accepted pairs are the join's common features; every other right feature becomes a new
 feature of the global map. The global ids are numbered from 0 in order of first sighting:
 by map, then by local id.
@@ -83,7 +90,8 @@ The rooms inside (docs/architecture.md), from the bottom up: :mod:`~mapjoin.asso
 :mod:`~mapjoin.association.junction`), :mod:`~mapjoin.association.joint` (step 4), :mod:`~mapjoin.association.rounds`
 (step 5), :mod:`~mapjoin.association.drifted` (steps 6 to 8, with :mod:`~mapjoin.association.feature_drift`,
 :mod:`~mapjoin.association.loop_votes`, :mod:`~mapjoin.association.loop_scope`, :mod:`~mapjoin.association.strain`
-and :mod:`~mapjoin.association.lone`), :mod:`~mapjoin.association.associator` (the hooks ``joining`` calls),
+and :mod:`~mapjoin.association.lone`), :mod:`~mapjoin.association.guard` (step 9),
+:mod:`~mapjoin.association.associator` (the hooks ``joining`` calls),
 :mod:`~mapjoin.association.associated_join` (:func:`join_associated`) and :mod:`~mapjoin.association.correspondence`
 (:func:`local_ids`). This package exports the public names.
 """

@@ -33,10 +33,14 @@ __all__ = ["AssociatedJoin", "AssociatedJoinRecord", "FeatureAssociation", "join
 @dataclass(frozen=True)
 class AssociatedJoinRecord(JoinRecord):
     """A join's report row when associating: ``common`` features were matched, ``new`` were not, of which
-    ``ambiguous`` had two candidates in the gate and ``rejected`` failed the joint compatibility test."""
+    ``ambiguous`` had two candidates in the gate and ``rejected`` failed the joint compatibility test; ``guarded``
+    pairs of the first association were left out by the association again under a wider drift, the join being
+    inconsistent with an outlying pair (step 9, :mod:`mapjoin.association.guard`; they may be counted ambiguous or
+    rejected there as well)."""
 
     ambiguous: int = 0
     rejected: int = 0
+    guarded: int = 0
 
 
 @dataclass(frozen=True)
@@ -93,8 +97,8 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     order = np.argsort(relabelled, kind="stable")
     global_map = dataclasses.replace(global_map, feature_ids=relabelled[order], features=global_map.features[order],
                                      feature_variances=global_map.feature_variances[order])
-    report = tuple(AssociatedJoinRecord(**vars(record), ambiguous=ambiguous, rejected=rejected)
-                   for record, (ambiguous, rejected) in zip(result.report, associator.counts))
+    report = tuple(AssociatedJoinRecord(**vars(record), ambiguous=ambiguous, rejected=rejected, guarded=guarded)
+                   for record, (ambiguous, rejected, guarded) in zip(result.report, associator.counts))
     offsets = associator.offsets.tolist()
     per_map = []
     for k, local_map in enumerate(maps):  # rows in _prepare's order: each map's ids sorted

@@ -23,6 +23,7 @@ from .covariance_blocks import fused, rotated
 from .drifted import _corrected, _pair_noise, match_with_drift
 from .feature_drift import SightingDrift
 from .gate import DEFAULT_MARGIN, sighting_bits
+from .guard import Solve, Solved, inconsistent, kept_majority, outlying, widened
 from .junction import free_pairs, own_link_variances, undrifted
 from .loop_scope import voters_drift
 from .rounds import Matches, _median, _same, match_features
@@ -96,7 +97,10 @@ class _Associator:
         self.covariances = np.zeros((max(len(self.row_ids), 1), 3))
         self.row_sightings = sighting_bits(np.repeat(np.arange(len(covariances)), np.diff(self.offsets)))
         self.sightings = np.zeros((len(self.covariances), 2), dtype=np.uint64)  # each compact id's maps (bits)
-        self.counts: list[tuple[int, int]] = []  # (ambiguous, rejected) per join, in the report's order
+        self.counts: list[tuple[int, int, int]] = []  # (ambiguous, rejected, guarded) per join, in the report's order
+        #: a sequential join's guard left pairs out (step 9): the chain's drift is too small, and every later join
+        #: associates with it widened (:func:`mapjoin.association.guard.widened`)
+        self.drift_too_small = False
 
     def _fresh(self, number: int) -> np.ndarray:
         ids = np.arange(self.count, self.count + number)
@@ -132,24 +136,39 @@ class _Associator:
         self.drift.placed(k, t_variance, phi_variance)
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
-             link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray, int]:
+             link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray, solve: Solve
+             ) -> tuple[np.ndarray, np.ndarray, int, Solved]:
         """Map ``k`` (rows ``z``, ``var``) against the global map so far (compact ids 0 .. count-1): the order of
-        its rows (matched first, then new, each in input order), their compact ids in that order, and how many
-        are matched."""
+        its rows (matched first, then new, each in input order), their compact ids in that order, how many are
+        matched and their join (``solve(left ids, right rows)``: the one-step join of these pairs, which step 9
+        reads, :mod:`mapjoin.association.guard`)."""
         used = self.count
         rows = slice(self.offsets[k], self.offsets[k + 1])
         right_covariances = rotated(self.row_covariances[rows], link_phi)
         nothing = np.zeros(len(z))  # map k's own features: no drift relative to its start
         drift = (*self.drift.before(slice(None, used), k - 1), nothing, nothing)
         pair_drift = _asked_once(lambda i, j, noise: self.drift.settled(i, k - 1, level=noise, direct=drift[0][i]))
+        if self.drift_too_small:
+            drift, pair_drift = widened(drift, pair_drift)
 
-        found = match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
-                                 np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
-                                 right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
-                                 self.sightings[:used], self.row_sightings[rows], pair_drift,
-                                 voters_drift(self.drift, None, None))
-        self.counts.append((int(found.ambiguous[0]), int(found.rejected[0])))
+        def associated(drift: tuple[np.ndarray, ...], pair_drift: Callable) -> Matches:
+            return match_with_drift(positions[:used], self.covariances[:used], np.zeros(used, np.intp),
+                                    np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
+                                    right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
+                                    self.sightings[:used], self.row_sightings[rows], pair_drift,
+                                    voters_drift(self.drift, None, None))
+
+        found = associated(drift, pair_drift)
+        solved, guarded = solve(found.left, found.right), 0
+        if inconsistent(solved.cost, len(found.right)) and outlying(  # step 9
+                np.abs(positions[found.left] - (solved.t + solved.turn * z[found.right])) ** 2
+                / (variances[found.left] + var[found.right]), self.gate):
+            again = associated(*widened(drift, pair_drift))
+            left_out = kept_majority(found.left, found.right, again.left, again.right)
+            if left_out is not None:
+                found, solved, guarded = again, solve(again.left, again.right), left_out
+                self.drift_too_small |= left_out > 0
+        self.counts.append((int(found.ambiguous[0]), int(found.rejected[0]), guarded))
         left_ids = found.left
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
                            np.zeros(len(z), np.intp), right_covariances, pair_drift, np.array([k]))
@@ -165,7 +184,7 @@ class _Associator:
         points, matched_count = self.row_points[rows][order], len(found.right)
         self.drift.seen_again(ids[:matched_count], k, points[:matched_count], strain)
         self.drift.seen(ids[matched_count:], k, points[matched_count:])
-        return order, ids, len(found.right)
+        return order, ids, len(found.right), solved
 
     def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
              right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray,
@@ -236,7 +255,8 @@ class _Associator:
             found = self._junction_pairs(found, pieces.features[left], left_ids, left_join, pieces.pose_xy[link],
                                          pieces.pose_phi[link], link_map, pieces.features[right], right_ids,
                                          right_covariances, right_join)
-        self.counts += list(zip(found.ambiguous.tolist(), found.rejected.tolist()))
+        self.counts += [(ambiguous, rejected, 0) for ambiguous, rejected in zip(found.ambiguous.tolist(),
+                                                                                found.rejected.tolist())]
         strain = self._tie(found, pieces.features[left], left_ids[found.left], pieces.pose_xy[link],
                            pieces.pose_phi[link], pieces.features[right], right_join, right_covariances, pair_drift,
                            link_map + 1)
