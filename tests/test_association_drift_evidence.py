@@ -67,7 +67,8 @@ def test_the_trees_false_links_on_the_default_simulation(caplog):
     """The default simulation of 50 maps, seed 0: the tree's level-5 and level-6 joins find their right pieces turned
     by 0.1-0.2 rad, far beyond the junctions' posteriors, and steps 2-5 took right features that landed by a
     different feature (29 false links before the maps' own dead reckoning was added where the association shows
-    drift; 7 after, 6 with a bent piece's regions not counted as rivals; docs/method.md#data-association, step 6)."""
+    drift; 7 after, 6 with a bent piece's regions not counted as rivals and its closures' pairs bound to the gate;
+    docs/method.md#data-association, step 6)."""
     caplog.set_level(logging.ERROR, logger="mapjoin")
     local, truth = local_ids(simulate(50, seed=0).maps)
     assert link_errors(local, truth, join_associated(local, strategy="tree"))[2] <= 10
