@@ -58,6 +58,36 @@ def test_sighting_drift_is_the_dense_sum_over_the_junctions(seed, n):
     assert math.isclose(value[0], dense(range(left_end + 2, first_map + 1), f_first), rel_tol=1e-9, abs_tol=1e-12)
 
 
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(3, 12))
+def test_dead_reckoned_drift_adds_each_maps_own_end_pose_variance(seed, n):
+    """SightingDrift.dead_reckoned: D over the junctions between a sighting and the link with each junction i carrying,
+    besides its posterior (v_i, p_i), the end-pose variance (t, p) of map i - 1, which ends there: the dense sum of
+    (v_i + t_{i-1}) + (p_i + p_{i-1}) |f - x_i|^2 / 2; the drift itself unchanged."""
+    rng = np.random.default_rng(seed)
+    end_poses = np.column_stack([rng.uniform(1, 5, n), rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n)])
+    v, p = rng.uniform(0.001, 0.1, n + 1), rng.uniform(1e-5, 1e-3, n + 1)
+    own = np.column_stack([rng.uniform(0.001, 0.1, n), rng.uniform(1e-5, 1e-3, n)])
+    drift = SightingDrift.of(end_poses, 4, own)
+    junctions = np.arange(1, n)
+    drift.placed(junctions, v[junctions], p[junctions])
+    poses = dead_reckoned(end_poses)
+    seen_map = int(rng.integers(0, n))
+    point = complex(rng.normal(), rng.normal())
+    drift.seen(np.array([0]), np.array([seen_map]), np.array([point]))
+    f = complex(*(compose(poses[seen_map], np.array([point.real, point.imag, 0.0]))[:2]))
+    link_map = int(rng.integers(seen_map, n))
+    span = range(seen_map + 1, link_map + 1)
+    value, heading = drift.dead_reckoned().before(np.array([0]), np.array([link_map]))
+    expected = sum(v[i] + own[i - 1, 0] + (p[i] + own[i - 1, 1]) * abs(f - complex(*poses[i, :2])) ** 2 / 2
+                   for i in span)
+    assert math.isclose(value[0], expected, rel_tol=1e-9, abs_tol=1e-12)
+    assert math.isclose(heading[0], sum(p[i] + own[i - 1, 1] for i in span), rel_tol=1e-9, abs_tol=1e-15)
+    plain = drift.before(np.array([0]), np.array([link_map]))[0]
+    assert math.isclose(plain[0], sum(v[i] + p[i] * abs(f - complex(*poses[i, :2])) ** 2 / 2 for i in span),
+                        rel_tol=1e-9, abs_tol=1e-12)
+
+
 def test_sighting_drift_follows_sightings_through_renaming():
     """seen_again moves the last sighting; merged takes another feature's last sighting; copied takes all; grown
     keeps what was there."""
@@ -395,7 +425,9 @@ def brute_force_votes(left, right, a, b, centre, noise, turning, turn_cell, offs
                     if (np.abs(c - centres[0]) > DIFFERENT_CELLS * scale).any()], default=0)
 
     rivals = [vote for vote in votes if vote[0] not in voters and vote[1] not in voters]
-    return best, len(centres), voters, runner_up(votes), runner_up(rivals)
+    claimed = {int(b[r]) for r in voters}
+    conflicting = [vote for vote in rivals if b[vote[0]] in claimed or b[vote[1]] in claimed]
+    return best, len(centres), voters, runner_up(votes), runner_up(rivals), runner_up(conflicting)
 
 
 def agree_with_brute_force(left, right, a, b, noise, turning):
@@ -404,7 +436,7 @@ def agree_with_brute_force(left, right, a, b, noise, turning):
     centre = right.mean()
     votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise, turning,
                         np.array([0.01]), np.array([0.15]), 1)
-    best, ties, voters, every, rival = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
+    best, ties, voters, every, rival, _ = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
     assert (votes.agreement[0], votes.support[0]) == best
     if ties == 1:  # else either is the best
         assert set(votes.voters.tolist()) == voters and votes.runner_up[0] == rival
@@ -444,7 +476,53 @@ def test_a_bent_piece_closes_its_loop_where_its_own_pairs_vote_beyond_the_best()
     rng = np.random.default_rng(0)
     left, right, a, b = bent(rng, bend=0.004)
     noise, turning = np.full(len(a), 2 * 0.03**2), np.full(len(a), 0.5)
-    best, _, _, every, rival = brute_force_votes(left, right, a, b, right.mean(), noise, turning, 0.01, 0.15)
+    best, _, _, every, rival, _ = brute_force_votes(left, right, a, b, right.mean(), noise, turning, 0.01, 0.15)
     votes = rigid_votes(left, right, a, b, np.zeros(len(a), np.intp), np.array([right.mean()]), noise, turning,
                         np.array([0.01]), np.array([0.15]), 1)
     assert 2 * every > best[0] and votes.agreement[0] >= 2 * votes.runner_up[0] == 2 * rival
+
+
+def two_regions(rng, count=24, clutter=40, noise=0.03):
+    """A right piece 40 m long whose two halves (``count`` / 2 features each) the chain moved by two different rigid
+    corrections (0.05 rad apart and 0.8 m: a piece bent at its middle), among ``clutter`` random features: the
+    candidate pairs within 1.5 m, sorted by right feature."""
+    half = count // 2
+    right = np.concatenate([rng.uniform(-20, -2, half), rng.uniform(2, 20, count - half)]) \
+        + 1j * rng.uniform(-2, 2, count)
+    moved = np.where(right.real < 0, 0.5 - 0.3j + right * np.exp(0.02j), -0.3 + 0.5j + right * np.exp(-0.03j))
+    left = np.concatenate([moved + noise * (rng.normal(size=count) + 1j * rng.normal(size=count)),
+                           rng.uniform(-22, 22, clutter) + 1j * rng.uniform(-4, 4, clutter)])
+    a, b = np.nonzero(np.abs(left[:, None] - right[None, :]) <= 1.5)
+    order = np.argsort(b, kind="stable")
+    return left, right, a[order], b[order]
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), halves=st.booleans())
+def test_a_bent_joins_runner_up_counts_only_rivals_of_the_voters_features(seed, halves):
+    """rigid_votes with ``bent``: the runner-up counts only the votes of two non-voting pairs one of which pairs a
+    right feature of the best cell's voters (brute_force_votes' conflicting rivals); a join not bent keeps every
+    rival association's votes."""
+    rng = np.random.default_rng(seed)
+    left, right, a, b = two_regions(rng) if halves else bent(rng, bend=0.004)
+    noise, turning = np.full(len(a), 2 * 0.03**2), np.full(len(a), 0.5)
+    centre = right.mean()
+    _, ties, _, _, rival, conflicting = brute_force_votes(left, right, a, b, centre, noise, turning, 0.01, 0.15)
+    arguments = (left, right, a, b, np.zeros(len(a), np.intp), np.array([centre]), noise, turning, np.array([0.01]),
+                 np.array([0.15]), 1)
+    if ties == 1:
+        assert rigid_votes(*arguments, bent=np.array([True])).runner_up[0] == conflicting
+        assert rigid_votes(*arguments, bent=np.array([False])).runner_up[0] == rival
+
+
+def test_a_piece_bent_at_its_middle_closes_its_loop_only_as_bent():
+    """Two halves moved by two corrections: each half's pairs agree on their own; counted as rivals, the other half
+    ties the best (the closure refused), as a bent piece's other region it is no rival (taken)."""
+    rng = np.random.default_rng(5)
+    left, right, a, b = two_regions(rng)
+    noise, turning = np.full(len(a), 2 * 0.03**2), np.full(len(a), 0.5)
+    arguments = (left, right, a, b, np.zeros(len(a), np.intp), np.array([right.mean()]), noise, turning,
+                 np.array([0.01]), np.array([0.15]), 1)
+    rigid, bent_piece = rigid_votes(*arguments), rigid_votes(*arguments, bent=np.array([True]))
+    assert rigid.agreement[0] < 2 * rigid.runner_up[0]
+    assert bent_piece.agreement[0] >= 2 * bent_piece.runner_up[0]

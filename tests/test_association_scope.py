@@ -133,6 +133,22 @@ def test_a_pair_is_left_new_only_when_unclear_under_every_reference():
     assert beyond_voters(left, join, np.array([0]), None, unclear, unclear).tolist() == [True]
 
 
+
+def test_a_reference_holds_a_pair_only_within_its_bound():
+    """``within``: a pair whose drift is below its noise (0.01 < 0.02) but whose reference predicts it 1 m away is
+    held there without a bound (the drift alone decides), not with the gate's bound (1 > 13.8 * 0.03); within 0.5 m
+    it is (0.25 < 0.41); an infinite bound is none."""
+    left = np.array([0j, 5.0 + 0j])
+    join = np.zeros(2, np.intp)
+    far = (np.array([1.0 + 0j]), np.array([0.02]), np.array([0.01]))
+    near = (np.array([0.5 + 0j]), np.array([0.02]), np.array([0.01]))
+    gate = np.array([-2 * np.log(0.001)])
+    assert beyond_voters(left, join, np.array([0]), None, far).tolist() == [False]
+    assert beyond_voters(left, join, np.array([0]), None, far, within=gate).tolist() == [True]
+    assert beyond_voters(left, join, np.array([0]), None, near, within=gate).tolist() == [False]
+    assert beyond_voters(left, join, np.array([0]), None, far, near, within=gate).tolist() == [False]
+    assert beyond_voters(left, join, np.array([0]), None, far, within=np.array([np.inf])).tolist() == [False]
+
 def far_loop(rng):
     """A join whose right map (24 features, link at the origin) sees 6 features of the map before, 12 last seen long
     ago moved by one rigid correction (the voters'), and 6 whose own features drifted otherwise (a far part of the

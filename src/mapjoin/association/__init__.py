@@ -51,7 +51,10 @@ join (sequential and tree) which features of the right piece are features of the
    a pair where it is clear under the correction with its drift relative to the voters, or under the link with its
    drift (:mod:`mapjoin.association.loop_scope`). Then the undrifted features the link's correction moved by more than
    their noise vote once more, the same way, each with the squared distance it moved its prediction as its spread:
-   a correction set by drifted pairs is a drift of its own for the features near the link.
+   a correction set by drifted pairs is a drift of its own for the features near the link. A tree join whose drifted
+   right features mostly missed the left features steps 2 to 5 predicted them near
+   (:mod:`mapjoin.association.drift_evidence`) takes the maps' own dead reckoning into ``D`` as well (the junctions'
+   posteriors leave it out), and its bent right piece's other regions vote as no rival.
 7. **A strained map so far** (:mod:`mapjoin.association.strain`). Before step 6, a pair of
    steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
    feature seen in one map with it lies within its drift (:data:`mapjoin.association.strain.DRIFT_MARGIN`): its
@@ -89,8 +92,9 @@ The rooms inside (docs/architecture.md), from the bottom up: :mod:`~mapjoin.asso
 :mod:`~mapjoin.association.gate` (steps 2 and 3, with :mod:`~mapjoin.association.grid` and
 :mod:`~mapjoin.association.junction`), :mod:`~mapjoin.association.joint` (step 4), :mod:`~mapjoin.association.rounds`
 (step 5), :mod:`~mapjoin.association.drifted` (steps 6 to 8, with :mod:`~mapjoin.association.feature_drift`,
-:mod:`~mapjoin.association.loop_votes`, :mod:`~mapjoin.association.loop_scope`, :mod:`~mapjoin.association.strain`
-and :mod:`~mapjoin.association.lone`), :mod:`~mapjoin.association.guard` (step 9),
+:mod:`~mapjoin.association.drift_evidence`, :mod:`~mapjoin.association.loop_votes`,
+:mod:`~mapjoin.association.loop_scope`, :mod:`~mapjoin.association.strain` and :mod:`~mapjoin.association.lone`),
+:mod:`~mapjoin.association.guard` (step 9),
 :mod:`~mapjoin.association.associator` (the hooks ``joining`` calls),
 :mod:`~mapjoin.association.associated_join` (:func:`join_associated`) and :mod:`~mapjoin.association.correspondence`
 (:func:`local_ids`). This package exports the public names.

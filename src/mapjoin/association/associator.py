@@ -20,7 +20,8 @@ import numpy as np
 
 from ..maps import locate
 from .covariance_blocks import fused, rotated
-from .drifted import _corrected, _pair_noise, match_with_drift
+from .drift_evidence import drifting
+from .drifted import _corrected, _pair_noise, match_with_drift, with_drift
 from .feature_drift import SightingDrift
 from .gate import DEFAULT_MARGIN, sighting_bits
 from .guard import Solve, Solved, inconsistent, kept_majority, outlying, widened
@@ -76,17 +77,18 @@ class _Associator:
     from the pieces at the next level). Compact ids (indices of the joins' arrays) are handed out in order of
     first sighting; the tree renames a right piece's features to the left piece's ids, so each input row's
     current id is kept. ``points``: each map's feature positions (sorted by id, complex), ``end_poses`` the
-    maps' end poses, for :class:`mapjoin.association.feature_drift.SightingDrift`."""
+    maps' end poses and ``pose_variances`` their marginal variances (the maps' own dead reckoning, for the tree joins
+    that drifted), for :class:`mapjoin.association.feature_drift.SightingDrift`."""
 
     def __init__(self, covariances: Sequence[np.ndarray], points: Sequence[np.ndarray], end_poses: np.ndarray,
-                 gate: float, margin: float = DEFAULT_MARGIN):
+                 gate: float, margin: float = DEFAULT_MARGIN, pose_variances: np.ndarray | None = None):
         self.gate, self.margin = gate, margin
         self.offsets = np.concatenate([[0], np.cumsum([len(c) for c in covariances])]).astype(np.intp)
         self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
         self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
         self.row_maps = np.repeat(np.arange(len(covariances)), np.diff(self.offsets))
         # the chain's drift between sightings and links (each map's rows' positions in its frame: their sightings)
-        self.drift = SightingDrift.of(end_poses, len(self.row_ids))
+        self.drift = SightingDrift.of(end_poses, len(self.row_ids), pose_variances)
         self.row_points = np.concatenate([np.zeros(0, complex), *points])
         self.links = np.zeros(0, np.intp)  # the tree's last level's junctions (left pieces' end pose rows)
         self.end_points = end_poses[:, 0] + 1j * end_poses[:, 1]  # each map's end position in its frame
@@ -229,28 +231,51 @@ class _Associator:
         link_map = pieces.last[0:2 * count:2]  # each join's left piece's last map
         start = pieces.first[0:2 * count:2]  # ... and its first: the ties inside it
         left_ids = pieces.feature_ids[left]
-        drift = (*self.drift.before(left_ids, link_map[left_join]),
-                 *self.drift.after(pieces.feature_ids[right], link_map[right_join]))
         end = pieces.last[1:2 * count:2]  # each join's right piece's last map
         right_ids = pieces.feature_ids[right]
+        arguments = (pieces.features[left], self.covariances[left_ids], left_join, pieces.pose_xy[link],
+                     pieces.pose_phi[link], pieces.pose_variances[link], pieces.features[right], right_covariances,
+                     right_join)
+        sightings = (self.sightings[left_ids], self.sightings[right_ids])
+        found = match_features(*arguments, self.gate, self.margin, *sightings)
+        # the joins whose pieces drifted beyond the junctions' posteriors take the maps' own dead reckoning as well
+        far = drifting(found, *arguments, self.drift.first_map[right_ids] > link_map[right_join] + 1, self.gate)
+        sources = (self.drift, self.drift.dead_reckoned()) if far.any() else (self.drift,)
+        left_far, right_far = far[left_join], far[right_join]
+        drift = [(*source.before(left_ids, link_map[left_join]), *source.after(right_ids, link_map[right_join]))
+                 for source in sources]
+        drift = tuple(np.where(rows_far, reckoned, plain) for rows_far, plain, reckoned in
+                      zip((left_far, left_far, right_far, right_far), drift[0], drift[-1]))
 
-        @_asked_once
-        def pair_drift(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        def way_drift(source: SightingDrift, i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
             # compared with the pairs' noise only: the ties are searched for the pairs whose direct ways reach it
             left_way = (left_ids[i], link_map[left_join[i]], start[left_join[i]])
             right_way = (right_ids[j], link_map[right_join[j]], end[right_join[j]])
-            drift = self.drift.settled(*left_way, level=np.inf) + self.drift.settled_after(*right_way, level=np.inf)
-            reach = np.flatnonzero(drift >= noise)
+            value = source.settled(*left_way, level=np.inf) + source.settled_after(*right_way, level=np.inf)
+            reach = np.flatnonzero(value >= noise)
             if len(reach):
-                drift[reach] = (self.drift.settled(*(part[reach] for part in left_way))
-                                + self.drift.settled_after(*(part[reach] for part in right_way)))
-            return drift
+                value[reach] = (source.settled(*(part[reach] for part in left_way))
+                                + source.settled_after(*(part[reach] for part in right_way)))
+            return value
 
-        found = match_with_drift(pieces.features[left], self.covariances[left_ids], left_join,
-                                 pieces.pose_xy[link], pieces.pose_phi[link], pieces.pose_variances[link],
-                                 pieces.features[right], right_covariances, right_join, drift, self.gate, self.margin,
-                                 self.sightings[left_ids], self.sightings[pieces.feature_ids[right]], pair_drift,
-                                 voters_drift(self.drift, left_ids, right_ids))
+        @_asked_once
+        def pair_drift(i: np.ndarray, j: np.ndarray, noise: np.ndarray) -> np.ndarray:
+            value, pairs_far = np.empty(len(i)), far[left_join[i]]
+            for source, rows in ((sources[0], ~pairs_far), (sources[-1], pairs_far)):
+                if rows.any():
+                    value[rows] = way_drift(source, i[rows], j[rows], noise[rows])
+            return value
+
+        scopes = [voters_drift(source, left_ids, right_ids) for source in sources]
+
+        def scope(pair_left: np.ndarray, pair_right: np.ndarray, join: np.ndarray, *voters: np.ndarray) -> np.ndarray:
+            value, pairs_far = np.empty(len(pair_left)), far[join]
+            for relative, rows in ((scopes[0], ~pairs_far), (scopes[-1], pairs_far)):
+                if rows.any():
+                    value[rows] = relative(pair_left[rows], pair_right[rows], join[rows], *voters)
+            return value
+
+        found = with_drift(found, *arguments, drift, self.gate, self.margin, *sightings, pair_drift, scope, far)
         if level > 1:  # the junction's own features, under the link's variance relative to its own map (step 2)
             found = self._junction_pairs(found, pieces.features[left], left_ids, left_join, pieces.pose_xy[link],
                                          pieces.pose_phi[link], link_map, pieces.features[right], right_ids,

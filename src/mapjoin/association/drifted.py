@@ -24,7 +24,7 @@ from .loop_votes import rigid_votes
 from .rounds import Matches, _join_maxima, _segment_medians, match_features
 from .strain import drift_rivals
 
-__all__ = ["LOOP_CLEAR", "LOOP_SUPPORT", "match_with_drift"]
+__all__ = ["LOOP_CLEAR", "LOOP_SUPPORT", "match_with_drift", "with_drift"]
 
 #: a loop closure needs at least this many right features voting for its offset (and twice the runner-up's), and
 #: this many pairs once associated around it
@@ -56,6 +56,22 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                            right_covariances, right_join, gate, margin, left_sightings, right_sightings)
     if drift is None:
         return found
+    return with_drift(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
+                      right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, pair_drift,
+                      scope)
+
+
+def with_drift(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
+               link_xy: np.ndarray, link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
+               right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...],
+               gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
+               right_sightings: np.ndarray | None = None,
+               pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
+               scope: VoterDrift | None = None, bent: np.ndarray | None = None) -> Matches:
+    """Steps 7, 8 and 6 of :func:`match_with_drift` after its steps 2 to 5 (``found``, :func:`match_features` of the
+    same arguments; covariances as rows ``[xx, xy, yy]``): a tree level runs them itself, to choose each join's drift
+    from what steps 2 to 5 found (:mod:`mapjoin.association.drift_evidence`); ``bent`` marks those joins, whose
+    right piece's regions vote for corrections of their own (:func:`mapjoin.association.loop_votes.rigid_votes`)."""
     if pair_drift is not None:
         noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
         drifts = pair_drift(found.left, found.right, noise)
@@ -68,11 +84,12 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
             found = _unconfirmed(unstrained, left, left_join, link_xy, link_phi, right, right_join, drifts, noise,
                                  left_sightings, margin)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
-                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, scope)
+                           right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, scope,
+                           bent=bent)
     found = found if closed is None else closed
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, scope,
-                           moved=True)
+                           moved=True, bent=bent)
     return found if closed is None else closed
 
 
@@ -136,7 +153,8 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
                   link_xy: np.ndarray, link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
                   right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...], gate: float,
                   margin: float, left_sightings: np.ndarray | None, right_sightings: np.ndarray | None,
-                  scope: VoterDrift | None = None, moved: bool = False) -> Matches | None:
+                  scope: VoterDrift | None = None, moved: bool = False, bent: np.ndarray | None = None
+                  ) -> Matches | None:
     """``found`` with the pairs of the loop closures among the features it left unpaired, or None when there are
     none. Candidate pairs within the drift's gate (the noise, ``D`` of both features and the link's spread)
     whose drift is at least their noise vote for rigid corrections of the link as ``found`` corrected it
@@ -152,7 +170,10 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     ``moved``: the same for the *undrifted* pairs (``D`` of both features below their noise) whose prediction the
     correction of steps 2 to 5 moved, with the squared distance it moved them as their spread in place of ``D`` and
     the square of its turn as their heading variance (docs/method.md#data-association, step 6: a correction set by
-    drifted pairs is, for the features near the link, a drift of its own)."""
+    drifted pairs is, for the features near the link, a drift of its own). ``bent``: the joins whose right piece is a
+    drifted chain, where only a rival pairing the voters' right features counts against a correction
+    (:func:`mapjoin.association.loop_votes.rigid_votes`) and a reference holds a pair only within the gate of its
+    noise and drift there (:func:`mapjoin.association.loop_scope.beyond_voters`, ``within``)."""
     left_drift, left_heading, right_drift, right_heading = drift
     joins = len(link_xy)
     free = np.ones(len(left), dtype=bool)
@@ -204,7 +225,7 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     turn_cell = 2 * np.sqrt(2) * typical / np.maximum(extent, 1e-9) + 1e-12
     offset_cell = 2 * typical + turn_cell * extent / 2 + 1e-12
     votes = rigid_votes(left[lefts], predicted, a, b, pair_join, centre, noise, turning, turn_cell, offset_cell,
-                        joins, closeness)
+                        joins, closeness, bent)
     closing = np.flatnonzero((votes.support >= LOOP_SUPPORT) & (votes.agreement >= LOOP_CLEAR * votes.runner_up))
     if not len(closing):
         return None
@@ -243,9 +264,11 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
         pair_join_again = right_join[pair_right]
         position, variance = under_correction(place[pair_right], pair_join_again)
         noise = _pair_noise(left_covariances, right_covariances, pair_left, pair_right)
+        within = None if bent is None or not bent.any() else np.where(bent[pair_join_again], g2, np.inf)
         held = ~beyond_voters(left, left_join, pair_left, left_sightings,
                               (position, noise + variance, scope(pair_left, pair_right, pair_join_again, *voters)),
-                              (predicted[place[pair_right]], noise, left_drift[pair_left] + right_drift[pair_right]))
+                              (predicted[place[pair_right]], noise, left_drift[pair_left] + right_drift[pair_right]),
+                              within=within)
         outside = np.bincount(closed[~held], minlength=len(closing))
         again = Matches(again.left[held], again.right[held], again.ambiguous, again.rejected, again.undecided,
                         again.correction)

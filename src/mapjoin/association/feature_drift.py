@@ -14,6 +14,12 @@ It is filled as the joins are made, O(1) per feature and per junction: the chain
 junctions' posteriors ``v, p, p Re x, p Im x, p |x|^2`` as each join is made, and per feature (by the
 associator's compact id) the map and dead-reckoned position of its first and last sighting.
 
+The junctions' posteriors are the chain's drift only where the maps' own dead reckoning adds nothing to them: in
+the default ``information`` covariance mode they are conditional variances, and on a simulation whose maps' covariances
+are exact they are 100-200 times below each map's own end-pose variance, the drift its dead reckoning adds before the
+next junction. :meth:`SightingDrift.dead_reckoned` adds those (the maps' marginal end-pose variances, :attr:`reckoned`)
+for the tree joins whose association shows the chain drifted (:mod:`mapjoin.association.drift_evidence`).
+
 A loop closure ties the chain: once a join has matched drifted features last seen around map ``m``, the link is
 known relative to map ``m`` as well as to its predecessor. :meth:`SightingDrift.tie` records such a tie and
 :meth:`SightingDrift.settled` gives a feature's drift over the shorter way, directly or through one tie
@@ -22,6 +28,7 @@ known relative to map ``m`` as well as to its predecessor. :meth:`SightingDrift.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,15 +61,29 @@ class SightingDrift:
     #: the ties as arrays (old maps, junctions, strains), made again once ties were added (:meth:`tie_arrays`)
     made_ties: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list, repr=False,
                                                                        compare=False)
+    #: the prefix sums (rows as :attr:`sums`) of each map's own end-pose variance placed at its end junction: the drift
+    #: its dead reckoning adds (:meth:`dead_reckoned`); zeros when the maps' pose variances are not given
+    reckoned: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @classmethod
-    def of(cls, end_poses: np.ndarray, capacity: int) -> SightingDrift:
+    def of(cls, end_poses: np.ndarray, capacity: int, pose_variances: np.ndarray | None = None) -> SightingDrift:
         """A chain of maps with these end poses (N x 3, each in its map's start frame), no junction placed yet,
-        room for ``capacity`` feature ids (:meth:`grown` makes more)."""
+        room for ``capacity`` feature ids (:meth:`grown` makes more); ``pose_variances`` (N x 2: each map's marginal
+        end-pose variance relative to its start, spherical position and heading) give :attr:`reckoned`."""
         chain = ChainDrift.of(end_poses, np.zeros(0, np.intp), np.zeros(0), np.zeros(0))
         size = max(capacity, 1)
+        reckoned = np.zeros((len(chain.poses) + 1, 5))
+        if pose_variances is not None and len(pose_variances) > 1:  # junction j (map j's start) ends map j - 1
+            own = np.asarray(pose_variances, dtype=float).reshape(-1, 2)[:-1]
+            reckoned = ChainDrift.of(end_poses, np.arange(1, len(own) + 1), own[:, 0], own[:, 1]).sums
         return cls(chain, np.zeros((len(chain.poses) + 1, 5)), np.zeros(size, np.intp), np.zeros(size, complex),
-                   np.zeros(size, np.intp), np.zeros(size, complex), np.zeros(size))
+                   np.zeros(size, np.intp), np.zeros(size, complex), np.zeros(size), reckoned=reckoned)
+
+    def dead_reckoned(self) -> SightingDrift:
+        """The same chain and sightings (the arrays and ties shared, not copied) whose junctions also carry the maps'
+        own dead-reckoned drift (:attr:`reckoned`, as the junctions are placed now): every ``D`` it gives adds, over
+        the junctions it sums, the end-pose variances of the maps that end there."""
+        return dataclasses.replace(self, sums=self.sums + self.reckoned)
 
     def grown(self, capacity: int) -> SightingDrift:
         """The same with room for at least ``capacity`` feature ids (the tree hands out new ids at every level)."""
@@ -72,7 +93,8 @@ class SightingDrift:
         extra = max(extra, len(self.first_map))
         return SightingDrift(self.chain, self.sums, *(np.concatenate([a, np.zeros(extra, a.dtype)]) for a in
                                                        (self.first_map, self.first_point, self.last_map,
-                                                        self.last_point, self.strain)), self.ties)
+                                                        self.last_point, self.strain)), self.ties,
+                             reckoned=self.reckoned)
 
     def placed(self, junctions: np.ndarray | int, t_variance: np.ndarray | float, phi_variance: np.ndarray | float
                ) -> None:

@@ -99,7 +99,8 @@ def voters_drift(drift: SightingDrift, left_ids: np.ndarray | None, right_ids: n
 
 
 def beyond_voters(left: np.ndarray, left_join: np.ndarray, pair_left: np.ndarray, left_sightings: np.ndarray | None,
-                  *references: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+                  *references: tuple[np.ndarray, np.ndarray, np.ndarray], within: np.ndarray | None = None
+                  ) -> np.ndarray:
     """Which of a loop closure's pairs (left rows ``pair_left`` of ``left``, complex, by ``left_join``) no reference
     holds for (a mask). A reference is each pair's right feature predicted, its noise there (isotropic: the features'
     half-traces, plus the correction's variance) and its drift from where the prediction is exact: the correction
@@ -107,8 +108,14 @@ def beyond_voters(left: np.ndarray, left_join: np.ndarray, pair_left: np.ndarray
     the pair's drift relative to the link. A pair fails one when that drift is at least the noise
     and a rival left feature seen with the chosen one is nearer than :data:`~mapjoin.association.strain.DRIFT_MARGIN`
     farther, in squared distance over drift and noise (:func:`mapjoin.association.strain.drift_rivals`, step 7's
-    rule, ``left_sightings`` as there)."""
+    rule, ``left_sightings`` as there). ``within`` (None: everywhere infinite): each pair's bound on its squared
+    distance from a reference's prediction over the noise and drift there (a chi-square quantile), beyond which that
+    reference does not hold it, however small its drift: a bent piece's loop closure finds features at the link
+    that the correction of another region placed metres from where the link has them (docs/method.md, step 6)."""
     unclear = np.ones(len(pair_left), dtype=bool)
     for predicted, noise, drift in references:
-        unclear &= drift_rivals(left, left_join, pair_left, predicted, noise, drift, left_sightings)
+        missed = drift_rivals(left, left_join, pair_left, predicted, noise, drift, left_sightings)
+        if within is not None:
+            missed |= np.abs(left[pair_left] - predicted) ** 2 > within * (noise + drift)
+        unclear &= missed
     return unclear

@@ -149,13 +149,17 @@ def _nearest(points: np.ndarray, k: int) -> np.ndarray:
 
 def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np.ndarray, pair_join: np.ndarray,
                 centre: np.ndarray, noise: np.ndarray, turning: np.ndarray, turn_cell: np.ndarray,
-                offset_cell: np.ndarray, joins: int, closeness: np.ndarray | None = None) -> RigidVotes:
+                offset_cell: np.ndarray, joins: int, closeness: np.ndarray | None = None,
+                bent: np.ndarray | None = None) -> RigidVotes:
     """Votes of the candidate pairs ``(a[p], b[p])`` (rows of ``left`` and of ``right_points``, complex, both in
     left's frame; ``pair_join`` sorted; ``noise``: each pair's isotropic variance, the sum of its two features';
     ``turning``: the largest turn the drift allows each pair) for rigid corrections about each join's ``centre``,
     in cells of ``turn_cell`` and ``offset_cell`` (one each per join). A join's votes are at most about
     :data:`VOTES` (memory): where its pairs of right features times their candidates would be more, each right
-    feature keeps its candidates of least ``closeness`` (by default all are alike)."""
+    feature keeps its candidates of least ``closeness`` (by default all are alike). ``bent`` (a mask over the joins,
+    None for none): joins whose right piece is a drifted chain (:mod:`mapjoin.association.drift_evidence`), whose
+    regions vote for corrections of their own; there a rival association must pair a right feature of the best
+    correction's voters with another left feature: the runner-up counts only the votes with such a pair."""
     turn, offset = np.zeros(joins), np.zeros(joins, complex)
     support, agreement, runner_up = (np.zeros(joins, np.int64) for _ in range(3))
     g2 = 9.0  # distances agree within 3 sigma of their difference
@@ -225,6 +229,10 @@ def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np
     voting = np.zeros(len(b), dtype=bool)
     voting[p[near]] = voting[q[near]] = True
     rival = ~(voting[p] | voting[q])
+    if bent is not None and bent.any():  # a bent piece's other regions, other right features, are no rival
+        claimed = np.zeros(len(right_points), dtype=bool)
+        claimed[b[p[near]]] = claimed[b[q[near]]] = True
+        rival &= ~bent[join] | claimed[b[p]] | claimed[b[q]]
     owner, centres, count, _ = _cells(join[rival], p[rival], q[rival], dphi[rival], o[rival], b, turn_cell,
                                       offset_cell, supported=False)
     apart = (np.abs(centres - best_centre[owner]) > DIFFERENT_CELLS * scale[owner]).any(axis=1)
