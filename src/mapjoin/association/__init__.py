@@ -43,7 +43,9 @@ join (sequential and tree) which features of the right piece are features of the
 6. **Loop closures** (:func:`match_with_drift`). Where a map meets features last seen many maps before, the
    chain's drift since then has moved them, relative to the link, by more than the gate and the features'
    spacing. Each feature's drift variance ``D`` since its last sighting (a right piece's feature: up to its
-   first) comes from :mod:`mapjoin.association.feature_drift`, which the hooks fill as the joins are made; among the
+   first) comes from :mod:`mapjoin.association.feature_drift`, which the hooks fill as the joins are made (a
+   sequential junction's posterior plus the share of its excess drift, :mod:`mapjoin.association.junction_drift`,
+   that the pairs bear out, :mod:`mapjoin.association.drift_scale`); among the
    features steps 2 to 5 left unpaired, the candidates within the drift's gate vote, two pairs at a time, for
    the one rigid correction of the link that the drift made (:mod:`mapjoin.association.loop_votes`); a join whose
    best correction is clearly the best (:data:`LOOP_SUPPORT` right features, :data:`LOOP_CLEAR` times any other

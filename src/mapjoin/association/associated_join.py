@@ -82,9 +82,11 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     _check_gate(gate)
     if not margin >= 0.0:
         raise ValueError(f"margin must be a squared distance >= 0, got {margin!r}")
-    points = [as_complex(m.features[np.argsort(m.feature_ids, kind="stable")]) for m in maps]
+    orders = [np.argsort(m.feature_ids, kind="stable") for m in maps]
+    points = [as_complex(m.features[order]) for m, order in zip(maps, orders)]
     associator = _Associator([feature_covariances(m) for m in maps], points,
                              np.array([m.end_pose for m in maps]).reshape(-1, 3), gate, margin,
+                             [m.covariance for m in maps], orders,
                              np.array([m.pose_variances for m in maps]).reshape(-1, 2))
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,

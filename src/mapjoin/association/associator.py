@@ -21,11 +21,13 @@ import numpy as np
 from ..maps import locate
 from .covariance_blocks import fused, rotated
 from .drift_evidence import drifting
+from .drift_scale import DriftScale
 from .drifted import _corrected, _pair_noise, match_with_drift, with_drift
 from .feature_drift import SightingDrift
-from .gate import DEFAULT_MARGIN, sighting_bits
+from .gate import sighting_bits
 from .guard import Solve, Solved, inconsistent, kept_majority, outlying, widened
 from .junction import free_pairs, own_link_variances, undrifted
+from .junction_drift import fit_variances
 from .loop_scope import voters_drift
 from .rounds import Matches, _median, _same, match_features
 
@@ -77,12 +79,18 @@ class _Associator:
     from the pieces at the next level). Compact ids (indices of the joins' arrays) are handed out in order of
     first sighting; the tree renames a right piece's features to the left piece's ids, so each input row's
     current id is kept. ``points``: each map's feature positions (sorted by id, complex), ``end_poses`` the
-    maps' end poses and ``pose_variances`` their marginal variances (the maps' own dead reckoning, for the tree joins
-    that drifted), for :class:`mapjoin.association.feature_drift.SightingDrift`."""
+    maps' end poses, for :class:`mapjoin.association.feature_drift.SightingDrift`; ``full_covariances`` each map's
+    full covariance or None, ``orders`` the positions of its sorted ids in it, for the junctions' own drift
+    (:mod:`mapjoin.association.junction_drift`); ``pose_variances`` the maps' marginal end-pose variances (their own
+    dead reckoning, for the tree joins that drifted)."""
 
     def __init__(self, covariances: Sequence[np.ndarray], points: Sequence[np.ndarray], end_poses: np.ndarray,
-                 gate: float, margin: float = DEFAULT_MARGIN, pose_variances: np.ndarray | None = None):
+                 gate: float, margin: float, full_covariances: Sequence[np.ndarray | None],
+                 orders: Sequence[np.ndarray], pose_variances: np.ndarray | None = None):
         self.gate, self.margin = gate, margin
+        self.full_covariances = full_covariances
+        self.feature_index = np.concatenate([np.zeros(0, np.intp), *orders])  # each row's feature in its map
+        self.drift_scale = DriftScale(gate)  # the share of the junctions' excess drift the data bear out
         self.offsets = np.concatenate([[0], np.cumsum([len(c) for c in covariances])]).astype(np.intp)
         self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
         self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
@@ -134,8 +142,33 @@ class _Associator:
         return ids
 
     def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
-        """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums)."""
-        self.drift.placed(k, t_variance, phi_variance)
+        """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums),
+        and the excess of the junction's own drift over them (:meth:`_junction_excess`)."""
+        self.drift.placed(k, t_variance, phi_variance, self._junction_excess(k, t_variance, phi_variance))
+
+    def _junction_excess(self, k: int, t_variance: float, phi_variance: float) -> tuple[float, float]:
+        """How much more junction ``k`` may be off than its posterior says (translation, turn; 0 when not): the
+        variance of a rigid fit of the features maps ``k - 1`` and ``k`` share, as map ``k - 1``'s covariance
+        (its full one; else its features' blocks) knows them relative to its start
+        (:func:`mapjoin.association.junction_drift.fit_variances`; docs/method.md#data-association, step 6)."""
+        before = slice(self.offsets[k - 1], self.offsets[k])
+        shared = np.flatnonzero(self.drift.last_map[self.row_ids[before]] == k)  # map k saw them last, after k - 1
+        if not len(shared):
+            return 0.0, 0.0
+        full = self.full_covariances[k - 1]
+        if full is None:
+            blocks = self.row_covariances[before][shared]
+            covariance = np.zeros((len(shared), 2, len(shared), 2))
+            diagonal = np.arange(len(shared))
+            covariance[diagonal, 0, diagonal, 0] = blocks[:, 0]
+            covariance[diagonal, 0, diagonal, 1] = covariance[diagonal, 1, diagonal, 0] = blocks[:, 1]
+            covariance[diagonal, 1, diagonal, 1] = blocks[:, 2]
+            covariance = covariance.reshape(2 * len(shared), 2 * len(shared))
+        else:
+            index = (3 + 2 * self.feature_index[before][shared][:, None] + np.arange(2)).ravel()
+            covariance = full[np.ix_(index, index)]
+        fit_t, fit_phi = fit_variances(covariance, self.row_points[before][shared], complex(self.end_points[k - 1]))
+        return max(fit_t - t_variance, 0.0), max(fit_phi - phi_variance, 0.0)
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray, solve: Solve
@@ -174,6 +207,9 @@ class _Associator:
         left_ids = found.left
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
                            np.zeros(len(z), np.intp), right_covariances, pair_drift, np.array([k]))
+        if not self.drift_too_small:  # once step 9 widened the drift, the scale it had is moot
+            self._drift_observed(k, found, positions, link_xy, link_phi, link_variances, z, right_covariances,
+                                 drift[0], pair_drift)
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
         order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
@@ -187,6 +223,27 @@ class _Associator:
         self.drift.seen_again(ids[:matched_count], k, points[:matched_count], strain)
         self.drift.seen(ids[matched_count:], k, points[matched_count:])
         return order, ids, len(found.right), solved
+
+    def _drift_observed(self, k: int, found: Matches, positions: np.ndarray, link_xy: complex, link_phi: float,
+                        link_variances: tuple[float, float], z: np.ndarray, right_covariances: np.ndarray,
+                        direct: np.ndarray, pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+                        ) -> None:
+        """Join ``k``'s pairs that drifted along the chain (``D >= noise``, ``D`` the direct way's, ``direct``, plus
+        the feature's strain: no tie shortened it) tell the drift's scale: their squared offsets around the
+        uncorrected link against their noise and the link's spread (``sigma_o^2 + p_phi |z|^2 / 2``) and their drift's
+        posterior and excess parts (:class:`mapjoin.association.drift_scale.DriftScale`); once the estimate moves,
+        the drift's sums take its share of the excess (docs/method.md#data-association, step 6)."""
+        noise = _pair_noise(self.covariances, right_covariances, found.left, found.right)
+        drift = pair_drift(found.left, found.right, noise)
+        strain = self.drift.strain[found.left]
+        along = (drift >= noise) & (drift == direct[found.left] + strain)
+        left, right = found.left[along], found.right[along]
+        excess = self.drift.excess_before(left, k - 1)
+        offset2 = np.abs(positions[left] - link_xy - np.exp(1j * link_phi) * z[right]) ** 2
+        spread = noise[along] + link_variances[0] + link_variances[1] * np.abs(z[right]) ** 2 / 2
+        if self.drift_scale.observe(offset2, spread, drift[along] - self.drift.scale[0] * excess, excess,
+                                    drift[along]):
+            self.drift.rescaled(self.drift_scale.scale)
 
     def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
              right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray,

@@ -64,6 +64,10 @@ class SightingDrift:
     #: the prefix sums (rows as :attr:`sums`) of each map's own end-pose variance placed at its end junction: the drift
     #: its dead reckoning adds (:meth:`dead_reckoned`); zeros when the maps' pose variances are not given
     reckoned: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: the prefix sums of the junctions' excess drift over their posteriors (:meth:`placed`), of which ``sums``
+    #: holds the share ``scale[0]`` (:meth:`rescaled`; docs/method.md#data-association, step 6)
+    excess: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+    scale: np.ndarray = field(default_factory=lambda: np.ones(1))
 
     @classmethod
     def of(cls, end_poses: np.ndarray, capacity: int, pose_variances: np.ndarray | None = None) -> SightingDrift:
@@ -77,7 +81,8 @@ class SightingDrift:
             own = np.asarray(pose_variances, dtype=float).reshape(-1, 2)[:-1]
             reckoned = ChainDrift.of(end_poses, np.arange(1, len(own) + 1), own[:, 0], own[:, 1]).sums
         return cls(chain, np.zeros((len(chain.poses) + 1, 5)), np.zeros(size, np.intp), np.zeros(size, complex),
-                   np.zeros(size, np.intp), np.zeros(size, complex), np.zeros(size), reckoned=reckoned)
+                   np.zeros(size, np.intp), np.zeros(size, complex), np.zeros(size), reckoned=reckoned,
+                   excess=np.zeros((len(chain.poses) + 1, 5)))
 
     def dead_reckoned(self) -> SightingDrift:
         """The same chain and sightings (the arrays and ties shared, not copied) whose junctions also carry the maps'
@@ -94,17 +99,19 @@ class SightingDrift:
         return SightingDrift(self.chain, self.sums, *(np.concatenate([a, np.zeros(extra, a.dtype)]) for a in
                                                        (self.first_map, self.first_point, self.last_map,
                                                         self.last_point, self.strain)), self.ties,
-                             reckoned=self.reckoned)
+                             reckoned=self.reckoned, excess=self.excess, scale=self.scale)
 
-    def placed(self, junctions: np.ndarray | int, t_variance: np.ndarray | float, phi_variance: np.ndarray | float
-               ) -> None:
+    def placed(self, junctions: np.ndarray | int, t_variance: np.ndarray | float, phi_variance: np.ndarray | float,
+               excess: tuple[float, float] = (0.0, 0.0)) -> None:
         """Joins placed these ``junctions`` (pose indices, each once) with these posterior variances: the prefix
         sums from the lowest of them on gain their terms (in place). One junction (an int, the sequential join's)
-        is one row of terms, in floats."""
+        is one row of terms, in floats, with the ``excess`` (translation, turn) of its drift over its posterior
+        (:mod:`mapjoin.association.junction_drift`), of which the sums take the share :attr:`scale`."""
         if isinstance(junctions, (int, np.integer)):
-            x, p = complex(self.chain.poses[junctions]), float(phi_variance)
-            self.sums[junctions + 1:] += (float(t_variance), p, p * x.real, p * x.imag,
-                                          p * (x.real * x.real + x.imag * x.imag))
+            x = complex(self.chain.poses[junctions])
+            for sums, (t, p) in ((self.excess, excess), (self.sums, (float(t_variance) + self.scale[0] * excess[0],
+                                                                     float(phi_variance) + self.scale[0] * excess[1]))):
+                sums[junctions + 1:] += (t, p, p * x.real, p * x.imag, p * (x.real * x.real + x.imag * x.imag))
             return
         junctions = np.atleast_1d(np.asarray(junctions, dtype=np.intp))
         if not len(junctions):
@@ -119,6 +126,16 @@ class SightingDrift:
         terms = np.zeros((len(self.sums), 5))
         np.add.at(terms, junctions + 1, rows)
         self.sums[:] += np.cumsum(terms, axis=0)
+
+    def rescaled(self, scale: float) -> None:
+        """The sums hold the share ``scale`` of the junctions' excess drift from now on (in place, O(maps))."""
+        self.sums[:] += (scale - self.scale[0]) * self.excess
+        self.scale[0] = scale
+
+    def excess_before(self, ids: np.ndarray, link_map: int) -> np.ndarray:
+        """The excess drift (:meth:`placed`, at ``scale`` 1) of left features ``ids`` relative to the end of map
+        ``link_map``, over the junctions after their last sighting, as :meth:`before` sums their drift."""
+        return drift_variance(self.excess[link_map + 1] - self.excess[self.last_map[ids] + 1], self.last_point[ids])
 
     def seen(self, ids: np.ndarray, maps: np.ndarray | int, points: np.ndarray) -> None:
         """New features ``ids`` seen by ``maps`` (one each, or one for all) at ``points`` (each in its map's frame):
