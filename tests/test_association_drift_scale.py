@@ -8,7 +8,9 @@ posterior drift alone."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
+import math
 
 import numpy as np
 import pytest
@@ -17,7 +19,7 @@ from hypothesis import strategies as st
 
 from mapjoin.association import associator, join_associated, link_errors, local_ids
 from mapjoin.association.associator import _Associator
-from mapjoin.association.drift_scale import WARM_UP, DriftScale
+from mapjoin.association.drift_scale import SCALES, SHARES, WARM_UP, DriftScale
 from mapjoin.association.feature_drift import SightingDrift
 from mapjoin.association.junction_drift import fit_variances
 from mapjoin.simulation import simulate
@@ -105,6 +107,37 @@ def test_a_joins_pairs_are_one_observation():
     lone = tuple(column[:40] for column in drifted)
     assert estimated(*ten, tuple(np.tile(column, 5) for column in lone)) == estimated(*ten, lone)
     assert estimated(*ten, *[lone] * 5) > estimated(*ten, lone)
+
+
+def pair_log_likelihood(offset2: float, noise: float, posterior: float, excess: float, drift: float, scale: float,
+                        share: float, bound: float) -> float:
+    """One pair's log-likelihood, written out: its offset exponential with mean ``2 sigma^2``, ``sigma^2 = noise +
+    posterior + scale * excess``, density 1 within ``bound * noise`` and ``share`` beyond it up to ``bound * (noise
+    + drift)``, over the mass the two gates keep."""
+    variance = noise + posterior + scale * excess
+    inner = 1.0 - math.exp(-bound * noise / (2 * variance))
+    outer = 1.0 - math.exp(-bound * (noise + drift) / (2 * variance))
+    density = -math.log(variance) - offset2 / (2 * variance) + (math.log(share) if offset2 > bound * noise else 0.0)
+    return density - math.log(inner + share * (outer - inner))
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([0.0, 0.01, 0.2, 1.0]))
+def test_the_estimate_is_the_maximum_likelihood_over_every_pair_observed(seed, scale):
+    """Joins of 1 to 12 pairs each (WARM_UP of them: the first estimate), observed one by one: the estimate is the
+    ``s`` of the grid's maximum of every pair's log-likelihood, each weighing one over its join's pairs, summed
+    pair by pair here (the estimator keeps the sum as the joins come)."""
+    rng = np.random.default_rng(seed)
+    estimate = DriftScale(0.999)
+    pairs = accepted_pairs(rng, scale, 400, estimate.bound, 0.5)
+    sizes = rng.integers(1, 13, WARM_UP)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    joins = [tuple(column[start:stop] for column in pairs) for start, stop in itertools.pairwise(starts)]
+    for join in joins:
+        estimate.observe(*join)
+    grid = np.array([[sum(pair_log_likelihood(*pair, s, q, estimate.bound) / len(join[0])
+                          for join in joins for pair in zip(*join)) for q in SHARES] for s in SCALES])
+    assert estimate.scale == SCALES[np.unravel_index(np.argmax(grid), grid.shape)[0]]
 
 
 def test_the_prior_holds_until_the_warm_up_and_the_estimate_is_remade_as_the_joins_grow():

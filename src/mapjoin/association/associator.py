@@ -157,12 +157,9 @@ class _Associator:
             return 0.0, 0.0
         full = self.full_covariances[k - 1]
         if full is None:
-            blocks = self.row_covariances[before][shared]
             covariance = np.zeros((len(shared), 2, len(shared), 2))
             diagonal = np.arange(len(shared))
-            covariance[diagonal, 0, diagonal, 0] = blocks[:, 0]
-            covariance[diagonal, 0, diagonal, 1] = covariance[diagonal, 1, diagonal, 0] = blocks[:, 1]
-            covariance[diagonal, 1, diagonal, 1] = blocks[:, 2]
+            covariance[diagonal, :, diagonal, :] = self.row_covariances[before][shared][:, [[0, 1], [1, 2]]]
             covariance = covariance.reshape(2 * len(shared), 2 * len(shared))
         else:
             index = (3 + 2 * self.feature_index[before][shared][:, None] + np.arange(2)).ravel()

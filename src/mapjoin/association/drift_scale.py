@@ -31,8 +31,8 @@ __all__ = ["DriftScale", "WARM_UP"]
 
 #: joins with drifted pairs observed before the estimate replaces the prior ``s = 1``
 WARM_UP = 8
-#: the estimate is made again once those joins grew by this share since it was last made (the likelihood over all
-#: pairs costs O(pairs) per estimate: amortised O(1) per pair)
+#: the estimate is made again once those joins grew by this share since it was last made (the schedule its
+#: measurements were made with; the likelihood is kept as a running sum, so an estimate costs O(1))
 GROWTH = 0.05
 #: the values of ``s`` the likelihood is evaluated at
 SCALES = np.concatenate([[0.0], np.geomspace(1e-3, 1.0, 61)])
@@ -43,11 +43,14 @@ SHARES = np.geomspace(1e-3, 1.0, 16)
 class DriftScale:
     """The running estimate of ``s``: :meth:`observe` adds a join's drifted pairs, :attr:`scale` is the estimate
     (``gate``: the association's chi-square level, whose 2-dof quantile bounds the accepted offsets); ``count`` is
-    the joins observed with drifted pairs."""
+    the joins observed with drifted pairs. Each pair's log-likelihood depends on its own columns only, so the
+    weighted sum over the pairs so far (:attr:`likelihood`, one value per ``(s, q)`` of the grid) is added to as the
+    joins come: each pair is evaluated once, where summing every pair again at each estimate cost O(pairs) each
+    (about a tenth of the sequential association on VicPark and DLR)."""
 
     def __init__(self, gate: float):
         self.bound = -2.0 * np.log1p(-gate)  # chi-square(2) quantile at the gate's level
-        self.columns: list[np.ndarray] = []
+        self.likelihood = np.zeros((len(SCALES), len(SHARES)))
         self.count = 0
         self.estimated_at = 0
         self.scale = 1.0
@@ -58,22 +61,25 @@ class DriftScale:
         noise plus the link's spread), the posterior and excess parts of their drift and the drift the join read
         (all half-traces). Whether :attr:`scale` changed."""
         if len(offset2):
-            weight = np.full(len(offset2), 1.0 / len(offset2))
-            self.columns.append(np.column_stack([offset2, noise, posterior, excess, drift, weight]))
+            self.likelihood += self._log_likelihood(offset2, noise, posterior, excess, drift) / len(offset2)
             self.count += 1
         if self.count < WARM_UP or self.count < (1.0 + GROWTH) * self.estimated_at:
             return False
         self.estimated_at = self.count
-        if len(self.columns) > 1:
-            self.columns[:] = [np.concatenate(self.columns)]
-        offset2, noise, posterior, excess, drift, weight = self.columns[0].T
-        inner, outer = self.bound * noise, self.bound * (noise + drift)
-        variance = (noise + posterior + SCALES[:, None] * excess)[:, None, :]  # scales x 1 x pairs
-        kept_inner, kept_outer = (-np.expm1(-bound / (2 * variance)) for bound in (inner, outer))
-        shares = SHARES[None, :, None]  # 1 x shares x pairs
-        likelihood = (-np.log(variance) - offset2 / (2 * variance) + np.where(offset2 > inner, np.log(shares), 0.0)
-                      - np.log(kept_inner + shares * (kept_outer - kept_inner)))
-        best = np.argmax(likelihood @ weight)
+        best = np.argmax(self.likelihood.ravel())
         scale = float(SCALES[best // len(SHARES)])
         changed, self.scale = scale != self.scale, scale
         return changed
+
+    def _log_likelihood(self, offset2: np.ndarray, noise: np.ndarray, posterior: np.ndarray, excess: np.ndarray,
+                        drift: np.ndarray) -> np.ndarray:
+        """The pairs' log-likelihoods summed, at each ``(s, q)`` of the grid (scales x shares): each pair's offset
+        exponential with mean ``2 (n + D_posterior + s D_excess)``, its density 1 inside the first gate and ``q``
+        between the two, over its integral."""
+        inner, outer = self.bound * noise, self.bound * (noise + drift)
+        variance = noise + posterior + SCALES[:, None] * excess  # scales x pairs
+        kept_inner, kept_outer = (-np.expm1(-bound / (2 * variance)) for bound in (inner, outer))
+        exponential = np.sum(-np.log(variance) - offset2 / (2 * variance), axis=1)  # scales: no share in it
+        beyond = np.count_nonzero(offset2 > inner) * np.log(SHARES)  # shares: the pairs past the first gate
+        kept = kept_inner[:, None, :] + SHARES[None, :, None] * (kept_outer - kept_inner)[:, None, :]
+        return exponential[:, None] + beyond[None, :] - np.log(kept).sum(axis=2)

@@ -29,14 +29,12 @@ def fit_variances(covariance: np.ndarray, points: np.ndarray, end_point: complex
     count = len(points)
     centre = points.mean()
     centred = points - centre
-    spread = float(np.sum(centred.real ** 2 + centred.imag ** 2))
-    turn = np.zeros(2 * count)
+    spread = float(centred.real @ centred.real + centred.imag @ centred.imag)
+    weights = np.zeros((2 * count, 3))  # the fit's error (centroid x, y; turn) = weights^T e
+    weights[0::2, 0] = weights[1::2, 1] = 1.0 / count
     if count > 1 and spread > 0.0:
-        turn = np.column_stack([-centred.imag, centred.real]).ravel() / spread
-    translation = np.trace(covariance.reshape(count, 2, count, 2).sum(axis=(0, 2))) / count ** 2
-    turned = covariance @ turn
-    shared = turned.reshape(count, 2).sum(axis=0) / count  # the centroid's and the turn's covariance
-    turn_variance = float(turn @ turned)
-    lever = end_point - centre
-    arm = np.array([-lever.imag, lever.real])  # the junction's move per unit turn about the centroid
-    return float(translation + 2 * arm @ shared + turn_variance * abs(lever) ** 2) / 2, turn_variance
+        weights[0::2, 2], weights[1::2, 2] = -centred.imag / spread, centred.real / spread
+    fit = weights.T @ covariance @ weights  # the centroid's and the turn's 3 x 3 covariance
+    lever = end_point - centre  # the junction moves by the translation plus the turn times i lever
+    moved = fit[0, 0] + fit[1, 1] + 2 * (lever.real * fit[1, 2] - lever.imag * fit[0, 2]) + fit[2, 2] * abs(lever) ** 2
+    return float(moved) / 2, float(fit[2, 2])
