@@ -19,7 +19,7 @@ from mapjoin import io as mapio
 from mapjoin.association import (correspondence_rows, feature_covariances, inverted, join_associated, link_errors,
                                  local_ids, match_features, rotated, sighting_bits)
 from mapjoin.association.gate import _gate
-from mapjoin.association.joint import _joint_distances, _joint_terms
+from mapjoin.association.joint import _joint_distances, _joint_terms, _joint_test
 from mapjoin.joining import join
 from mapjoin.maps import LocalMap
 from mapjoin.simulation import simulate
@@ -71,6 +71,18 @@ def test_joint_distance_equals_the_dense_mahalanobis_distance():
         rows = np.repeat(mask > 0, 2)
         dense = block[np.ix_(rows, rows)] + h[rows] @ prior @ h[rows].T
         assert math.isclose(distance, vector[rows] @ np.linalg.solve(dense, vector[rows]), rel_tol=1e-10)
+
+
+def test_a_join_whose_link_the_pairs_cannot_fix_keeps_no_pair():
+    """Two pairs at the link's origin (lever u = 0) with no prior on the link: ``P_link^-1 + sum H^T W H`` has a zero
+    heading row, exactly singular, so no joint distance exists. The other join (levers apart, a prior) is tested as
+    usual: its two consistent pairs are kept. numpy must not raise."""
+    r = np.array([0.1 + 0.1j, -0.1 + 0.05j, 0.1 + 0.0j, 0.0 - 0.1j])
+    u = np.array([0j, 0j, 3 + 1j, -2 + 4j])
+    w = inverted(np.tile([0.1, 0.0, 0.1], (4, 1)))
+    information = np.stack([np.zeros((3, 3)), np.diag([10.0, 10.0, 100.0])])
+    keep, _, _ = _joint_test(_joint_terms(r, w, u), r, w, u, np.array([0, 0, 1, 1]), information, 0.999, 2)
+    assert keep.tolist() == [False, False, True, True]
 
 
 def test_rotated_covariances_equal_the_dense_product():

@@ -687,6 +687,57 @@ def test_an_association_gate_singular_to_rounding_leaves_the_features_new(tmp_pa
     assert sorted(int(row.split(",")[2]) for row in ids) == list(range(13)), ids
 
 
+EDGE_CHAIN = """\
+---
+format: mapjoin/local-map
+version: 1
+start_id: 0
+end_id: 1
+end_pose: {x: -1000000000.0, y: 1.0, phi: 1000000.0, var_xy: 1e-12, var_phi: 1e+30}
+features:
+- {id: 4, x: 1.0, y: -3.0, var: 1e+30}
+---
+format: mapjoin/local-map
+version: 1
+start_id: 1
+end_id: 2
+end_pose: {x: -1000000000.0, y: 1000000.0, phi: 3.141592653589793, var_xy: 1e-12, var_phi: 1000000.0}
+features:
+- {id: 0, x: 1000000.0, y: 0.0, var: 1000000000000.0}
+---
+format: mapjoin/local-map
+version: 1
+start_id: 2
+end_id: 3
+end_pose: {x: 1.0, y: -1000000000.0, phi: 0.0, var_xy: 1000000000000.0, var_phi: 1e+30}
+features:
+- {id: 3, x: 1.0, y: 1000000000.0, var: 1000000000000.0}
+"""
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "tree"])
+def test_a_joint_test_singular_to_rounding_leaves_the_features_new(tmp_path, strategy):
+    """What the outside-style fuzz found (hypothesis, ``edge_maps``): the third map's one candidate pair is in its
+    gate, but the joint test's 3 x 3 ``P_link^-1 + H^T W H`` (a heading variance of 1e30 and a lever of 1e9 m
+    against variances of 1e-12) is singular to rounding, and numpy's LinAlgError escaped as a traceback. Such a
+    pair cannot be tested: the join rejects it (the report's ``rejected``), its feature stays new, numpy says
+    nothing. The first two maps' features (one of variance 1e30, compatible with anything) are one feature."""
+    import warnings
+
+    (tmp_path / "edge.yaml").write_text(EDGE_CHAIN)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code, lines = run(tmp_path, "join", "edge.yaml", "--associate", "--strategy", strategy, "-o", "j.csv",
+                          "--associations", "ids.csv", "--report", "report.csv")
+    assert code == 0, lines
+    ids = [row.split(",") for row in (tmp_path / "ids.csv").read_text().splitlines()[1:]]
+    assert [(m, g) for m, _, g in ids] == [("1", "0"), ("2", "0"), ("3", "1")], ids
+    report = (tmp_path / "report.csv").read_text().splitlines()
+    header = report[0].split(",")
+    last = dict(zip(header, report[-1].split(",")))
+    assert (last["common"], last["new"], last["rejected"]) == ("0", "1", "1"), last
+
+
 def test_a_yaml_value_nested_deeper_than_repr_goes_is_named_in_one_line(tmp_path):
     """`features: [[[[...]]]]` 1000 deep parsed (PyYAML) and then its error message's repr of the value raised
     RecursionError: a traceback. The value is now described instead."""

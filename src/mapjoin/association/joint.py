@@ -43,8 +43,24 @@ def _joint_distances(masks: np.ndarray, terms, link_information: np.ndarray) -> 
     c, g, h = terms
     big_g = masks @ g
     big_m = (masks @ h).reshape(-1, 3, 3) + link_information
-    correction = np.linalg.solve(big_m, big_g[..., None])[..., 0]
+    correction = _solved(big_m, big_g)
     return masks @ c - np.einsum("si,si->s", big_g, correction), correction
+
+
+def _solved(big_m: np.ndarray, big_g: np.ndarray) -> np.ndarray:
+    """``M^-1 g`` for each stack of 3 x 3 ``M`` and 3-vector ``g``; NaN where ``M`` is singular to rounding (variances
+    many orders apart, a heading variance carried far: what the boundary accepts). Such a set of pairs cannot be
+    tested, so it is never compatible: its features stay new, as the gate leaves a pair whose ``S`` is singular."""
+    try:
+        return np.linalg.solve(big_m, big_g[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # rare: find the singular ones (a loop over the joins, only on this path)
+        correction = np.full(big_g.shape, np.nan)
+        for k in range(len(big_m)):
+            try:
+                correction[k] = np.linalg.solve(big_m[k], big_g[k])
+            except np.linalg.LinAlgError:
+                pass
+        return correction
 
 
 def _jointly_compatible(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, link_information: np.ndarray,
@@ -98,10 +114,9 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
     sizes = np.bincount(pair_join, minlength=joins)
     big_g = _segment_sums(g, pair_join, joins)
     big_m = _segment_sums(h, pair_join, joins).reshape(joins, 3, 3) + information
-    distance = np.bincount(pair_join, c, minlength=joins) - np.einsum(
-        "ji,ji->j", big_g, np.linalg.solve(big_m, big_g[..., None])[..., 0])
+    distance = np.bincount(pair_join, c, minlength=joins) - np.einsum("ji,ji->j", big_g, _solved(big_m, big_g))
     keep = np.ones(len(r), dtype=bool)
-    failing = (sizes > 0) & (distance > _threshold(gate, sizes))
+    failing = (sizes > 0) & ~(distance <= _threshold(gate, sizes))  # NaN (singular M) fails
     if not failing.any():  # mostly every join's pairs are compatible
         return keep, big_g, big_m
     starts = np.cumsum(sizes) - sizes
