@@ -477,6 +477,34 @@ def test_simulate_robots_writes_the_world_truth_into_a_robots_new_folder_but_nev
         assert not other.exists()
 
 
+def test_simulate_robots_with_local_ids_numbers_each_robots_maps_and_keeps_the_worlds_ids_beside(tmp_path):
+    """``--robots 2 --local-ids``: each robot's maps are the maps ``--robots 2`` writes, their features numbered from
+    0 in every map, and the robot's associations.csv leads each (map, local id) back to the world id the same run
+    without ``--local-ids`` gave the feature at the same place. Onto a robot's associations.csv --truth is
+    refused in one line, and nothing is written."""
+    plain, local = tmp_path / "plain", tmp_path / "local"
+    for folder, extra in ((plain, []), (local, ["--local-ids"])):
+        result = run("simulate", "-o", str(folder), "--robots", "2", "--maps", "4", "--seed", "2", *extra)
+        assert result.exit_code == 0, result.stderr
+    for robot in ("robot1", "robot2"):
+        rows = np.loadtxt(local / robot / "associations.csv", delimiter=",", skiprows=1, dtype=np.int64, ndmin=2)
+        world = mapio.read_maps(str(plain / robot))
+        renumbered = mapio.read_maps(str(local / robot))
+        assert len(rows) == sum(len(m.feature_ids) for m in world)
+        for k, (before, after) in enumerate(zip(world, renumbered), 1):
+            assert sorted(after.feature_ids.tolist()) == list(range(len(after.feature_ids)))
+            own = rows[rows[:, 0] == k]
+            where = dict(zip(before.feature_ids.tolist(), before.features.tolist()))
+            placed = dict(zip(after.feature_ids.tolist(), after.features.tolist()))
+            assert {where[g] == placed[l] for _, l, g in own.tolist()} == {True}
+    target = tmp_path / "again" / "robot2" / "associations.csv"
+    result = run("simulate", "-o", str(tmp_path / "again"), "--robots", "2", "--maps", "3", "--local-ids",
+                 "--truth", str(target))
+    assert result.exit_code == 1 and str(target) in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "again").exists()
+
+
 def test_results_beyond_the_global_ranges_and_coincident_points_are_errors_naming_the_map():
     """Huge variances that the merge would push past 1e40, and maps of coincident points (no pair has a
     direction), end in a JoinError naming the map, with no numpy warning on the way."""

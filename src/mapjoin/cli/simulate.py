@@ -35,7 +35,8 @@ _STREAM_EXTENSIONS = tuple(extension for name in _FORMATS for extension in by_na
                    "the first robot's frame (README, 'Merging maps').")
 @click.option("--local-ids", is_flag=True,
               help="Number each map's features from 0 (ids local to the map, for `join --associate`); a folder "
-                   "output also gets the true correspondence, associations.csv (map,local_id,global_id).")
+                   "output also gets the true correspondence, associations.csv (map,local_id,global_id; with "
+                   "--robots one per robot's folder, global_id the world's id, as in the truths).")
 @common.no_covariances_option
 @common.json_option
 @click.pass_context
@@ -64,9 +65,8 @@ def simulate(ctx: click.Context, output: str, count: int, seed: int, steps_per_m
     if robots > 1:
         if stream:
             raise click.UsageError("--robots writes one folder per robot: give -o a directory")
-        if local_ids:
-            raise click.UsageError("--local-ids numbers one robot's maps; --robots keeps the world's ids for merge")
-        _simulate_robots(ctx, output, robots, count, seed, steps_per_map, output_format, truth_path, no_covariances)
+        _simulate_robots(ctx, output, robots, count, seed, steps_per_map, output_format, truth_path, local_ids,
+                         no_covariances)
         return
     if not stream:
         truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
@@ -106,20 +106,30 @@ def _summary(ctx: click.Context, count: int, seed: int, output: str, truth_path:
 
 
 def _simulate_robots(ctx: click.Context, output: str, robots: int, count: int, seed: int, steps_per_map: int,
-                     output_format: str, truth_path: str | None, no_covariances: bool) -> None:
-    """``--robots``: ``output/robot<r>/`` (localmap files, truth.<format>) per robot, the world's truth beside."""
+                     output_format: str, truth_path: str | None, local_ids: bool, no_covariances: bool) -> None:
+    """``--robots``: ``output/robot<r>/`` (localmap files, truth.<format>, with ``--local-ids`` associations.csv) per
+    robot, the world's truth beside. A robot's local ids are its own; the truths and associations.csv keep the
+    world's ids, so that ``join --associate`` per robot and ``merge --associate`` can be scored against them."""
     truth_path = truth_path or os.path.join(output, f"truth.{output_format}")
     folders = [os.path.join(output, f"robot{r}") for r in range(1, robots + 1)]
     truths = [os.path.join(folder, f"truth.{output_format}") for folder in folders]
-    # every folder and truth declared up front: --truth may go into a robot's folder, never onto its truth
+    correspondences = [os.path.join(folder, "associations.csv") for folder in folders] if local_ids else []
+    # every folder and file declared up front: --truth may go into a robot's folder, never onto its truth
     outputs = mapio.Outputs(files={**{f"robot {r} truth": path for r, path in enumerate(truths, 1)},
+                                   **{f"robot {r} associations": path for r, path in enumerate(correspondences, 1)},
                                    "--truth": truth_path},
                             folders={"-o": output, **{f"robot {r} folder": path for r, path in enumerate(folders, 1)}})
     common.check_output_formats((truth_path, None, TRUTH, None))
     world = simulate_robots(robots, count, seed=seed, steps_per_map=steps_per_map)
     with outputs:
         for folder, truth, run in zip(folders, truths, world.robots):
-            mapio.write_maps(run.maps, os.path.join(folder, ""), output_format, covariances=not no_covariances)
+            maps = run.maps
+            if local_ids:
+                from ..association import correspondence_rows, local_ids as localise
+
+                maps, correspondence = localise(maps)
+                mapio.write_table(correspondence_rows(correspondence), os.path.join(folder, "associations.csv"), "csv")
+            mapio.write_maps(maps, os.path.join(folder, ""), output_format, covariances=not no_covariances)
             mapio.write_truth(run.truth, truth)
         mapio.write_truth(world.truth, truth_path)
     common.summary(ctx, f"simulated {common.counted(robots, 'robot')}, {common.counted(count, 'local map')} each (seed {seed}) -> "
