@@ -22,6 +22,12 @@ from mapjoin.io import outputs as outputs_module
 
 def run(folder: Path, *args: str) -> tuple[int, str]:
     """``mapjoin -q ARGS`` in ``folder``; (exit code, stderr)."""
+    code, _, stderr = run_with_stdout(folder, *args)
+    return code, stderr
+
+
+def run_with_stdout(folder: Path, *args: str) -> tuple[int, str, str]:
+    """``mapjoin -q ARGS`` in ``folder``; (exit code, stdout, stderr), never a Python exception."""
     cwd = os.getcwd()
     os.chdir(folder)
     try:
@@ -29,7 +35,7 @@ def run(folder: Path, *args: str) -> tuple[int, str]:
     finally:
         os.chdir(cwd)
     assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
-    return result.exit_code, result.stderr
+    return result.exit_code, result.stdout, result.stderr
 
 
 def listing(folder: Path) -> list[str]:

@@ -36,7 +36,7 @@ import numpy as np
 
 from .consistency import chi2_quantile
 from .errors import InputError
-from .maps import GlobalMap, GroundTruth
+from .maps import GlobalMap, GroundTruth, locate
 from .se2 import compose, rotation, transform, wrap
 
 __all__ = ["ALIGNMENTS", "CHI2_LEVEL", "Alignment", "Chi2Verdict", "Difference", "Evaluation", "chi2_interval",
@@ -116,19 +116,24 @@ def compare(a: GlobalMap, b: GlobalMap) -> Difference:
         rms_xy=_rms(distance), max_xy=_max(distance), rms_phi=_rms(phi), max_phi=_max(phi))
 
 
-def evaluate(global_map: GlobalMap, truth: GroundTruth, align: Alignment = "none") -> Evaluation:
+def evaluate(global_map: GlobalMap, truth: GroundTruth, align: Alignment = "none", *,
+             feature_truth: tuple[np.ndarray, np.ndarray] | None = None) -> Evaluation:
     """Errors and NEES of ``global_map`` against ``truth``, over the ids both hold.
 
     ``align``: ``"none"`` (default; the map and the truth are both in the frame of pose
     0, the first map's start pose) or ``"rigid"`` (first fit the map onto the truth by a
     2D rigid transform; the fit absorbs about 3 of the 2F+3P degrees of freedom, so the
     NEES comes out slightly low, which matters only for very few entities).
+    ``feature_truth``: for a map whose feature ids are not the truth's (a join with data association), the truth's
+    id of each of its feature ids (two arrays, e.g. :func:`mapjoin.association.truth_of_found`); features are then
+    compared through it, several of the map's features with one true feature when the association split it.
     Raises InputError when the map and the truth share no id, ValueError for an unknown
     ``align``.
     """
     if align not in ALIGNMENTS:
         raise ValueError(f"unknown alignment {align!r}; expected one of {', '.join(ALIGNMENTS)}")
-    fm, ft = _shared(global_map.feature_ids, truth.feature_ids)
+    fm, ft = (_shared(global_map.feature_ids, truth.feature_ids) if feature_truth is None
+              else _through(global_map.feature_ids, *feature_truth, truth.feature_ids))
     pm, pt = _shared(global_map.pose_ids, truth.pose_ids)
     if not len(fm) and not len(pm):
         raise InputError(f"shares no feature or pose id with the ground truth ({truth.name}), so there is "
@@ -263,6 +268,15 @@ def _shared(ids_a: np.ndarray, ids_b: np.ndarray) -> tuple[np.ndarray, np.ndarra
     """Indices into ``ids_a`` and ``ids_b`` of the ids both hold, in increasing id order."""
     _, index_a, index_b = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
     return index_a, index_b
+
+
+def _through(map_ids: np.ndarray, found: np.ndarray, real: np.ndarray, truth_ids: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Indices into ``map_ids`` and ``truth_ids`` of the map's features whose id ``found`` names as ``real`` (an id
+    the truth holds), in the map's order; a true feature may stand for several of the map's."""
+    at, named = locate(found, map_ids, np.argsort(found))
+    where, held = locate(truth_ids, real[at[named]], np.argsort(truth_ids))
+    return np.flatnonzero(named)[held], where[held]
 
 
 def _mean(values: np.ndarray) -> float:

@@ -28,6 +28,7 @@ __all__ = [
     "LocalMap",
     "GlobalMap",
     "GroundTruth",
+    "Correspondence",
     "Provenance",
     "StackedMaps",
     "asymmetry",
@@ -565,3 +566,35 @@ class GroundTruth:
         set_("poses", _checked(self.poses, "poses", source, (None, 3), ranges=GLOBAL_POSE))
         set_("pose_ids", _checked(self.pose_ids, "pose_ids", source, (len(self.poses),), dtype=np.int64))
         _unique_ids(self.pose_ids, "pose_ids", source)
+
+
+@dataclass(frozen=True)
+class Correspondence:
+    """Which global feature each input feature is: feature ``local_ids[i]`` of input map ``maps[i]`` (1-based, in the
+    input order) is ``global_ids[i]``. The table ``join --associations`` writes (an association's answer) and the
+    one ``simulate --local-ids`` writes (the truth). Each (map, local id) once. Errors name ``name`` and the row, or
+    the file's line when the reader gives ``lines`` (the line of each row)."""
+
+    maps: np.ndarray
+    local_ids: np.ndarray
+    global_ids: np.ndarray
+    name: str = "correspondence"
+    lines: InitVar[np.ndarray | None] = None
+
+    def __post_init__(self, lines: np.ndarray | None) -> None:
+        source = self.name
+
+        def where(row: int, column: str = "") -> str:
+            return (f"line {lines[row]}" if lines is not None else f"row {row + 1}") + (f", column {column}" if column else "")
+
+        for key, column, least in (("maps", "map", 1), ("local_ids", "local_id", 0), ("global_ids", "global_id", 0)):
+            array = _checked(getattr(self, key), key, source, (None,) if key == "maps" else (len(self.maps),),
+                             dtype=np.int64)
+            low = np.flatnonzero(array < least)
+            if low.size:
+                raise InputError(f"expected an integer >= {least}, got {array[low[0]]}", source, where(low[0], column))
+            object.__setattr__(self, key, array)
+        repeated = first_duplicate(self.local_ids, self.maps)
+        if repeated is not None:
+            raise InputError(f"map {self.maps[repeated]}, local id {self.local_ids[repeated]} has a row already; each "
+                             "input feature has one", source, where(repeated))

@@ -106,7 +106,7 @@ from __future__ import annotations
 
 from .associated_join import AssociatedJoin, AssociatedJoinRecord, FeatureAssociation, join_associated
 from .associator import TIE_SUPPORT
-from .correspondence import correspondence_rows, link_errors, local_ids
+from .correspondence import LinkErrors, correspondence_rows, link_errors, local_ids, scored, truth_of_found
 from .covariance_blocks import blocks, feature_covariances, fused, inverted, rotated
 from .drifted import LOOP_CLEAR, LOOP_SUPPORT, match_with_drift
 from .gate import DEFAULT_GATE, DEFAULT_MARGIN, sighting_bits
@@ -124,6 +124,7 @@ __all__ = [
     "AssociatedJoin",
     "AssociatedJoinRecord",
     "FeatureAssociation",
+    "LinkErrors",
     "Matches",
     "blocks",
     "correspondence_rows",
@@ -136,5 +137,7 @@ __all__ = [
     "match_features",
     "match_with_drift",
     "rotated",
+    "scored",
     "sighting_bits",
+    "truth_of_found",
 ]

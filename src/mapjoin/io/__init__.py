@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from ..errors import InputError, counted
-from ..maps import GlobalMap, GroundTruth, LocalMap, first_duplicate, marginal_variances
+from ..maps import Correspondence, GlobalMap, GroundTruth, LocalMap, first_duplicate, marginal_variances
 from . import registry
 from .inputs import resolve_inputs
 from .lines import text_lines
@@ -77,6 +77,7 @@ __all__ = [
     "read_map_file",
     "read_map_paths",
     "read_maps",
+    "read_correspondence",
     "read_minima_table",
     "read_once",
     "read_truth",
@@ -373,20 +374,35 @@ def read_minima_table(source: Source) -> MinimaTable:
     CSV, YAML or JSON by the extension; otherwise (``-``: stdin, ``.txt``, ...) YAML/JSON when
     the text starts with ``[``, ``{``, ``-``, ``#`` or ``%``, else CSV.
     """
-    name = source_name(source)
-    fmt = registry.extension_format(name)
-    if fmt is not None and fmt not in TABLE_FORMATS:
-        raise InputError(f"expected a table with the columns a and c_phi ({registry.extensions_text(registry.TABLE)}), "
-                         f"not {fmt}", name)
     from .tables import read_minima_csv, read_minima_records
 
-    text = read_text(source, name)
-    if fmt is None:
-        fmt = "yaml" if text.lstrip()[:1] in ("[", "{", "-", "#", "%") else "csv"
+    text, name, fmt = _table_text(source, "a table with the columns a and c_phi")
     table = read_minima_csv(text, name) if fmt == "csv" else read_minima_records(text, name)
     if not len(table.a):
         raise InputError("expected at least one row with a and c_phi, found none", name)
     return table
+
+
+def read_correspondence(source: Source) -> Correspondence:
+    """A ``map,local_id,global_id`` table (:class:`~mapjoin.maps.Correspondence`): what ``join --associations``
+    writes, or the truth ``simulate --local-ids`` writes; CSV, YAML or JSON (:func:`_table_text`)."""
+    from .tables import read_correspondence_csv, read_correspondence_records
+
+    text, name, fmt = _table_text(source, "a map,local_id,global_id table")
+    return read_correspondence_csv(text, name) if fmt == "csv" else read_correspondence_records(text, name)
+
+
+def _table_text(source: Source, what: str) -> tuple[str, str, str]:
+    """A table's text, name and format (``csv`` or ``yaml``, which reads JSON too): by the extension, else YAML/JSON
+    when the text starts with ``[``, ``{``, ``-``, ``#`` or ``%``, else CSV. Another format's extension is refused."""
+    name = source_name(source)
+    fmt = registry.extension_format(name)
+    if fmt is not None and fmt not in TABLE_FORMATS:
+        raise InputError(f"expected {what} ({registry.extensions_text(registry.TABLE)}), not {fmt}", name)
+    text = read_text(source, name)
+    if fmt is None:
+        fmt = "yaml" if text.lstrip()[:1] in ("[", "{", "-", "#", "%") else "csv"
+    return text, name, fmt
 
 
 def _read(source: Source, format: str | None, name: str, kind: Kind) -> Any:

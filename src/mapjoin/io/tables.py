@@ -18,11 +18,12 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, shown
-from ..maps import ANGLE, MINIMA_A
+from ..maps import ANGLE, MINIMA_A, Correspondence
 from . import csvtable, yamldoc
 from .outputs import Parts
 
-__all__ = ["MinimaTable", "dump_csv", "dump_json", "dump_yaml", "read_minima_csv", "read_minima_records"]
+__all__ = ["MinimaTable", "dump_csv", "dump_json", "dump_yaml", "read_correspondence_csv", "read_correspondence_records",
+           "read_minima_csv", "read_minima_records"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +81,27 @@ def read_minima_records(text: str, source: str) -> MinimaTable:
     map_names = tuple(columns["map"]) if "map" in columns else None
     return MinimaTable(source, np.array(columns["a"], dtype=float), np.array(columns["c_phi"], dtype=float), join,
                        map_names)
+
+
+_CORRESPONDENCE_COLUMNS = ("map", "local_id", "global_id")
+
+
+def read_correspondence_csv(text: str, source: str) -> Correspondence:
+    """The CSV ``join --associations`` writes: the header map,local_id,global_id, one row per input feature."""
+    table = csvtable.Table(text, source, [_CORRESPONDENCE_COLUMNS])
+    values = table.values(_CORRESPONDENCE_COLUMNS, None, "id")
+    return Correspondence(*values.T, name=source, lines=table.lines)
+
+
+def read_correspondence_records(text: str, source: str) -> Correspondence:
+    """The YAML or JSON ``join --associations`` writes: a list of mappings with map, local_id and global_id."""
+    document = yamldoc.document(text, source)
+    records = document.get((), "list")
+    for row in range(len(records)):
+        document.get((row,), "mapping")
+        document.only((row,), _CORRESPONDENCE_COLUMNS)
+    columns = [[document.get((row, key), "id") for row in range(len(records))] for key in _CORRESPONDENCE_COLUMNS]
+    return Correspondence(*(np.array(column, dtype=np.int64) for column in columns), name=source)
 
 
 def _table(rows: Sequence[Any]) -> tuple[list[str], list[list[Any]]]:
