@@ -53,14 +53,16 @@ class DriftScale:
         self.scale = 1.0
 
     def observe(self, offset2: np.ndarray, noise: np.ndarray, posterior: np.ndarray, excess: np.ndarray,
-                drift: np.ndarray) -> bool:
-        """One join's drifted accepted pairs: squared offsets ``r^2`` around the uncorrected link, ``noise`` (their
-        noise plus the link's spread), the posterior and excess parts of their drift and the drift the join read
-        (all half-traces). Whether :attr:`scale` changed."""
+                drift: np.ndarray, join: np.ndarray | None = None) -> bool:
+        """The drifted accepted pairs of one join (``join`` None) or of a tree level's joins (``join``: each pair's):
+        squared offsets ``r^2`` around the uncorrected link, ``noise`` (their noise plus the link's spread), the
+        posterior and excess parts of their drift and the drift the join read (all half-traces); each join is one
+        observation. Whether :attr:`scale` changed."""
         if len(offset2):
-            weight = np.full(len(offset2), 1.0 / len(offset2))
-            self.columns.append(np.column_stack([offset2, noise, posterior, excess, drift, weight]))
-            self.count += 1
+            join = np.zeros(len(offset2), np.intp) if join is None else np.unique(join, return_inverse=True)[1]
+            pairs = np.bincount(join)
+            self.columns.append(np.column_stack([offset2, noise, posterior, excess, drift, 1.0 / pairs[join]]))
+            self.count += len(pairs)
         if self.count < WARM_UP or self.count < (1.0 + GROWTH) * self.estimated_at:
             return False
         self.estimated_at = self.count
