@@ -56,7 +56,8 @@ join (sequential and tree) which features of the right piece are features of the
    a correction set by drifted pairs is a drift of its own for the features near the link. A tree join whose drifted
    right features mostly missed the left features steps 2 to 5 predicted them near
    (:mod:`mapjoin.association.drift_evidence`) takes the maps' own dead reckoning into ``D`` as well (the junctions'
-   posteriors leave it out), and its bent right piece's other regions vote as no rival.
+   posteriors leave it out) and the share of the junctions' excess its level's drifted pairs bear out; its bent right
+   piece's other regions vote as no rival, and its closures' pairs are held under their correction only near its voters.
 7. **A strained map so far** (:mod:`mapjoin.association.strain`). Before step 6, a pair of
    steps 2 to 5 whose left feature has drifted (``D`` at least the pair's noise) is left new when another left
    feature seen in one map with it lies within its drift (:data:`mapjoin.association.strain.DRIFT_MARGIN`): its

@@ -152,7 +152,7 @@ class _Associator:
         (its full one; else its features' blocks) knows them relative to its start
         (:func:`mapjoin.association.junction_drift.fit_variances`; docs/method.md#data-association, step 6)."""
         before = slice(self.offsets[k - 1], self.offsets[k])
-        shared = np.flatnonzero(self.drift.last_map[self.row_ids[before]] == k)  # map k saw them last, after k - 1
+        shared = np.flatnonzero(np.isin(self.row_ids[before], self.row_ids[self.offsets[k]:self.offsets[k + 1]]))
         if not len(shared):
             return 0.0, 0.0
         full = self.full_covariances[k - 1]
@@ -205,8 +205,10 @@ class _Associator:
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
                            np.zeros(len(z), np.intp), right_covariances, pair_drift, np.array([k]))
         if not self.drift_too_small:  # once step 9 widened the drift, the scale it had is moot
-            self._drift_observed(k, found, positions, link_xy, link_phi, link_variances, z, right_covariances,
-                                 drift[0], pair_drift)
+            self._drift_observed(found, positions, left_ids, np.array([link_xy]), np.array([link_phi]),
+                                 np.array([link_variances]), z, np.zeros(len(z), np.intp), right_covariances,
+                                 drift[0][left_ids] + self.drift.strain[left_ids],
+                                 self.drift.excess_before(left_ids, k - 1), pair_drift)
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
         order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
@@ -221,25 +223,28 @@ class _Associator:
         self.drift.seen(ids[matched_count:], k, points[matched_count:])
         return order, ids, len(found.right), solved
 
-    def _drift_observed(self, k: int, found: Matches, positions: np.ndarray, link_xy: complex, link_phi: float,
-                        link_variances: tuple[float, float], z: np.ndarray, right_covariances: np.ndarray,
-                        direct: np.ndarray, pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-                        ) -> None:
-        """Join ``k``'s pairs that drifted along the chain (``D >= noise``, ``D`` the direct way's, ``direct``, plus
-        the feature's strain: no tie shortened it) tell the drift's scale: their squared offsets around the
-        uncorrected link against their noise and the link's spread (``sigma_o^2 + p_phi |z|^2 / 2``) and their drift's
-        posterior and excess parts (:class:`mapjoin.association.drift_scale.DriftScale`); once the estimate moves,
-        the drift's sums take its share of the excess (docs/method.md#data-association, step 6)."""
-        noise = _pair_noise(self.covariances, right_covariances, found.left, found.right)
+    def _drift_observed(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray,
+                        link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray, right_join: np.ndarray,
+                        right_covariances: np.ndarray, direct: np.ndarray, excess: np.ndarray,
+                        pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+                        read: np.ndarray | None = None) -> None:
+        """A join's or a tree level's pairs (``found``: left rows of ``left``, compact ids ``left_ids``, right rows of
+        ``right`` by ``right_join``) that drifted along the chain tell the drift's scale: those whose ``D`` reaches their
+        noise and is the direct way's plus the features' strain (``direct``, each pair's: no tie shortened it), their
+        squared offsets around the uncorrected link against their noise and the link's spread
+        (``sigma_o^2 + p_phi |z|^2 / 2``) and their drift's posterior and ``excess`` parts (each pair's, at scale 1;
+        :class:`mapjoin.association.drift_scale.DriftScale`, each join one observation); once the estimate moves, the
+        drift's sums take its share of the excess (docs/method.md#data-association, step 6). ``read`` (None: all):
+        the pairs whose join read the excess in its drift (a tree's drifted joins); the others tell nothing of it."""
+        noise = _pair_noise(self.covariances, right_covariances, left_ids, found.right)
         drift = pair_drift(found.left, found.right, noise)
-        strain = self.drift.strain[found.left]
-        along = (drift >= noise) & (drift == direct[found.left] + strain)
-        left, right = found.left[along], found.right[along]
-        excess = self.drift.excess_before(left, k - 1)
-        offset2 = np.abs(positions[left] - link_xy - np.exp(1j * link_phi) * z[right]) ** 2
-        spread = noise[along] + link_variances[0] + link_variances[1] * np.abs(z[right]) ** 2 / 2
-        if self.drift_scale.observe(offset2, spread, drift[along] - self.drift.scale[0] * excess, excess,
-                                    drift[along]):
+        along = (drift >= noise) & (drift == direct) & (True if read is None else read)
+        join = right_join[found.right[along]]
+        right_points = right[found.right[along]]
+        offset2 = np.abs(left[found.left[along]] - link_xy[join] - np.exp(1j * link_phi[join]) * right_points) ** 2
+        spread = noise[along] + link_variances[join, 0] + link_variances[join, 1] * np.abs(right_points) ** 2 / 2
+        if self.drift_scale.observe(offset2, spread, drift[along] - self.drift.scale[0] * excess[along],
+                                    excess[along], drift[along], join):
             self.drift.rescaled(self.drift_scale.scale)
 
     def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
@@ -274,7 +279,11 @@ class _Associator:
         ends = np.searchsorted(pieces.pose_piece, np.arange(pieces.count), side="right") - 1
         link = ends[0:2 * count:2]  # each left piece's end pose
         # the last level's junctions (pose row m: map m's end, pose m + 1) hold their joins' posteriors until moved
-        self.drift.placed(self.links + 1, pieces.pose_variances[self.links, 0], pieces.pose_variances[self.links, 1])
+        # (and the excess of each junction's own drift over its posterior: the same junction as the sequential join's)
+        posterior = pieces.pose_variances[self.links]
+        excess = np.array([self._junction_excess(k, t, p) for k, (t, p) in zip((self.links + 1).tolist(),
+                                                                                posterior.tolist())]).reshape(-1, 2)
+        self.drift.placed(self.links + 1, posterior[:, 0], posterior[:, 1], (excess[:, 0], excess[:, 1]))
         self.links = link
         joined = pieces.feature_piece < 2 * count
         left = np.flatnonzero(joined & (pieces.feature_piece % 2 == 0))
@@ -294,7 +303,9 @@ class _Associator:
         found = match_features(*arguments, self.gate, self.margin, *sightings)
         # the joins whose pieces drifted beyond the junctions' posteriors take the maps' own dead reckoning as well
         far = drifting(found, *arguments, self.drift.first_map[right_ids] > link_map[right_join] + 1, self.gate)
-        sources = (self.drift, self.drift.dead_reckoned()) if far.any() else (self.drift,)
+        # (and the share of the junctions' excess the drifted joins bore out; the others the posteriors alone)
+        plain = self.drift.posterior()
+        sources = (plain, self.drift.dead_reckoned()) if far.any() else (plain,)
         left_far, right_far = far[left_join], far[right_join]
         drift = [(*source.before(left_ids, link_map[left_join]), *source.after(right_ids, link_map[right_join]))
                  for source in sources]
@@ -334,6 +345,14 @@ class _Associator:
             found = self._junction_pairs(found, pieces.features[left], left_ids, left_join, pieces.pose_xy[link],
                                          pieces.pose_phi[link], link_map, pieces.features[right], right_ids,
                                          right_covariances, right_join)
+        pair_left, pair_right = left_ids[found.left], right_ids[found.right]
+        pair_map = link_map[right_join[found.right]]
+        self._drift_observed(found, pieces.features[left], pair_left, pieces.pose_xy[link], pieces.pose_phi[link],
+                             pieces.pose_variances[link], pieces.features[right], right_join, right_covariances,
+                             (drift[0][found.left] + self.drift.strain[pair_left])
+                             + (drift[2][found.right] + self.drift.strain[pair_right]),
+                             self.drift.excess_before(pair_left, pair_map) + self.drift.excess_after(pair_right, pair_map),
+                             pair_drift, far[right_join[found.right]])
         self.counts += [(ambiguous, rejected, 0) for ambiguous, rejected in zip(found.ambiguous.tolist(),
                                                                                 found.rejected.tolist())]
         strain = self._tie(found, pieces.features[left], left_ids[found.left], pieces.pose_xy[link],

@@ -56,13 +56,16 @@ class DriftScale:
         self.scale = 1.0
 
     def observe(self, offset2: np.ndarray, noise: np.ndarray, posterior: np.ndarray, excess: np.ndarray,
-                drift: np.ndarray) -> bool:
-        """One join's drifted accepted pairs: squared offsets ``r^2`` around the uncorrected link, ``noise`` (their
-        noise plus the link's spread), the posterior and excess parts of their drift and the drift the join read
-        (all half-traces). Whether :attr:`scale` changed."""
+                drift: np.ndarray, join: np.ndarray | None = None) -> bool:
+        """The drifted accepted pairs of one join (``join`` None) or of a tree level's joins (``join``: each pair's):
+        squared offsets ``r^2`` around the uncorrected link, ``noise`` (their noise plus the link's spread), the
+        posterior and excess parts of their drift and the drift the join read (all half-traces); each join is one
+        observation. Whether :attr:`scale` changed."""
         if len(offset2):
-            self.likelihood += self._log_likelihood(offset2, noise, posterior, excess, drift) / len(offset2)
-            self.count += 1
+            join = np.zeros(len(offset2), np.intp) if join is None else np.unique(join, return_inverse=True)[1]
+            pairs = np.bincount(join)
+            self.likelihood += self._log_likelihood(offset2, noise, posterior, excess, drift, 1.0 / pairs[join])
+            self.count += len(pairs)
         if self.count < WARM_UP or self.count < (1.0 + GROWTH) * self.estimated_at:
             return False
         self.estimated_at = self.count
@@ -72,14 +75,14 @@ class DriftScale:
         return changed
 
     def _log_likelihood(self, offset2: np.ndarray, noise: np.ndarray, posterior: np.ndarray, excess: np.ndarray,
-                        drift: np.ndarray) -> np.ndarray:
-        """The pairs' log-likelihoods summed, at each ``(s, q)`` of the grid (scales x shares): each pair's offset
-        exponential with mean ``2 (n + D_posterior + s D_excess)``, its density 1 inside the first gate and ``q``
-        between the two, over its integral."""
+                        drift: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        """The pairs' log-likelihoods summed, each weighing ``weight`` (one over its join's pairs), at each ``(s, q)``
+        of the grid (scales x shares): each pair's offset exponential with mean ``2 (n + D_posterior + s D_excess)``,
+        its density 1 inside the first gate and ``q`` between the two, over its integral."""
         inner, outer = self.bound * noise, self.bound * (noise + drift)
         variance = noise + posterior + SCALES[:, None] * excess  # scales x pairs
         kept_inner, kept_outer = (-np.expm1(-bound / (2 * variance)) for bound in (inner, outer))
-        exponential = np.sum(-np.log(variance) - offset2 / (2 * variance), axis=1)  # scales: no share in it
-        beyond = np.count_nonzero(offset2 > inner) * np.log(SHARES)  # shares: the pairs past the first gate
+        exponential = (-np.log(variance) - offset2 / (2 * variance)) @ weight  # scales: no share in it
+        beyond = np.sum(weight[offset2 > inner]) * np.log(SHARES)  # shares: the pairs past the first gate
         kept = kept_inner[:, None, :] + SHARES[None, :, None] * (kept_outer - kept_inner)[:, None, :]
-        return exponential[:, None] + beyond[None, :] - np.log(kept).sum(axis=2)
+        return exponential[:, None] + beyond[None, :] - np.log(kept) @ weight

@@ -172,8 +172,9 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     the square of its turn as their heading variance (docs/method.md#data-association, step 6: a correction set by
     drifted pairs is, for the features near the link, a drift of its own). ``bent``: the joins whose right piece is a
     drifted chain, where only a rival pairing the voters' right features counts against a correction
-    (:func:`mapjoin.association.loop_votes.rigid_votes`) and a reference holds a pair only within the gate of its
-    noise and drift there (:func:`mapjoin.association.loop_scope.beyond_voters`, ``within``)."""
+    (:func:`mapjoin.association.loop_votes.rigid_votes`), a reference holds a pair only within the gate of its
+    noise and drift there (:func:`mapjoin.association.loop_scope.beyond_voters`, ``within``) and the correction only
+    the pairs whose drift relative to its voters is below their noise (``near_voters``)."""
     left_drift, left_heading, right_drift, right_heading = drift
     joins = len(link_xy)
     free = np.ones(len(left), dtype=bool)
@@ -264,11 +265,12 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
         pair_join_again = right_join[pair_right]
         position, variance = under_correction(place[pair_right], pair_join_again)
         noise = _pair_noise(left_covariances, right_covariances, pair_left, pair_right)
-        within = None if bent is None or not bent.any() else np.where(bent[pair_join_again], g2, np.inf)
+        bent_pairs = None if bent is None or not bent.any() else bent[pair_join_again]
+        within = None if bent_pairs is None else np.where(bent_pairs, g2, np.inf)
         held = ~beyond_voters(left, left_join, pair_left, left_sightings,
                               (position, noise + variance, scope(pair_left, pair_right, pair_join_again, *voters)),
                               (predicted[place[pair_right]], noise, left_drift[pair_left] + right_drift[pair_right]),
-                              within=within)
+                              within=within, near_voters=bent_pairs)
         outside = np.bincount(closed[~held], minlength=len(closing))
         again = Matches(again.left[held], again.right[held], again.ambiguous, again.rejected, again.undecided,
                         again.correction)

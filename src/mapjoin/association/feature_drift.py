@@ -90,6 +90,12 @@ class SightingDrift:
         the junctions it sums, the end-pose variances of the maps that end there."""
         return dataclasses.replace(self, sums=self.sums + self.reckoned)
 
+    def posterior(self) -> SightingDrift:
+        """The same chain and sightings whose junctions carry their posteriors alone, without the share of their excess
+        (:meth:`rescaled`): the drift of a tree join whose pieces did not drift beyond it
+        (:mod:`mapjoin.association.drift_evidence`)."""
+        return dataclasses.replace(self, sums=self.sums - self.scale[0] * self.excess)
+
     def grown(self, capacity: int) -> SightingDrift:
         """The same with room for at least ``capacity`` feature ids (the tree hands out new ids at every level)."""
         extra = max(capacity - len(self.first_map), 0)
@@ -117,15 +123,17 @@ class SightingDrift:
         if not len(junctions):
             return
         x = self.chain.poses[junctions]
-        p = np.atleast_1d(phi_variance)
-        rows = np.column_stack([np.atleast_1d(t_variance) * np.ones(len(x)), p, p * x.real, p * x.imag,
-                                p * (x.real**2 + x.imag**2)])
-        if len(junctions) == 1:  # the sequential join: one junction at a time
-            self.sums[junctions[0] + 1:] += rows[0]
-            return
-        terms = np.zeros((len(self.sums), 5))
-        np.add.at(terms, junctions + 1, rows)
-        self.sums[:] += np.cumsum(terms, axis=0)
+        for sums, (t, p) in ((self.excess, excess), (self.sums, (t_variance + self.scale[0] * np.asarray(excess[0]),
+                                                                 phi_variance + self.scale[0] * np.asarray(excess[1])))):
+            p = np.atleast_1d(p) * np.ones(len(x))
+            rows = np.column_stack([np.atleast_1d(t) * np.ones(len(x)), p, p * x.real, p * x.imag,
+                                    p * (x.real**2 + x.imag**2)])
+            if len(junctions) == 1:  # the sequential join: one junction at a time
+                sums[junctions[0] + 1:] += rows[0]
+                continue
+            terms = np.zeros((len(sums), 5))
+            np.add.at(terms, junctions + 1, rows)
+            sums[:] += np.cumsum(terms, axis=0)
 
     def rescaled(self, scale: float) -> None:
         """The sums hold the share ``scale`` of the junctions' excess drift from now on (in place, O(maps))."""
@@ -136,6 +144,11 @@ class SightingDrift:
         """The excess drift (:meth:`placed`, at ``scale`` 1) of left features ``ids`` relative to the end of map
         ``link_map``, over the junctions after their last sighting, as :meth:`before` sums their drift."""
         return drift_variance(self.excess[link_map + 1] - self.excess[self.last_map[ids] + 1], self.last_point[ids])
+
+    def excess_after(self, ids: np.ndarray, link_map: np.ndarray) -> np.ndarray:
+        """The excess drift (:meth:`placed`, at ``scale`` 1) of right features ``ids`` of a tree join relative to the
+        end of map ``link_map``, over the junctions up to their first sighting, as :meth:`after` sums their drift."""
+        return drift_variance(self.excess[self.first_map[ids] + 1] - self.excess[link_map + 2], self.first_point[ids])
 
     def seen(self, ids: np.ndarray, maps: np.ndarray | int, points: np.ndarray) -> None:
         """New features ``ids`` seen by ``maps`` (one each, or one for all) at ``points`` (each in its map's frame):
