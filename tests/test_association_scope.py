@@ -1,7 +1,8 @@
 """Step 6's scope (mapjoin.association.loop_scope): the drift between two sightings against the dense sums over each way
 along the chain and through its ties, the least over a join's voters against a loop over them, the votes' voters
-against a planted correction, a loop closure whose far part the correction does not hold against the truth, and a
-bent piece's closures held only near their voters against the default simulation's tree."""
+against a planted correction, a loop closure whose far part the correction does not hold against the truth, a
+bent piece's closures held only near their voters against the default simulation's tree, and the link's own map's
+sighting of a closure's pair against the next map's, composed by hand."""
 
 from __future__ import annotations
 
@@ -242,3 +243,60 @@ def test_the_trees_bent_closures_keep_no_pair_beyond_their_voters_on_the_default
     held = drifted.beyond_voters
     monkeypatch.setattr(drifted, "beyond_voters", lambda *args, near_voters=None, **bounds: held(*args, **bounds))
     assert 2 * near <= false_links()
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 10))
+def test_across_link_compares_the_link_map_s_own_sighting_with_the_next_map_s(seed, n):
+    """SightingDrift.across_link against se2.compose: a feature map m saw at z_m (its frame) and a right feature map
+    m + 1 sees at z (its frame) lie |compose(P_m, z_m) - compose(P_m+1, z)|^2 apart, P the end poses composed one at
+    a time; the variance is map m's own end-pose variance at the point, v_m + p_m |x - x_m+1|^2 / 2, whatever the
+    junctions' posteriors; a feature another map saw last gets an infinite variance."""
+    rng = np.random.default_rng(seed)
+    end_poses = np.column_stack([rng.uniform(1, 5, n), rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n)])
+    own = np.column_stack([rng.uniform(0.001, 0.1, n), rng.uniform(1e-5, 1e-3, n)])
+    drift = SightingDrift.of(end_poses, 6, own)
+    drift.placed(np.arange(1, n), rng.uniform(0.001, 0.1, n - 1), rng.uniform(1e-5, 1e-3, n - 1))
+    poses = dead_reckoned(end_poses)
+    link = int(rng.integers(0, n - 1))
+    seen_by = np.array([link, link, link, (link + 1) % n, 0, link])
+    seen_at = rng.normal(size=6) * 4 + 1j * rng.normal(size=6) * 4
+    for feature in range(6):
+        drift.seen(np.array([feature]), int(seen_by[feature]), seen_at[feature:feature + 1])
+    points = rng.normal(size=6) * 4 + 1j * rng.normal(size=6) * 4
+    offset2, variance = drift.across_link(np.arange(6), link, points)
+    for feature in range(6):
+        last = compose(poses[seen_by[feature]], np.array([seen_at[feature].real, seen_at[feature].imag, 0.0]))
+        here = compose(poses[link + 1], np.array([points[feature].real, points[feature].imag, 0.0]))
+        assert math.isclose(offset2[feature], (last[0] - here[0]) ** 2 + (last[1] - here[1]) ** 2, rel_tol=1e-9,
+                            abs_tol=1e-12)
+        lever = (here[0] - poses[link + 1, 0]) ** 2 + (here[1] - poses[link + 1, 1]) ** 2
+        expected = own[link, 0] + own[link, 1] * lever / 2 if seen_by[feature] == link else math.inf
+        assert math.isclose(variance[feature], expected, rel_tol=1e-9, abs_tol=1e-12)
+
+
+def test_a_loop_closure_takes_no_pair_the_link_s_map_saw_elsewhere():
+    """The far loop's false pairs (right rows 18-23, each put on a decoy by the voters' correction), their left features
+    said to be seen last by the link's own map 2 m from where the right map sees them (4 m^2 against the gate of the
+    noise 0.0008 and a variance of 0.01: 13.8 * 0.0108 = 0.15) are left new, counted rejected, and every other pair is
+    the same; at 0.1 m (0.01 m^2, inside that gate), or for features another map saw last (infinite variance),
+    nothing changes (each with a scope of no drift: the sequential join passes both)."""
+    for seed in range(5):
+        arguments, truth, far = far_loop(np.random.default_rng(seed))
+
+        def across(offset2, variance, far=far):
+            return lambda pair_left, pair_right: (np.where(far[pair_right], offset2, 0.0),
+                                                  np.where(far[pair_right], variance, np.inf))
+
+        def scope(pair_left, pair_right, join, *voters):  # no drift relative to the voters: holds every pair
+            return np.zeros(len(pair_left))
+
+        before = match_with_drift(*arguments, scope=scope)
+        pairs = set(zip(before.left.tolist(), before.right.tolist()))
+        assert {j for i, j in pairs - truth} == set(range(18, 24))
+        for kept in (across(0.01, 0.01), across(4.0, np.inf)):
+            same = match_with_drift(*arguments, scope=scope, across=kept)
+            assert np.array_equal(same.left, before.left) and np.array_equal(same.right, before.right)
+        refused = match_with_drift(*arguments, scope=scope, across=across(4.0, 0.01))
+        assert set(zip(refused.left.tolist(), refused.right.tolist())) == pairs & truth
+        assert refused.rejected[0] == before.rejected[0] + 6

@@ -188,7 +188,9 @@ class _Associator:
                                     np.array([link_xy]), np.array([link_phi]), np.array([link_variances]), z,
                                     right_covariances, np.zeros(len(z), np.intp), drift, self.gate, self.margin,
                                     self.sightings[:used], self.row_sightings[rows], pair_drift,
-                                    voters_drift(self.drift, None, None))
+                                    voters_drift(self.drift, None, None),
+                                    lambda pair_left, pair_right: self.drift.across_link(pair_left, k - 1,
+                                                                                         z[pair_right]))
 
         found = associated(drift, pair_drift)
         solved, guarded = solve(found.left, found.right), 0

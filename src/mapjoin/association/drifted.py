@@ -19,7 +19,7 @@ import numpy as np
 from .covariance_blocks import blocks
 from .gate import DEFAULT_GATE, DEFAULT_MARGIN, _candidates, _threshold
 from .lone import LONE_MARGIN, lone_drifted
-from .loop_scope import VoterDrift, beyond_voters
+from .loop_scope import LinkSighting, VoterDrift, beyond_voters
 from .loop_votes import rigid_votes
 from .rounds import Matches, _join_maxima, _segment_medians, match_features
 from .strain import drift_rivals
@@ -40,7 +40,7 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
                      left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
                      pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
-                     scope: VoterDrift | None = None) -> Matches:
+                     scope: VoterDrift | None = None, across: LinkSighting | None = None) -> Matches:
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
     right rows, their noise)`` gives the pairs' drift (:func:`_unstrained`, :mod:`mapjoin.association`, step 7: the
     associator's, through the chain's ties; compared with the noise only, it may stop at it where the way is long)
@@ -50,7 +50,9 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     undrifted features still unpaired that the link's correction moved (``moved=True``):
     ``drift`` = (left ``D``, left heading variance, right ``D``, right heading variance), one per feature
     (:mod:`mapjoin.association.feature_drift`), or None for none; ``scope`` gives a loop closure's pairs their drift
-    relative to its voters (:mod:`mapjoin.association.loop_scope`; None: the correction holds for every pair)."""
+    relative to its voters (:mod:`mapjoin.association.loop_scope`; None: the correction holds for every pair);
+    ``across`` compares the closure's pairs of the link's own map where that map and the next saw them (a sequential
+    join's: :data:`mapjoin.association.loop_scope.LinkSighting`; None: no such check)."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
     found = match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, gate, margin, left_sightings, right_sightings)
@@ -58,7 +60,7 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
         return found
     return with_drift(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                       right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, pair_drift,
-                      scope)
+                      scope, across=across)
 
 
 def with_drift(found: Matches, left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
@@ -67,11 +69,13 @@ def with_drift(found: Matches, left: np.ndarray, left_covariances: np.ndarray, l
                gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
                right_sightings: np.ndarray | None = None,
                pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
-               scope: VoterDrift | None = None, bent: np.ndarray | None = None) -> Matches:
+               scope: VoterDrift | None = None, bent: np.ndarray | None = None,
+               across: LinkSighting | None = None) -> Matches:
     """Steps 7, 8 and 6 of :func:`match_with_drift` after its steps 2 to 5 (``found``, :func:`match_features` of the
     same arguments; covariances as rows ``[xx, xy, yy]``): a tree level runs them itself, to choose each join's drift
     from what steps 2 to 5 found (:mod:`mapjoin.association.drift_evidence`); ``bent`` marks those joins, whose
-    right piece's regions vote for corrections of their own (:func:`mapjoin.association.loop_votes.rigid_votes`)."""
+    right piece's regions vote for corrections of their own (:func:`mapjoin.association.loop_votes.rigid_votes`);
+    ``across`` as there."""
     if pair_drift is not None:
         noise = _pair_noise(left_covariances, right_covariances, found.left, found.right)
         drifts = pair_drift(found.left, found.right, noise)
@@ -85,11 +89,11 @@ def with_drift(found: Matches, left: np.ndarray, left_covariances: np.ndarray, l
                                  left_sightings, margin)
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, scope,
-                           bent=bent)
+                           bent=bent, across=across)
     found = found if closed is None else closed
     closed = _closed_loops(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, drift, gate, margin, left_sightings, right_sightings, scope,
-                           moved=True, bent=bent)
+                           moved=True, bent=bent, across=across)
     return found if closed is None else closed
 
 
@@ -153,8 +157,8 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
                   link_xy: np.ndarray, link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
                   right_covariances: np.ndarray, right_join: np.ndarray, drift: tuple[np.ndarray, ...], gate: float,
                   margin: float, left_sightings: np.ndarray | None, right_sightings: np.ndarray | None,
-                  scope: VoterDrift | None = None, moved: bool = False, bent: np.ndarray | None = None
-                  ) -> Matches | None:
+                  scope: VoterDrift | None = None, moved: bool = False, bent: np.ndarray | None = None,
+                  across: LinkSighting | None = None) -> Matches | None:
     """``found`` with the pairs of the loop closures among the features it left unpaired, or None when there are
     none. Candidate pairs within the drift's gate (the noise, ``D`` of both features and the link's spread)
     whose drift is at least their noise vote for rigid corrections of the link as ``found`` corrected it
@@ -174,7 +178,13 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
     drifted chain, where only a rival pairing the voters' right features counts against a correction
     (:func:`mapjoin.association.loop_votes.rigid_votes`), a reference holds a pair only within the gate of its
     noise and drift there (:func:`mapjoin.association.loop_scope.beyond_voters`, ``within``) and the correction only
-    the pairs whose drift relative to its voters is below their noise (``near_voters``)."""
+    the pairs whose drift relative to its voters is below their noise (``near_voters``).
+
+    ``across`` (read with ``scope``, as the sequential join passes both): whichever reference holds it, a pair whose
+    left feature the link's own map saw last is left new (rejected) when that map's sighting and the right map's,
+    dead-reckoned, lie beyond the gate of the pair's noise, that map's end-pose variance there and the link's spread:
+    the two maps saw those features through one junction, whatever the map so far made of them since
+    (docs/method.md#data-association, step 6)."""
     left_drift, left_heading, right_drift, right_heading = drift
     joins = len(link_xy)
     free = np.ones(len(left), dtype=bool)
@@ -271,6 +281,9 @@ def _closed_loops(found: Matches, left: np.ndarray, left_covariances: np.ndarray
                               (position, noise + variance, scope(pair_left, pair_right, pair_join_again, *voters)),
                               (predicted[place[pair_right]], noise, left_drift[pair_left] + right_drift[pair_right]),
                               within=within, near_voters=bent_pairs)
+        if across is not None:
+            offset2, variance = across(pair_left, pair_right)
+            held &= offset2 <= g2 * (noise + variance + link_spread[place[pair_right]])
         outside = np.bincount(closed[~held], minlength=len(closing))
         again = Matches(again.left[held], again.right[held], again.ambiguous, again.rejected, again.undecided,
                         again.correction)

@@ -182,6 +182,18 @@ class SightingDrift:
         sums = self.sums[link_map + 1] - self.sums[self.last_map[ids] + 1]
         return drift_variance(sums, self.last_point[ids]), sums[:, 1]
 
+    def across_link(self, ids: np.ndarray, link_map: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Left features ``ids`` against right features at ``points`` (one each, in the frame of map ``link_map + 1``,
+        the map after the link) where both maps saw them, for step 6 (docs/method.md#data-association): each pair's
+        squared offset between the last sighting and the point, both dead-reckoned (so map ``link_map``'s own
+        estimate of the feature through its own end pose, against the next map's: no fused estimate, no join in
+        between), and its variance beyond the pair's noise, the end-pose variance of map ``link_map`` there
+        (:attr:`reckoned`); infinite for a feature another map saw last."""
+        here = self.chain.dead_reckoned(link_map + 1, points)
+        offset2 = np.abs(self.last_point[ids] - here) ** 2
+        own = np.broadcast_to(self.reckoned[link_map + 2] - self.reckoned[link_map + 1], (len(here), 5))
+        return offset2, np.where(self.last_map[ids] == link_map, drift_variance(own, here), np.inf)
+
     def after(self, ids: np.ndarray, link_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``D`` of right features ``ids`` relative to the end of map ``link_map`` (the left piece's last map),
         over the junctions from the right piece's second map up to their first sighting, and their heading

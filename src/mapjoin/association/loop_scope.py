@@ -28,11 +28,15 @@ import numpy as np
 from .feature_drift import SightingDrift
 from .strain import drift_rivals
 
-__all__ = ["VoterDrift", "beyond_voters", "chain_drift", "voter_drift", "voters_drift"]
+__all__ = ["LinkSighting", "VoterDrift", "beyond_voters", "chain_drift", "voter_drift", "voters_drift"]
 
 #: a loop closure's pairs (left rows, right rows, joins) and its voters (the same) -> each pair's drift relative to
 #: its join's voters (both sides summed)
 VoterDrift = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+#: a sequential join's loop closure pairs (left rows, right rows) -> each pair's squared offset where the link's own map
+#: and the next one saw its features, and that offset's variance beyond the pair's noise (infinite for a left feature
+#: another map saw last): :meth:`mapjoin.association.feature_drift.SightingDrift.across_link`
+LinkSighting = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 def chain_drift(drift: SightingDrift, maps: np.ndarray, others: np.ndarray, points: np.ndarray,
