@@ -342,9 +342,9 @@ def test_noiseless_robots_merge_to_the_world_truth():
 
 @pytest.mark.parametrize("associate", [False, True])
 def test_noisy_robots_merge_near_the_truth(associate):
-    """Joined maps drift apart, so only a part of the common features fits one rigid transform within their
-    small variances; with the simulator's default odometry noise the search finds parts (README, 'Merging
-    maps'), so this run has a quieter odometry."""
+    """Joined maps drift apart, so one rigid transform over their common features is a compromise metres off
+    the truth with the simulator's default odometry noise (the search still matches them:
+    tests/test_merge_growth.py); this run has a quieter odometry, so that the transform is near the truth."""
     world = simulate_robots(3, 20, seed=4, odometry_noise=(0.01, 0.005, 0.002))
     maps = [join(run.maps).global_map for run in world.robots]
     if associate:

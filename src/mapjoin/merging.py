@@ -127,10 +127,11 @@ def _correspondences(merged: GlobalMap, other: GlobalMap, names: str, associate:
                           other.feature_variances, min_common=min_common, probability=probability)
         if not found.sure:
             raise JoinError(
-                f"{other.name}: no sure overlap with {names}: the best transform found matches {found.best} "
-                f"features; needed: at least {min_common}, twice the {found.runner_up} of the best different "
-                f"transform, and well above the {found.chance:.3g} that chance gives (the overlap is too small, "
-                f"the features' variances too wide for their spacing, or the maps too self-similar)")
+                f"{other.name}: no sure overlap with {names}: the best transform found matches {found.core} "
+                f"features ({found.best} over the overlap); needed: at least {min_common}, twice the "
+                f"{found.runner_up} of the strongest rival, and well above the {found.chance:.3g} that chance gives "
+                f"(the overlap is too small, the features' variances too wide for their spacing, or the maps too "
+                f"self-similar)")
         return found.a, found.b
     _, in_a, in_b = np.intersect1d(merged.feature_ids, other.feature_ids, return_indices=True)
     if len(in_a) < 2:
