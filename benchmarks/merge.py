@@ -11,6 +11,9 @@ found with the true ones (ids). Then ``simulate_robots(2, maps)`` (quiet odometr
 the joined maps stay consistent with their variances) for growing ``maps``: merge times
 with ids and without, the transform's error against the truth, false matches. Times are
 medians of ``--repeat`` library calls (the search imports scipy.spatial once, before).
+Last, the search over seeds 0 .. ``--seeds`` - 1 of ``simulate_robots(2, maps)`` at the simulator's default noise
+(maps that drift apart beyond their variances): the share of the common features matched, false matches, real
+overlaps refused, and unrelated pairs (robot 1 of one seed against robot 2 of the next) accepted.
 Results are printed and written between the ``merge`` markers of benchmarks/README.md, with
 the machine's load (``uptime``).
 """
@@ -33,6 +36,7 @@ from mapjoin.simulation import simulate_robots
 
 FRESH = 10**9
 SIZES = (25, 100, 400)
+SWEEP_SIZES = (20, 30, 50, 100)
 
 
 def _errors(record, pose) -> tuple[float, float]:
@@ -59,8 +63,36 @@ def _case(name: str, first, second, truth_pose, repeat: int) -> list[str]:
     return rows
 
 
+def _searched(a, b) -> tuple[int, int, bool]:
+    """The search for ``b`` (ids made fresh) in ``a``: matches, false matches (the ids deny them), sure."""
+    fresh = b.feature_ids + FRESH
+    found = consensus(as_complex(a.features), a.feature_variances, as_complex(b.features), b.feature_variances)
+    return len(found.a), int(np.sum(a.feature_ids[found.a] != fresh[found.b] - FRESH)), found.sure
+
+
+def _sweep(seeds: int) -> list[str]:
+    """Rows of the drifted robots: per size, totals over the seeds."""
+    rows = [f"| robots × maps | common | matched | false matches | real overlaps refused (of {seeds}) | "
+            f"unrelated pairs accepted (of {seeds}) |", "|---|---:|---:|---:|---:|---:|"]
+    for size in SWEEP_SIZES:
+        pairs = [tuple(join(run.maps).global_map for run in simulate_robots(2, size, seed=seed).robots)
+                 for seed in range(seeds)]
+        common = matched = false = refused = accepted = 0
+        for seed, (a, b) in enumerate(pairs):
+            count, wrong, sure = _searched(a, b)
+            common += len(np.intersect1d(a.feature_ids, b.feature_ids))
+            if sure:
+                matched, false = matched + count, false + wrong
+            refused += not sure
+            accepted += _searched(a, pairs[(seed + 1) % seeds][1])[2]
+        rows.append(f"| 2 × {size} | {common} | {matched} ({100 * matched / common:.1f} %) | {false} | {refused} | "
+                    f"{accepted} |")
+    return rows
+
+
 def main() -> None:
-    args = dataset_arguments(__doc__, ("VicPark_200_local_maps",))
+    args = dataset_arguments(__doc__, ("VicPark_200_local_maps",), lambda parser: parser.add_argument(
+        "--seeds", type=int, default=16, help="seeds of the drifted robots' sweep (default: %(default)s)"))
     from scipy.spatial import cKDTree  # noqa: F401  (imported once, outside the timings)
 
     rows = ["| maps | features (A + B) | common by | true common | matched | false matches | "
@@ -74,9 +106,13 @@ def main() -> None:
         a, b = (join(run.maps).global_map for run in world.robots)
         rows += _case(f"2 robots x {size}", a, b, world.truth.poses[size], args.repeat)
     load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    text = "\n".join([f"`python benchmarks/merge.py --repeat {args.repeat}`; load: {load}", "", *rows, "",
+    text = "\n".join([f"`python benchmarks/merge.py --repeat {args.repeat} --seeds {args.seeds}`; load: {load}", "",
+                      *rows, "",
                       "Transform error: against the first half's end pose as joined (VicPark), against the "
-                      "truth (robots). 'false matches': correspondences the search found that the ids deny."])
+                      "truth (robots). 'false matches': correspondences the search found that the ids deny.", "",
+                      "The search on drifted maps (`simulate_robots(2, maps, seed=s)` at the default noise, each "
+                      f"robot joined; totals over s = 0..{args.seeds - 1}; matched and false over the accepted "
+                      "searches):", "", *_sweep(args.seeds)])
     print(text)
     write_section("merge", text)
 
