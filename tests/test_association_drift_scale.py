@@ -2,9 +2,10 @@
 fit's variances (junction_drift.fit_variances) against a Monte Carlo of the fit itself, the scale's estimate
 (drift_scale.DriftScale) against pairs drawn from its model and accepted through the gates it describes, the drift's
 sums at a scale (feature_drift.SightingDrift.rescaled) against the sums placed at that scale, a tree level's junctions
-placed at once against the same placed one by one, a level's joins observed together against one at a time, a map
-without a covariance against the same map with a diagonal one, and the default simulation's false links (sequential
-and the tree's) against the posterior drift alone."""
+placed at once against the same placed one by one, a level's junctions' excess (found together) against each
+junction's two maps' ids intersected as sets, a level's joins observed together against one at a time, a map without
+a covariance against the same map with a diagonal one, and the default simulation's false links (sequential and the
+tree's) against the posterior drift alone."""
 
 from __future__ import annotations
 
@@ -24,6 +25,12 @@ from mapjoin.association.drift_scale import SCALES, SHARES, WARM_UP, DriftScale
 from mapjoin.association.feature_drift import SightingDrift
 from mapjoin.association.junction_drift import fit_variances
 from mapjoin.simulation import simulate
+
+
+def no_excess(self: _Associator, junctions: np.ndarray, t_variances: np.ndarray, phi_variances: np.ndarray
+              ) -> np.ndarray:
+    """:meth:`_Associator._junction_excess` when the junctions carry their posteriors alone: no excess."""
+    return np.zeros((len(junctions), 2))
 
 
 def rigid_fit(before: np.ndarray, after: np.ndarray) -> tuple[complex, float]:
@@ -248,7 +255,7 @@ def test_the_default_simulation_loses_most_false_links_to_the_junctions_drift(mo
         return sum(np.array(link_errors(local, truth, join_associated(local))) for local, truth in runs)
 
     links, missed, false = errors()
-    monkeypatch.setattr(_Associator, "_junction_excess", lambda self, k, t_variance, phi_variance: (0.0, 0.0))
+    monkeypatch.setattr(_Associator, "_junction_excess", no_excess)
     _, missed_posterior, false_posterior = errors()
     assert 3 * false <= false_posterior and missed <= missed_posterior
 
@@ -263,9 +270,10 @@ def test_a_map_without_a_covariance_gives_its_junctions_the_drift_of_its_blocks(
     excesses: list[tuple[float, float]] = []
     original = _Associator._junction_excess
 
-    def recorded(self: _Associator, k: int, t_variance: float, phi_variance: float) -> tuple[float, float]:
-        excesses.append(original(self, k, t_variance, phi_variance))
-        return excesses[-1]
+    def recorded(self: _Associator, junctions: np.ndarray, t_variances: np.ndarray, phi_variances: np.ndarray
+                 ) -> np.ndarray:
+        excesses.extend(original(self, junctions, t_variances, phi_variances).tolist())
+        return np.array(excesses[len(excesses) - len(junctions):]).reshape(-1, 2)
 
     monkeypatch.setattr(_Associator, "_junction_excess", recorded)
     runs = []
@@ -289,5 +297,50 @@ def test_the_trees_drifted_joins_lose_most_false_links_to_the_junctions_drift(mo
         return sum(link_errors(local, truth, join_associated(local, strategy="tree"))[2] for local, truth in runs)
 
     with_excess = false_links()
-    monkeypatch.setattr(_Associator, "_junction_excess", lambda self, k, t_variance, phi_variance: (0.0, 0.0))
+    monkeypatch.setattr(_Associator, "_junction_excess", no_excess)
     assert 2 * with_excess <= false_links()
+
+
+@pytest.mark.parametrize("strategy, covariance", [("tree", True), ("tree", False), ("sequential", True)])
+def test_the_junctions_excess_is_each_junctions_own_fit(monkeypatch, strategy, covariance):
+    """All junctions a tree level places at once get, each, the excess of the fit over the features its two maps
+    share by their ids (a set intersection, map by map) as map ``k - 1``'s covariance (full, or its features'
+    blocks) knows them, over the posterior: the (map, id) keys found together pair no junction's rows with
+    another's."""
+    maps = simulate(20, seed=3).maps
+    local = local_ids(maps if covariance else [dataclasses.replace(m, covariance=None) for m in maps])[0]
+    original = _Associator._junction_excess
+    checked = []
+
+    def one_by_one(self: _Associator, k: int, t_variance: float, phi_variance: float) -> tuple[float, float]:
+        rows = [np.arange(self.offsets[m], self.offsets[m + 1]) for m in (k - 1, k)]
+        common = set(self.row_ids[rows[1]].tolist())
+        shared = np.array([r for r in rows[0].tolist() if self.row_ids[r] in common], dtype=np.intp)
+        if not len(shared):
+            return 0.0, 0.0
+        full = self.full_covariances[k - 1]
+        if full is None:
+            blocks = self.row_covariances[shared]
+            covariance = np.zeros((2 * len(shared), 2 * len(shared)))
+            for n, (xx, xy, yy) in enumerate(blocks.tolist()):
+                covariance[2 * n:2 * n + 2, 2 * n:2 * n + 2] = [[xx, xy], [xy, yy]]
+        else:
+            index = [3 + 2 * int(self.feature_index[r]) + a for r in shared.tolist() for a in (0, 1)]
+            covariance = full[np.ix_(index, index)]
+        fit_t, fit_phi = fit_variances(covariance, self.row_points[shared], complex(self.end_points[k - 1]))
+        return max(fit_t - t_variance, 0.0), max(fit_phi - phi_variance, 0.0)
+
+    def compared(self: _Associator, junctions: np.ndarray, t_variances: np.ndarray, phi_variances: np.ndarray
+                 ) -> np.ndarray:
+        found = original(self, junctions, t_variances, phi_variances)
+        expected = [one_by_one(self, k, t, p) for k, t, p in zip(junctions.tolist(), t_variances.tolist(),
+                                                                   phi_variances.tolist())]
+        assert np.array_equal(found, np.array(expected).reshape(-1, 2))
+        checked.append(len(junctions))
+        return found
+
+    monkeypatch.setattr(_Associator, "_junction_excess", compared)
+    join_associated(local, strategy=strategy)
+    # the sequential join places every junction, the tree all but its last level's (no level follows it to read it)
+    assert sum(checked) == len(local) - (1 if strategy == "sequential" else 2)
+    assert strategy == "sequential" or max(checked) > 1

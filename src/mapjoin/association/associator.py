@@ -144,28 +144,45 @@ class _Associator:
     def placed(self, k: int, t_variance: float, phi_variance: float) -> None:
         """Join ``k`` placed map ``k``'s start (junction ``k``) with these posterior variances (the drift's sums),
         and the excess of the junction's own drift over them (:meth:`_junction_excess`)."""
-        self.drift.placed(k, t_variance, phi_variance, self._junction_excess(k, t_variance, phi_variance))
+        excess = self._junction_excess(np.array([k]), np.array([t_variance]), np.array([phi_variance]))
+        self.drift.placed(k, t_variance, phi_variance, (float(excess[0, 0]), float(excess[0, 1])))
 
-    def _junction_excess(self, k: int, t_variance: float, phi_variance: float) -> tuple[float, float]:
-        """How much more junction ``k`` may be off than its posterior says (translation, turn; 0 when not): the
-        variance of a rigid fit of the features maps ``k - 1`` and ``k`` share, as map ``k - 1``'s covariance
-        (its full one; else its features' blocks) knows them relative to its start
-        (:func:`mapjoin.association.junction_drift.fit_variances`; docs/method.md#data-association, step 6)."""
-        before = slice(self.offsets[k - 1], self.offsets[k])
-        shared = np.flatnonzero(np.isin(self.row_ids[before], self.row_ids[self.offsets[k]:self.offsets[k + 1]]))
-        if not len(shared):
-            return 0.0, 0.0
-        full = self.full_covariances[k - 1]
-        if full is None:
-            covariance = np.zeros((len(shared), 2, len(shared), 2))
-            diagonal = np.arange(len(shared))
-            covariance[diagonal, :, diagonal, :] = self.row_covariances[before][shared][:, [[0, 1], [1, 2]]]
-            covariance = covariance.reshape(2 * len(shared), 2 * len(shared))
-        else:
-            index = (3 + 2 * self.feature_index[before][shared][:, None] + np.arange(2)).ravel()
-            covariance = full[np.ix_(index, index)]
-        fit_t, fit_phi = fit_variances(covariance, self.row_points[before][shared], complex(self.end_points[k - 1]))
-        return max(fit_t - t_variance, 0.0), max(fit_phi - phi_variance, 0.0)
+    def _rows_of(self, maps: np.ndarray) -> np.ndarray:
+        """The input rows of ``maps`` (ascending map indices), in order: their offsets' ranges concatenated."""
+        starts, lengths = self.offsets[maps], self.offsets[maps + 1] - self.offsets[maps]
+        within = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+        return np.repeat(starts, lengths) + within
+
+    def _junction_excess(self, junctions: np.ndarray, t_variances: np.ndarray, phi_variances: np.ndarray
+                         ) -> np.ndarray:
+        """How much more each junction ``k`` of ``junctions`` (ascending) may be off than its posterior variances
+        say (rows: translation, turn; 0 when not): the variance of a rigid fit of the features maps ``k - 1`` and
+        ``k`` share, as map ``k - 1``'s covariance (its full one; else its features' blocks) knows them relative to
+        its start (:func:`mapjoin.association.junction_drift.fit_variances`; docs/method.md#data-association,
+        step 6). The shared rows of all the junctions are found at once, by (map, id) keys sorted once: a tree level
+        places up to half the maps' junctions, and a set test (``np.isin``) each cost more than their fits."""
+        fits = np.zeros((len(junctions), 2))
+        before = self._rows_of(junctions - 1)
+        after = self._rows_of(junctions)
+        span = np.int64(self.count + 1)  # ids are below count (-1: a row not yet associated)
+        keys = (self.row_maps[before] + 1) * span + self.row_ids[before]  # each row as map k's would be keyed
+        shared = before[locate(np.sort(self.row_maps[after] * span + self.row_ids[after]), keys)[1]]
+        bounds = np.searchsorted(self.row_maps[shared], np.stack([junctions - 1, junctions]))
+        for n, (k, start, stop) in enumerate(zip(junctions.tolist(), *bounds.tolist())):
+            if start == stop:
+                continue
+            rows = shared[start:stop]
+            full = self.full_covariances[k - 1]
+            if full is None:
+                covariance = np.zeros((len(rows), 2, len(rows), 2))
+                diagonal = np.arange(len(rows))
+                covariance[diagonal, :, diagonal, :] = self.row_covariances[rows][:, [[0, 1], [1, 2]]]
+                covariance = covariance.reshape(2 * len(rows), 2 * len(rows))
+            else:
+                index = (3 + 2 * self.feature_index[rows][:, None] + np.arange(2)).ravel()
+                covariance = full[np.ix_(index, index)]
+            fits[n] = fit_variances(covariance, self.row_points[rows], complex(self.end_points[k - 1]))
+        return np.maximum(fits - np.column_stack([t_variances, phi_variances]), 0.0)
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray, solve: Solve
@@ -283,8 +300,7 @@ class _Associator:
         # the last level's junctions (pose row m: map m's end, pose m + 1) hold their joins' posteriors until moved
         # (and the excess of each junction's own drift over its posterior: the same junction as the sequential join's)
         posterior = pieces.pose_variances[self.links]
-        excess = np.array([self._junction_excess(k, t, p) for k, (t, p) in zip((self.links + 1).tolist(),
-                                                                                posterior.tolist())]).reshape(-1, 2)
+        excess = self._junction_excess(self.links + 1, posterior[:, 0], posterior[:, 1])
         self.drift.placed(self.links + 1, posterior[:, 0], posterior[:, 1], (excess[:, 0], excess[:, 1]))
         self.links = link
         joined = pieces.feature_piece < 2 * count
