@@ -67,6 +67,16 @@ def test_a_found_feature_stands_for_the_true_one_most_of_its_sightings_are():
     assert ids.tolist() == [0, 1] and real.tolist() == [10, 12]
 
 
+def test_the_input_feature_one_table_lacks_is_named_whatever_the_ids_size():
+    """Local ids up to the 64-bit limit (a front end's hashes): the feature named is the one the other table lacks
+    (keys packed into one integer, map x (largest id + 1) + id, overflow there)."""
+    top = 2**63 - 1
+    found = Correspondence(np.array([1, 1, 2]), np.array([0, top, top]), np.array([0, 1, 2]), name="found.csv")
+    true = Correspondence(np.array([1, 1, 3]), np.array([0, top, top]), np.array([0, 1, 2]), name="true.csv")
+    with pytest.raises(InputError, match=rf"^found.csv: has a row for map 2, local id {top}, which true.csv"):
+        scored(found, true)
+
+
 def test_tables_of_different_maps_are_refused_naming_the_found_table():
     with pytest.raises(InputError, match=r"^found.csv: lacks a row for map 1, local id 2"):
         scored(table([0, 1], name="found.csv"), table([0, 1, 2], name="true.csv"))

@@ -92,10 +92,11 @@ def _aligned(found: Correspondence, true: Correspondence) -> tuple[np.ndarray, n
 
 
 def _first_unmatched(one: np.ndarray, other: np.ndarray) -> int:
-    """The first column of ``one`` (2 x n keys, sorted) that ``other`` (sorted) does not hold."""
-    scale = max(int(one[1].max(initial=0)), int(other[1].max(initial=0))) + 1
-    wanted, held = one[0] * scale + one[1], other[0] * scale + other[1]
-    return int(np.flatnonzero(~np.isin(wanted, held))[0])
+    """The first column of ``one`` (2 x n keys, each once) that ``other`` (each once) does not hold."""
+    _, inverse = np.unique(np.concatenate([one, other], axis=1), axis=1, return_inverse=True)
+    held = np.zeros(inverse.max(initial=-1) + 1, dtype=bool)
+    held[inverse[one.shape[1]:]] = True
+    return int(np.flatnonzero(~held[inverse[:one.shape[1]]])[0])
 
 
 def scored(found: Correspondence, true: Correspondence) -> LinkErrors:
