@@ -41,6 +41,7 @@ import functools
 import numpy as np
 
 from .covariance import squared_norm
+from .onestep import point_constants
 
 __all__ = ["CLOSE", "DRIFT", "GROWTH", "MATCH_CHANCE", "NEIGHBOURS", "ROUNDS", "grow", "whole_overlap"]
 
@@ -76,18 +77,19 @@ class _Fit:
 
     def __init__(self, pa: np.ndarray, pb: np.ndarray, pair_variance: np.ndarray) -> None:
         self._pb = pb
-        self._solve(pa, pb, 1.0 / pair_variance)
+        self._solve(pa, pb, pair_variance)
         residual = pa - self.place(pb.T).T
         self.spread = squared_norm(residual).sum(axis=1) / max(2 * pa.shape[1] - 3, 1)
-        self._solve(pa, pb, 1.0 / (pair_variance + self.spread[:, None]))
+        self._solve(pa, pb, pair_variance + self.spread[:, None])
 
-    def _solve(self, pa: np.ndarray, pb: np.ndarray, weight: np.ndarray) -> None:
-        self._weight = weight
-        self.total = weight.sum(axis=1)
-        self.mean_a = (weight * pa).sum(axis=1) / self.total
-        self.mean_b = (weight * pb).sum(axis=1) / self.total
-        cross = (weight * (pa - self.mean_a[:, None]) * (pb - self.mean_b[:, None]).conj()).sum(axis=1)
-        self.turn = np.where(cross != 0, cross / np.where(cross != 0, np.abs(cross), 1.0), 1.0)
+    def _solve(self, pa: np.ndarray, pb: np.ndarray, variance: np.ndarray) -> None:
+        """Each row's chi = 0 fit: Theorem 1's constants of the rows as a batch of problems without odometry
+        (:func:`mapjoin.onestep.point_constants`; phi* = phi0)."""
+        rows, count = pa.shape
+        k = point_constants(pa.ravel(), variance.ravel(), pb.ravel(), np.zeros(rows * count),
+                            np.zeros(rows, dtype=complex), np.full(rows, np.inf), np.repeat(np.arange(rows), count))
+        self._weight = 1.0 / variance
+        self.total, self.mean_a, self.mean_b, self.turn = k.weight, k.mean0, k.mean1, np.exp(1j * k.phi0)
 
     def place(self, z: np.ndarray) -> np.ndarray:
         """``z`` (one point per row, or a row of points per fit) placed by each row's fit."""
