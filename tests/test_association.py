@@ -4,6 +4,7 @@ test against dense formulas, local ids, recovery on simulated and real maps, the
 from __future__ import annotations
 
 import csv
+import json
 import dataclasses
 import logging
 import math
@@ -425,3 +426,49 @@ def test_cli_refuses_an_associations_file_that_is_an_input(tmp_path, simulated_f
     result = run("join", simulated_folder, "--associate", "--associations", target, "-o", str(tmp_path / "g.csv"))
     assert result.exit_code == 1 and "localmap_1.yaml" in result.output and len(result.output.splitlines()) == 1
     assert open(target).read() == before and not (tmp_path / "g.csv").exists()
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "tree"])
+@pytest.mark.parametrize("seed", [0, 3])
+def test_association_counts_match_the_global_ids(strategy, seed, caplog):
+    """The summed counts against the written ids, not the report: every match removes one feature from the sum of the
+    maps' sizes, and a sequential join sees every feature of maps 2..n once, matched or new."""
+    caplog.set_level(logging.ERROR, logger="mapjoin")
+    local, _ = local_ids(simulate(12, seed=seed).maps)
+    found = join_associated(local, strategy=strategy)
+    ids = np.concatenate(found.global_ids)
+    counts = found.counts
+    assert counts.matched == ids.size - np.unique(ids).size > 0
+    if strategy == "sequential":
+        assert counts.matched + counts.new == sum(m.size for m in local[1:])
+    assert counts.ambiguous + counts.rejected <= counts.new
+
+
+def test_a_doubtful_association_is_said_once_and_a_clear_one_is_not(caplog):
+    """Long local maps (30 steps each) leave most incoming features ambiguous: one warning names the counts. The
+    default simulation's association is clear: no such warning."""
+    caplog.set_level(logging.WARNING, logger="mapjoin")
+    local, _ = local_ids(simulate(6, seed=0, steps_per_map=30).maps)
+    counts = join_associated(local).counts
+    said = [r.getMessage() for r in caplog.records if "ambiguous" in r.getMessage()]
+    assert counts.doubtful and len(said) == 1
+    assert f"{counts.ambiguous} incoming features ambiguous" in said[0] and f"{counts.matched} matched" in said[0]
+    caplog.clear()
+    local, _ = local_ids(simulate(12, seed=0).maps)
+    assert not join_associated(local).counts.doubtful
+    assert not [r for r in caplog.records if "ambiguous" in r.getMessage()]
+
+
+def test_cli_summary_states_the_association_counts(tmp_path):
+    folder = tmp_path / "sim"
+    assert run("simulate", "-o", str(folder), "--maps", "6", "--seed", "1", "--local-ids").exit_code == 0
+    result = run("-q", "join", str(folder), "--associate", "--json", "-o", str(tmp_path / "g.csv"),
+                 "--associations", str(tmp_path / "ids.csv"))
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    rows = list(csv.DictReader(open(tmp_path / "ids.csv")))
+    written = [int(r["global_id"]) for r in rows]
+    assert summary["associated_matched"] == len(written) - len(set(written))
+    result = run("join", str(folder), "--associate", "-o", str(tmp_path / "g2.csv"))
+    assert f"{summary['associated_matched']} features matched ({summary['associated_ambiguous']} left ambiguous" \
+        in result.stderr

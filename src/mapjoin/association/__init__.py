@@ -105,7 +105,8 @@ The rooms inside (docs/architecture.md), from the bottom up: :mod:`~mapjoin.asso
 
 from __future__ import annotations
 
-from .associated_join import AssociatedJoin, AssociatedJoinRecord, FeatureAssociation, join_associated
+from .associated_join import (AssociatedJoin, AssociatedJoinRecord, AssociationCounts, FeatureAssociation,
+                              join_associated)
 from .associator import TIE_SUPPORT
 from .correspondence import LinkErrors, correspondence_rows, link_errors, local_ids, scored, truth_of_found
 from .covariance_blocks import blocks, feature_covariances, fused, inverted, rotated
@@ -124,6 +125,7 @@ __all__ = [
     "TIE_SUPPORT",
     "AssociatedJoin",
     "AssociatedJoinRecord",
+    "AssociationCounts",
     "FeatureAssociation",
     "LinkErrors",
     "Matches",

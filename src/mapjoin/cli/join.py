@@ -141,15 +141,19 @@ def join(ctx: click.Context, inputs: tuple[str, ...], output: str, output_format
     two = counts["two_minima"]
     g = global_map
     abandoned = f" (the {refined.abandoned} join's solve did not converge)" if exact and refined.abandoned else ""
+    associated = result.counts._asdict() if associate else {}
+    matched = (f", {associated['matched']} features matched ({associated['ambiguous']} left ambiguous, "
+               f"{associated['rejected']} rejected)" if associate else "")
     common.summary(ctx, f"joined {common.counted(count, 'map')}: {common.counted(len(g.feature_ids), 'feature')}, "
                         f"{common.counted(len(g.pose_ids), 'pose')}, {common.counted(len(result.report), 'join')} "
                         f"({two} with two minima, {common.inconsistency(counts)}), covariance {covariance}, "
-                        f"{strategy}{abandoned}, read {read:.3f} s, joined {elapsed - read:.3f} s -> "
+                        f"{strategy}{abandoned}{matched}, read {read:.3f} s, joined {elapsed - read:.3f} s -> "
                         f"{'stdout' if output == '-' else output}",
                    {"maps": count, "features": len(g.feature_ids), "poses": len(g.pose_ids),
                     "joins": len(result.report), "two_minima": two,
                     "inconsistent": counts["inconsistent"], "covariance": covariance,
                     "strategy": strategy, **({"abandoned_start": refined.abandoned} if exact else {}),
+                    **({f"associated_{column}": count for column, count in associated.items()}),
                     **({"chi2_initial": refined.costs[0], "chi2": refined.cost, "iterations": refined.iterations,
                         "converged": refined.converged} if exact else {}),
                     "read_seconds": read, "join_seconds": elapsed - read, "output": output},
