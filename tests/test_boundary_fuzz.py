@@ -126,6 +126,8 @@ def valid(tmp_path_factory) -> Path:
         run("join", "maps.yaml", "-o", "global.yaml")
         run("join", "maps.yaml", "-o", "global.json", "--report", "report.json")
         run("simulate", "-o", "sim.csv", "--maps", "3", "--steps-per-map", "3", "--seed", "4", "--truth", "truth.csv")
+        run("simulate", "-o", "own", "--maps", "3", "--steps-per-map", "3", "--seed", "4", "--local-ids")
+        run("join", "own", "--associate", "--associations", "ids.csv", "-o", "associated.csv")
     finally:
         os.chdir(Path(__file__).parent)
     shutil.copy(folder / "mats" / "localmap_1.mat", folder / "map1.mat")
@@ -142,6 +144,10 @@ def valid(tmp_path_factory) -> Path:
         "EDGE_SE2_XY 0 10 2.0 1.0 50 0 50\nEDGE_SE2_XY 1 10 1.0 1.0 50 0 50\nEDGE_SE2_XY 2 10 0.2 1.2 50 0 50\n"
         "EDGE_SE2_XY 2 11 1.0 -1.0 50 0 50\nEDGE_SE2_XY 1 11 2.0 -1.0 50 0 50\n")
     (folder / "minima.yaml").write_text("- {join: 1, a: 2.5, c_phi: 1.0}\n- {join: 2, a: 0.5, c_phi: -3.0}\n")
+    rows = [line.split(",") for line in (folder / "ids.csv").read_text().splitlines()[1:]]
+    (folder / "ids.yaml").write_text("".join(f"- {{map: {m}, local_id: {l}, global_id: {g}}}\n" for m, l, g in rows))
+    (folder / "ids.json").write_text("[" + ", ".join(f'{{"map": {m}, "local_id": {l}, "global_id": {g}}}'
+                                                     for m, l, g in rows) + "]\n")
     return folder
 
 
@@ -209,6 +215,8 @@ def binary_mutation(draw, content: bytes) -> bytes:
 # The commands that read each kind of input, with where they write (relative to the work folder).
 LOCAL_MAP_COMMANDS: list[Callable[[str], list[str]]] = [
     lambda f: ["join", f, "-o", "out.csv", "--report", "report.csv"],
+    lambda f: ["join", f, "--associate", "--associations", "ids.csv", "-o", "out.csv"],
+    lambda f: ["join", f, "--associate", "--strategy", "tree", "--report", "report.yaml", "-o", "out.yaml"],
     lambda f: ["join", f, "--strategy", "tree", "--covariance", "marginal", "-o", "out.yaml"],
     lambda f: ["join", f, "--covariance", "identity", "--solver", "golden", "-o", "out.g2o"],
     lambda f: ["refine", f, "-o", "out.csv", "--max-iterations", "5"],
@@ -275,6 +283,20 @@ def test_mutated_truth_keeps_the_boundary(valid, tmp_path, name, data):
     shutil.copy(valid / "global.csv", work / "global.csv")
     (work / name).write_bytes(data.draw(text_mutation((valid / name).read_bytes())))
     invoke(work, ["evaluate", "global.csv", "--truth", name], inputs=(name, "global.csv"), names=(name,))
+
+
+@pytest.mark.parametrize("name", ["ids.csv", "ids.yaml", "ids.json"])
+@FUZZ
+@given(data=st.data(), which=st.sampled_from(["found", "true"]))
+def test_mutated_correspondence_tables_keep_the_boundary(valid, tmp_path, name, data, which):
+    """``evaluate --associations``: either table (the join's or the true one) mutated."""
+    work = _fresh(valid, tmp_path, "own")
+    shutil.copy(valid / "associated.csv", work / "associated.csv")
+    shutil.copy(valid / name, work / name)
+    table = name if which == "found" else "own/associations.csv"
+    (work / table).write_bytes(data.draw(text_mutation((work / table).read_bytes())))
+    invoke(work, ["evaluate", "associated.csv", "--truth", "own/truth.yaml", "--associations", name, "--json"],
+           inputs=(name, "own/associations.csv", "associated.csv"), names=(table,))
 
 
 @pytest.mark.parametrize("name", ["minima.csv", "report.csv", "minima.yaml", "report.json"])
