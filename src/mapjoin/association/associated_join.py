@@ -22,7 +22,7 @@ from ..joins import JoinRecord, Strategy
 from ..maps import GlobalMap, LocalMap
 from ..onestep import as_complex
 from .associator import _Associator
-from .covariance_blocks import feature_covariances
+from .covariance_blocks import end_relative, feature_covariances
 from .gate import DEFAULT_GATE, DEFAULT_MARGIN, _check_gate
 
 if TYPE_CHECKING:
@@ -87,7 +87,7 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     associator = _Associator([feature_covariances(m) for m in maps], points,
                              np.array([m.end_pose for m in maps]).reshape(-1, 3), gate, margin,
                              [m.covariance for m in maps], orders,
-                             np.array([m.pose_variances for m in maps]).reshape(-1, 2))
+                             np.array([m.pose_variances for m in maps]).reshape(-1, 2), [end_relative(m) for m in maps])
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
                   associate=associator)
