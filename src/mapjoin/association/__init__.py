@@ -18,6 +18,9 @@ join (sequential and tree) which features of the right piece are features of the
    (default 0.999: a true pair is refused once in a thousand).
    A tree join also associates its undrifted features alone, under the link's variance relative to its own map,
    and adds the pairs of features left unpaired (the junction rule, :mod:`mapjoin.association.junction`).
+   A sequential join associates the right features left ambiguous again with the link's own map's features in the
+   link's frame, relative to that map's end pose (:func:`end_relative`), the other unpaired ones as rivals (the link
+   rule, :mod:`mapjoin.association.link_pairs`).
 3. **Nearest neighbour, when clear.** A pair is taken when each of its features is the other's nearest
    candidate and each one's nearest *rival* is at least ``margin`` farther (squared Mahalanobis distance;
    default 9.2 = 2 ln 100: the nearest is a hundred times likelier). A rival is a candidate that is a
@@ -109,7 +112,7 @@ from .associated_join import (AssociatedJoin, AssociatedJoinRecord, AssociationC
                               join_associated)
 from .associator import TIE_SUPPORT
 from .correspondence import LinkErrors, correspondence_rows, link_errors, local_ids, scored, truth_of_found
-from .covariance_blocks import blocks, feature_covariances, fused, inverted, rotated
+from .covariance_blocks import blocks, end_relative, feature_covariances, fused, inverted, rotated
 from .drifted import LOOP_CLEAR, LOOP_SUPPORT, match_with_drift
 from .gate import DEFAULT_GATE, DEFAULT_MARGIN, sighting_bits
 from .joint import EXHAUSTIVE_PAIRS
@@ -131,6 +134,7 @@ __all__ = [
     "Matches",
     "blocks",
     "correspondence_rows",
+    "end_relative",
     "feature_covariances",
     "fused",
     "inverted",

@@ -23,7 +23,7 @@ from ..joins import JoinRecord, Strategy
 from ..maps import GlobalMap, LocalMap
 from ..onestep import as_complex
 from .associator import _Associator
-from .covariance_blocks import feature_covariances
+from .covariance_blocks import end_relative, feature_covariances
 from .gate import DEFAULT_GATE, DEFAULT_MARGIN, _check_gate
 
 if TYPE_CHECKING:
@@ -61,10 +61,10 @@ class AssociationCounts(NamedTuple):
     def doubtful(self) -> bool:
         """Whether the features left ambiguous are at least half as many as those matched: the incoming maps'
         features then lie closer together than their uncertainty, and many true pairs were left new (features
-        mapped twice). Measured (docs/joining.md, limits): on VicPark 200, DLR 200 and the 8240 simulation with
-        local ids and on the default simulations (seeds 0-1, 30 maps), ambiguous features are 0.5-40 % of the
-        matched ones (recall 66-99 %); with 15 steps per local map 37-83 % (recall 44-64 %), with 20-30 steps
-        145-7800 % (recall 33 % down to 1 %)."""
+        mapped twice). Measured (docs/joining.md, limits; seeds 0-1 of 30 maps): on VicPark 200, DLR 200 and the 8240
+        simulation with local ids and on the default simulations, ambiguous features are 0.4-40 % of the matched ones
+        (recall 66-99 %); sequentially with 15-20 steps per local map 25-48 % (recall 62-73 %); by the tree with 15-20
+        steps 66-200 % (recall 32-44 %), and with 30 steps either way 170-1800 % (recall 27 % down to 6 %)."""
         return self.ambiguous > 0 and 2 * self.ambiguous >= self.matched
 
 
@@ -118,7 +118,7 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     associator = _Associator([feature_covariances(m) for m in maps], points,
                              np.array([m.end_pose for m in maps]).reshape(-1, 3), gate, margin,
                              [m.covariance for m in maps], orders,
-                             np.array([m.pose_variances for m in maps]).reshape(-1, 2))
+                             np.array([m.pose_variances for m in maps]).reshape(-1, 2), [end_relative(m) for m in maps])
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
                   associate=associator)

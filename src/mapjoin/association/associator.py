@@ -28,6 +28,7 @@ from .gate import sighting_bits
 from .guard import Solve, Solved, inconsistent, kept_majority, outlying, widened
 from .junction import free_pairs, own_link_variances, undrifted
 from .junction_drift import fit_variances
+from .link_frame import LinkFrame
 from .loop_scope import voters_drift
 from .rounds import Matches, _median, _same, match_features
 
@@ -82,11 +83,14 @@ class _Associator:
     maps' end poses, for :class:`mapjoin.association.feature_drift.SightingDrift`; ``full_covariances`` each map's
     full covariance or None, ``orders`` the positions of its sorted ids in it, for the junctions' own drift
     (:mod:`mapjoin.association.junction_drift`); ``pose_variances`` the maps' marginal end-pose variances (their own
-    dead reckoning, for the tree joins that drifted)."""
+    dead reckoning, for the tree joins that drifted); ``end_relatives`` each map's features relative to its end pose
+    (:func:`mapjoin.association.covariance_blocks.end_relative`; None for a map without a full covariance), which the
+    next join compares in the link's frame (:mod:`mapjoin.association.link_frame`)."""
 
     def __init__(self, covariances: Sequence[np.ndarray], points: Sequence[np.ndarray], end_poses: np.ndarray,
                  gate: float, margin: float, full_covariances: Sequence[np.ndarray | None],
-                 orders: Sequence[np.ndarray], pose_variances: np.ndarray | None = None):
+                 orders: Sequence[np.ndarray], pose_variances: np.ndarray | None = None,
+                 end_relatives: Sequence[tuple[np.ndarray, np.ndarray] | None] | None = None):
         self.gate, self.margin = gate, margin
         self.full_covariances = full_covariances
         self.feature_index = np.concatenate([np.zeros(0, np.intp), *orders])  # each row's feature in its map
@@ -95,6 +99,12 @@ class _Associator:
         self.row_ids = np.full(self.offsets[-1], -1, dtype=np.int64)  # input rows in _prepare's order
         self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
         self.row_maps = np.repeat(np.arange(len(covariances)), np.diff(self.offsets))
+        ends = end_relatives if end_relatives is not None else [None] * len(covariances)
+        self.end_known = np.array([end is not None for end in ends], dtype=bool)  # each map's: a full covariance
+        self.row_end_points = np.concatenate([np.zeros(0, complex), *(end[0] for end in ends if end is not None)])
+        self.row_end_covariances = np.concatenate([np.zeros((0, 3)), *(end[1] for end in ends if end is not None)])
+        # each row's place among those (the maps without a full covariance have none)
+        self.row_end_index = np.cumsum(self.end_known[self.row_maps]) - 1
         # the chain's drift between sightings and links (each map's rows' positions in its frame: their sightings)
         self.drift = SightingDrift.of(end_poses, len(self.row_ids), pose_variances)
         self.row_points = np.concatenate([np.zeros(0, complex), *points])
@@ -184,6 +194,16 @@ class _Associator:
             fits[n] = fit_variances(covariance, self.row_points[rows], complex(self.end_points[k - 1]))
         return np.maximum(fits - np.column_stack([t_variances, phi_variances]), 0.0)
 
+    def _link_frame(self, link_map: int) -> LinkFrame | None:
+        """The left features map ``link_map`` saw (compact ids: the rows of the map so far), relative to its end pose,
+        the next join's link (:mod:`mapjoin.association.link_frame`); None when the map has no full covariance."""
+        if not self.end_known[link_map]:
+            return None
+        rows = np.arange(self.offsets[link_map], self.offsets[link_map + 1])
+        ids, at = self.row_ids[rows], self.row_end_index[rows]
+        order = np.argsort(ids)
+        return LinkFrame(ids[order], self.row_end_points[at[order]], self.row_end_covariances[at[order]])
+
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray, solve: Solve
              ) -> tuple[np.ndarray, np.ndarray, int, Solved]:
@@ -207,7 +227,8 @@ class _Associator:
                                     self.sightings[:used], self.row_sightings[rows], pair_drift,
                                     voters_drift(self.drift, None, None),
                                     lambda pair_left, pair_right: self.drift.across_link(pair_left, k - 1,
-                                                                                         z[pair_right]))
+                                                                                         z[pair_right]),
+                                    self._link_frame(k - 1))
 
         found = associated(drift, pair_drift)
         solved, guarded = solve(found.left, found.right), 0

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..maps import LocalMap
 
-__all__ = ["blocks", "feature_covariances", "fused", "inverted", "rotated"]
+__all__ = ["blocks", "end_relative", "feature_covariances", "fused", "inverted", "rotated"]
 
 def blocks(variances: np.ndarray) -> np.ndarray:
     """2 x 2 covariances as rows ``[xx, xy, yy]``: ``variances`` as they are (n x 3) or spherical (n,)."""
@@ -63,6 +63,34 @@ def feature_covariances(local_map: LocalMap) -> np.ndarray:
         return blocks(local_map.feature_variances[order])
     rows = 3 + 2 * order[:, None]  # each feature's x row; its [xx, xy, yy] entries in one gather
     return local_map.covariance[rows + _BLOCK_ROWS, rows + _BLOCK_COLUMNS]
+
+
+def end_relative(local_map: LocalMap) -> tuple[np.ndarray, np.ndarray] | None:
+    """Each feature of ``local_map`` relative to its *end pose*, in the end pose's frame (in the order of the sorted
+    feature ids): its position ``g = R(-phi) (f - p)`` (complex) and 2 x 2 covariance (rows ``[xx, xy, yy]``), from
+    the full covariance of ``[p, phi, f]``; None when the map has no full covariance (the cross terms are unknown).
+
+    The next map's start is this end pose, the join's link, so ``g`` is where the next map should see the feature,
+    and this covariance how far it may be off (docs/method.md#data-association, steps 1-2): the feature and the end
+    pose share the map's dead reckoning, which the marginal covariance relative to the start (:func:`feature_covariances`)
+    and the end pose's own variance count twice over. First order, ``dg = R^T (df - dp) - i g dphi``: per feature
+    ``J B J^T`` with ``B`` its 5 x 5 block of ``[x, y, phi, f_x, f_y]`` and ``J = [-R^T, -i g, R^T]``, all at once."""
+    if local_map.covariance is None:
+        return None
+    order = np.argsort(local_map.feature_ids, kind="stable")
+    x, y, phi = local_map.end_pose
+    c, s = np.cos(phi), np.sin(phi)
+    g = (local_map.features[order, 0] - x + 1j * (local_map.features[order, 1] - y)) * complex(c, -s)
+    index = np.concatenate([np.broadcast_to(np.arange(3), (len(order), 3)), 3 + 2 * order[:, None] + np.arange(2)],
+                           axis=1)  # each feature's [x, y, phi, f_x, f_y] rows of the covariance
+    block = local_map.covariance[index[:, :, None], index[:, None, :]]
+    back = np.array([[c, s], [-s, c]])  # R^T
+    jacobian = np.zeros((len(order), 2, 5))
+    jacobian[:, :, :2] = -back
+    jacobian[:, 0, 2], jacobian[:, 1, 2] = g.imag, -g.real  # -i g
+    jacobian[:, :, 3:] = back
+    covariance = np.einsum("nai,nij,nbj->nab", jacobian, block, jacobian)
+    return g, covariance[:, _BLOCK_ROWS, _BLOCK_COLUMNS]
 
 
 def _mahalanobis(r: np.ndarray, information: np.ndarray) -> np.ndarray:

@@ -18,6 +18,8 @@ import numpy as np
 
 from .covariance_blocks import blocks
 from .gate import DEFAULT_GATE, DEFAULT_MARGIN, _candidates, _threshold
+from .link_frame import LinkFrame
+from .link_pairs import linked_again
 from .lone import LONE_MARGIN, lone_drifted
 from .loop_scope import LinkSighting, VoterDrift, beyond_voters
 from .loop_votes import rigid_votes
@@ -40,7 +42,8 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
                      gate: float = DEFAULT_GATE, margin: float = DEFAULT_MARGIN,
                      left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
                      pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
-                     scope: VoterDrift | None = None, across: LinkSighting | None = None) -> Matches:
+                     scope: VoterDrift | None = None, across: LinkSighting | None = None,
+                     link_frame: LinkFrame | None = None) -> Matches:
     """:func:`match_features`, less the drifted pairs with a rival within their drift when ``pair_drift(left rows,
     right rows, their noise)`` gives the pairs' drift (:func:`_unstrained`, :mod:`mapjoin.association`, step 7: the
     associator's, through the chain's ties; compared with the noise only, it may stop at it where the way is long)
@@ -52,10 +55,14 @@ def match_with_drift(left: np.ndarray, left_covariances: np.ndarray, left_join: 
     (:mod:`mapjoin.association.feature_drift`), or None for none; ``scope`` gives a loop closure's pairs their drift
     relative to its voters (:mod:`mapjoin.association.loop_scope`; None: the correction holds for every pair);
     ``across`` compares the closure's pairs of the link's own map where that map and the next saw them (a sequential
-    join's: :data:`mapjoin.association.loop_scope.LinkSighting`; None: no such check)."""
+    join's: :data:`mapjoin.association.loop_scope.LinkSighting`; None: no such check); ``link_frame`` the left
+    features steps 2 to 5 compare in the link's own frame (:mod:`mapjoin.association.link_frame`; None: none)."""
     left_covariances, right_covariances = blocks(left_covariances), blocks(right_covariances)
     found = match_features(left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
                            right_covariances, right_join, gate, margin, left_sightings, right_sightings)
+    if link_frame is not None:
+        found = linked_again(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,
+                             right_covariances, right_join, link_frame, gate, margin, left_sightings, right_sightings)
     if drift is None:
         return found
     return with_drift(found, left, left_covariances, left_join, link_xy, link_phi, link_variances, right,

@@ -131,7 +131,8 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
           predicted: np.ndarray, lever: np.ndarray, right_covariances: np.ndarray, right_join: np.ndarray,
           link: np.ndarray, scale: np.ndarray | None, g2: float, margin: float = DEFAULT_MARGIN,
           left_sightings: np.ndarray | None = None, right_sightings: np.ndarray | None = None,
-          search: Callable[..., tuple[np.ndarray, np.ndarray]] = _candidates) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          search: Callable[..., tuple[np.ndarray, np.ndarray]] = _candidates, attached: np.ndarray | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The unambiguous candidate pairs (left rows, right rows) of every join, and the ambiguous right rows
     (sorted); the pairs within each right feature's radius are found by ``search`` (:func:`_candidates`, or a
     :class:`_Searched`).
@@ -143,7 +144,8 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     of the join's link error); it is a candidate when ``d^2 = r^T S^-1 r <= g2``. A candidate is taken when it is its
     right feature's nearest and its left feature's nearest, and each one's nearest rival (:func:`_clear`, given the
     features' ``sightings``) is at least ``margin`` farther (in ``d^2``); the other right features with candidates
-    are ambiguous.
+    are ambiguous. A pair whose left feature is ``attached`` (a mask over the left rows; None: none) is compared in
+    the link's own frame (:mod:`mapjoin.association.link_frame`): no link term in its ``S``.
     """
     joins = len(link)
     ux, uy = lever.real, lever.imag
@@ -162,7 +164,12 @@ def _gate(left: np.ndarray, left_covariances: np.ndarray, left_join: np.ndarray,
     else:
         own_covariances = (scale[left_join[i], None] * left_covariances[i]
                            + scale[right_join[j], None] * right_covariances[j])
-    xx, xy, yy = own_covariances[:, 0] + sxx[j], own_covariances[:, 1] + sxy[j], own_covariances[:, 2] + syy[j]
+    if attached is None:
+        xx, xy, yy = own_covariances[:, 0] + sxx[j], own_covariances[:, 1] + sxy[j], own_covariances[:, 2] + syy[j]
+    else:
+        linked = ~attached[i]
+        xx = own_covariances[:, 0] + linked * sxx[j]
+        xy, yy = own_covariances[:, 1] + linked * sxy[j], own_covariances[:, 2] + linked * syy[j]
     det = xx * yy - xy * xy  # S^-1 in closed form (as inverted), its quadratic form (as _mahalanobis)
     # det <= 0: S singular to rounding (a heading variance carried far, u link_phiphi u^T, dwarfs the rest and the
     # rest is lost): no candidate, the feature stays new

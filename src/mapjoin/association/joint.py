@@ -21,9 +21,12 @@ __all__ = ["EXHAUSTIVE_PAIRS"]
 EXHAUSTIVE_PAIRS = 10
 
 
-def _joint_terms(r: np.ndarray, w: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _joint_terms(r: np.ndarray, w: np.ndarray, u: np.ndarray, linked: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each pair's share of the joint test, ``W`` its innovation's information without the link (k x 3, rows
-    ``[xx, xy, yy]``): ``r^T W r``, ``H^T W r`` (k x 3) and ``H^T W H`` (k x 9), ``H = [I, u]`` (complex ``r``, ``u``)."""
+    ``[xx, xy, yy]``): ``r^T W r``, ``H^T W r`` (k x 3) and ``H^T W H`` (k x 9), ``H = [I, u]`` (complex ``r``, ``u``);
+    ``H = 0`` where ``linked`` (a mask; None: every pair) is false: a pair compared in the link's own frame
+    (:mod:`mapjoin.association.link_frame`), which no link error moves."""
     wxx, wxy, wyy = w.T
     ux, uy = u.real, u.imag
     g, h = np.empty((len(r), 3)), np.empty((len(r), 9))  # filled by columns (fewer calls than stacking)
@@ -33,7 +36,11 @@ def _joint_terms(r: np.ndarray, w: np.ndarray, u: np.ndarray) -> tuple[np.ndarra
     h[:, 2] = h[:, 6] = px = wxx * ux + wxy * uy  # W u
     h[:, 5] = h[:, 7] = py = wxy * ux + wyy * uy
     h[:, 0], h[:, 1], h[:, 3], h[:, 4], h[:, 8] = wxx, wxy, wxy, wyy, ux * px + uy * py
-    return r.real * qx + r.imag * qy, g, h
+    c = r.real * qx + r.imag * qy
+    if linked is not None:
+        g *= linked[:, None]
+        h *= linked[:, None]
+    return c, g, h
 
 
 def _joint_distances(masks: np.ndarray, terms, link_information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -64,10 +71,10 @@ def _solved(big_m: np.ndarray, big_g: np.ndarray) -> np.ndarray:
 
 
 def _jointly_compatible(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, link_information: np.ndarray,
-                        gate: float) -> np.ndarray:
+                        gate: float, linked: np.ndarray | bool = True) -> np.ndarray:
     """The pairs kept by the joint compatibility test (a boolean mask over the k pairs, whose
-    :func:`_joint_terms` are ``terms``): all of them when compatible, else the largest compatible subset
-    (ties: the smallest joint distance)."""
+    :func:`_joint_terms` are ``terms``, ``linked`` as there): all of them when compatible, else the largest compatible
+    subset (ties: the smallest joint distance)."""
     k = len(r)
     keep = np.ones(k, dtype=bool)
     if not k:
@@ -80,7 +87,7 @@ def _jointly_compatible(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, link
         if keep.sum() <= EXHAUSTIVE_PAIRS:
             break
         dx, dy, dphi = correction[0]
-        residual = _mahalanobis(r - (dx + 1j * dy) - u * dphi, w)
+        residual = _mahalanobis(r - linked * ((dx + 1j * dy) + u * dphi), w)
         keep[np.flatnonzero(keep)[np.argmax(residual[keep])]] = False
     rows = np.flatnonzero(keep)
     count = len(rows)
@@ -105,8 +112,10 @@ def _segment_sums(values: np.ndarray, group: np.ndarray, count: int) -> np.ndarr
 
 
 def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: np.ndarray,
-                information: np.ndarray, gate: float, joins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pairs kept by the joint compatibility test of every join (a mask over the pairs, grouped by join):
+                information: np.ndarray, gate: float, joins: int, linked: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs kept by the joint compatibility test of every join (a mask over the pairs, grouped by join; ``linked``
+    as :func:`_joint_terms`'s):
     each join's joint distance at once; a join that fails is searched alone by :func:`_jointly_compatible`.
     Also each join's ``sum H^T W r`` (joins x 3) and ``P_link^-1 + sum H^T W H`` (joins x 3 x 3) over all its
     pairs: the link's correction when every pair is kept."""
@@ -123,5 +132,5 @@ def _joint_test(terms, r: np.ndarray, w: np.ndarray, u: np.ndarray, pair_join: n
     for failed in np.flatnonzero(failing).tolist():
         rows = slice(starts[failed], starts[failed] + sizes[failed])
         keep[rows] = _jointly_compatible((c[rows], g[rows], h[rows]), r[rows], w[rows], u[rows],
-                                         information[failed], gate)
+                                         information[failed], gate, True if linked is None else linked[rows])
     return keep, big_g, big_m

@@ -20,6 +20,7 @@ import numpy as np
 from .covariance_blocks import _mahalanobis, blocks, inverted
 from .gate import DEFAULT_GATE, DEFAULT_MARGIN, _check_gate, _gate, _Searched, _threshold
 from .joint import _joint_terms, _joint_test, _segment_sums
+from .link_frame import LinkFrame
 
 __all__ = ["ROUNDS", "Matches", "match_features"]
 
@@ -90,14 +91,16 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
                    link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray,
                    right_covariances: np.ndarray, right_join: np.ndarray, gate: float = DEFAULT_GATE,
                    margin: float = DEFAULT_MARGIN, left_sightings: np.ndarray | None = None,
-                   right_sightings: np.ndarray | None = None) -> Matches:
+                   right_sightings: np.ndarray | None = None, link_frame: LinkFrame | None = None) -> Matches:
     """Associate right's features with left's in several independent joins at once (complex points; their
     covariances as rows ``[xx, xy, yy]`` in left's frame, or spherical variances; rows grouped by join; see
     :mod:`mapjoin.association`): predict through each join's link ``(link_xy, link_phi)`` with variances
     ``link_variances`` (joins x 2: var_t, p_phi), gate, take the clear nearest neighbours, test them jointly;
     then correct each link by its pairs, re-predict with the link's posterior covariance and the robust
     variance factor of the pairs' residuals, and associate again, until the pairs repeat (at most
-    :data:`ROUNDS` rounds).
+    :data:`ROUNDS` rounds). ``link_frame`` (None: none) holds the left features the link's own map saw, relative
+    to its end: they are compared in the link's frame, give the link no correction and move with it
+    (:mod:`mapjoin.association.link_frame`).
 
     Every step is array operations over all joins; only a join whose pairs fail the joint test is searched
     on its own (:func:`mapjoin.association.joint._jointly_compatible`).
@@ -107,6 +110,11 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     joins = len(link_xy)
     turn = np.exp(1j * link_phi)
     prior_prediction = link_xy[right_join] + turn[right_join] * right
+    attached = left_lever = None  # which left rows are in the link's frame (None: none)
+    if link_frame is not None and len(link_frame.rows):
+        left, left_covariances, attached, left_lever = link_frame.placed(left, left_covariances, left_join, link_xy,
+                                                                         link_phi)
+    placed_left = left  # the left points, the attached ones where the corrected link puts them
     lever = 1j * turn[right_join] * right  # R'(phi_o) z
     var_t, p_phi = link_variances[:, 0], link_variances[:, 1]
     prior_information = np.zeros((joins, 3, 3))
@@ -129,15 +137,16 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
     for round_number in range(ROUNDS):
         first_round = previous is None  # the factor is 1 (a product or a division by it changes nothing)
         if all_live:
-            i, j, undecided = _gate(left, left_covariances, left_join, largest, predicted, lever, right_covariances,
-                                    right_join, link, None if first_round else scale, g2, margin, left_sightings,
-                                    right_sightings, search)
+            i, j, undecided = _gate(placed_left, left_covariances, left_join, largest, predicted, lever,
+                                    right_covariances, right_join, link, None if first_round else scale, g2, margin,
+                                    left_sightings, right_sightings, search, attached)
         else:  # the live joins' rows only; each join's pairs are what they would be among all
             rows, columns = np.flatnonzero(live[left_join]), np.flatnonzero(live[right_join])
-            i, j, undecided = _gate(left[rows], left_covariances[rows], left_join[rows], largest, predicted[columns],
-                                    lever[columns], right_covariances[columns], right_join[columns], link, scale, g2,
-                                    margin, None if left_sightings is None else left_sightings[rows],
-                                    None if right_sightings is None else right_sightings[columns])
+            i, j, undecided = _gate(placed_left[rows], left_covariances[rows], left_join[rows], largest,
+                                    predicted[columns], lever[columns], right_covariances[columns], right_join[columns],
+                                    link, scale, g2, margin, None if left_sightings is None else left_sightings[rows],
+                                    None if right_sightings is None else right_sightings[columns],
+                                    attached=None if attached is None else attached[rows])
             i, j, undecided = rows[i], columns[j], columns[undecided]
         ambiguous = np.bincount(right_join[undecided], minlength=joins)
         if tested is not None and all_live and _repeated(tested, i, j, scale):
@@ -150,14 +159,16 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         r = left[i] - prior_prediction[j]  # the link's correction is estimated afresh from the prior each round
         unscaled = inverted(left_covariances[i] + right_covariances[j])
         w = unscaled if first_round else unscaled / scale[pair_join, None]
-        terms = _joint_terms(r, w, lever[j])
+        linked = None if attached is None else ~attached[i]  # the pairs a link error moves
+        terms = _joint_terms(r, w, lever[j], linked)
         information = prior_information if first_round else prior_information / scale[:, None, None]
-        keep, sum_g, sum_m = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins)
+        keep, sum_g, sum_m = _joint_test(terms, r, w, lever[j], pair_join, information, gate, joins, linked)
         rejected = np.bincount(pair_join[~keep], minlength=joins)
         if tested is not None:
             tested = (*tested[:3], rejected)
         if not keep.all():  # mostly all are kept: then the pairs and the joint test's sums as they are
             i, j, r, unscaled, pair_join = i[keep], j[keep], r[keep], unscaled[keep], pair_join[keep]
+            linked = None if linked is None else linked[keep]
             sum_g = _segment_sums(terms[1][keep], pair_join, joins)
             sum_m = information + _segment_sums(terms[2][keep], pair_join, joins).reshape(joins, 3, 3)
         outcome = (i, j, ambiguous, rejected, undecided, correction)
@@ -168,7 +179,8 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         posterior = np.linalg.inv(sum_m)
         fresh = np.einsum("jab,jb->ja", posterior, sum_g)
         shift = fresh[:, 0] + 1j * fresh[:, 1]
-        residual = r - shift[pair_join] - lever[j] * fresh[pair_join, 2]
+        moved = shift[pair_join] + lever[j] * fresh[pair_join, 2]
+        residual = r - (moved if linked is None else linked * moved)
         dof = 2 * np.bincount(pair_join, minlength=joins) - 3
         factor = _segment_medians(_mahalanobis(residual, unscaled), pair_join, joins) / CHI2_2_MEDIAN
         fresh_scale = np.where(dof >= MIN_DOF, np.maximum(1.0, factor), 1.0)
@@ -188,6 +200,9 @@ def match_features(left: np.ndarray, left_covariances: np.ndarray, left_join: np
         correction, scale, link = fresh, fresh_scale, fresh_link
         predicted = prior_prediction + (correction[:, 0] + 1j * correction[:, 1])[right_join] \
             + lever * correction[right_join, 2]
+        if attached is not None:
+            placed_left = left + attached * ((correction[:, 0] + 1j * correction[:, 1])[left_join]
+                                             + left_lever * correction[left_join, 2])
     if settled:
         outcome = _with_settled(outcome, settled, right_join)
     order = np.argsort(outcome[1], kind="stable")
