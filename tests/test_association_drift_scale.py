@@ -344,3 +344,24 @@ def test_the_junctions_excess_is_each_junctions_own_fit(monkeypatch, strategy, c
     # the sequential join places every junction, the tree all but its last level's (no level follows it to read it)
     assert sum(checked) == len(local) - (1 if strategy == "sequential" else 2)
     assert strategy == "sequential" or max(checked) > 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.lists(st.integers(0, 14), min_size=1, max_size=3 * WARM_UP))
+def test_observing_no_pair_changes_nothing(seed, sizes):
+    """A join without drifted pairs is not observed (the associator returns before its offsets and excess): the
+    estimate's answers and state are those of a run that observes it with no pair, at any point of the run (before
+    the warm-up, at an estimate, between two), since an estimate is only made after pairs that grew the joins."""
+    pairs = accepted_pairs(np.random.default_rng(seed), 0.3, 20 * len(sizes), DriftScale(0.999).bound)
+    skipping, observing = DriftScale(0.999), DriftScale(0.999)
+    start = 0
+    for size in sizes:
+        join = tuple(column[start:start + size] for column in pairs)
+        start += size
+        if len(join[0]):
+            assert skipping.observe(*join) == observing.observe(*join)
+        else:
+            assert not observing.observe(*join)
+        assert (skipping.scale, skipping.count, skipping.estimated_at) == (observing.scale, observing.count,
+                                                                          observing.estimated_at)
+        assert np.array_equal(skipping.likelihood, observing.likelihood)

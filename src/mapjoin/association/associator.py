@@ -158,7 +158,10 @@ class _Associator:
         self.drift.placed(k, t_variance, phi_variance, (float(excess[0, 0]), float(excess[0, 1])))
 
     def _rows_of(self, maps: np.ndarray) -> np.ndarray:
-        """The input rows of ``maps`` (ascending map indices), in order: their offsets' ranges concatenated."""
+        """The input rows of ``maps`` (ascending map indices), in order: their offsets' ranges concatenated (one map, a
+        sequential junction's: its range, one call instead of seven)."""
+        if len(maps) == 1:
+            return np.arange(self.offsets[maps[0]], self.offsets[maps[0] + 1])
         starts, lengths = self.offsets[maps], self.offsets[maps + 1] - self.offsets[maps]
         within = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
         return np.repeat(starts, lengths) + within
@@ -177,8 +180,9 @@ class _Associator:
         span = np.int64(self.count + 1)  # ids are below count (-1: a row not yet associated)
         keys = (self.row_maps[before] + 1) * span + self.row_ids[before]  # each row as map k's would be keyed
         shared = before[locate(np.sort(self.row_maps[after] * span + self.row_ids[after]), keys)[1]]
-        bounds = np.searchsorted(self.row_maps[shared], np.stack([junctions - 1, junctions]))
-        for n, (k, start, stop) in enumerate(zip(junctions.tolist(), *bounds.tolist())):
+        bounds = ([[0], [len(shared)]] if len(junctions) == 1  # one junction (sequential): every shared row is its
+                  else np.searchsorted(self.row_maps[shared], np.stack([junctions - 1, junctions])).tolist())
+        for n, (k, start, stop) in enumerate(zip(junctions.tolist(), *bounds)):
             if start == stop:
                 continue
             rows = shared[start:stop]
@@ -242,13 +246,15 @@ class _Associator:
                 self.drift_too_small |= left_out > 0
         self.counts.append((int(found.ambiguous[0]), int(found.rejected[0]), guarded))
         left_ids = found.left
+        noise = _pair_noise(self.covariances, right_covariances, left_ids, found.right)
+        drifts = pair_drift(found.left, found.right, noise)
         strain = self._tie(found, positions[:used], left_ids, np.array([link_xy]), np.array([link_phi]), z,
-                           np.zeros(len(z), np.intp), right_covariances, pair_drift, np.array([k]))
+                           np.zeros(len(z), np.intp), noise, drifts, np.array([k]))
         if not self.drift_too_small:  # once step 9 widened the drift, the scale it had is moot
-            self._drift_observed(found, positions, left_ids, np.array([link_xy]), np.array([link_phi]),
-                                 np.array([link_variances]), z, np.zeros(len(z), np.intp), right_covariances,
+            self._drift_observed(found, positions, np.array([link_xy]), np.array([link_phi]),
+                                 np.array([link_variances]), z, np.zeros(len(z), np.intp), noise, drifts,
                                  drift[0][left_ids] + self.drift.strain[left_ids],
-                                 self.drift.excess_before(left_ids, k - 1), pair_drift)
+                                 lambda along: self.drift.excess_before(left_ids[along], k - 1))
         matched = np.zeros(len(z), dtype=bool)
         matched[found.right] = True
         order = np.concatenate([found.right, np.flatnonzero(~matched)])  # found.right is sorted
@@ -263,43 +269,47 @@ class _Associator:
         self.drift.seen(ids[matched_count:], k, points[matched_count:])
         return order, ids, len(found.right), solved
 
-    def _drift_observed(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray,
-                        link_phi: np.ndarray, link_variances: np.ndarray, right: np.ndarray, right_join: np.ndarray,
-                        right_covariances: np.ndarray, direct: np.ndarray, excess: np.ndarray,
-                        pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+    def _drift_observed(self, found: Matches, left: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
+                        link_variances: np.ndarray, right: np.ndarray, right_join: np.ndarray, noise: np.ndarray,
+                        drift: np.ndarray, direct: np.ndarray, excess: Callable[[np.ndarray], np.ndarray],
                         read: np.ndarray | None = None) -> None:
-        """A join's or a tree level's pairs (``found``: left rows of ``left``, compact ids ``left_ids``, right rows of
-        ``right`` by ``right_join``) that drifted along the chain tell the drift's scale: those whose ``D`` reaches their
+        """A join's or a tree level's pairs (``found``: left rows of ``left``, right rows of ``right`` by
+        ``right_join``; ``noise`` and ``drift``, each pair's, :func:`_pair_noise` and the join's ``pair_drift``, as
+        :meth:`_tie` takes them) that drifted along the chain tell the drift's scale: those whose ``D`` reaches their
         noise and is the direct way's plus the features' strain (``direct``, each pair's: no tie shortened it), their
         squared offsets around the uncorrected link against their noise and the link's spread
-        (``sigma_o^2 + p_phi |z|^2 / 2``) and their drift's posterior and ``excess`` parts (each pair's, at scale 1;
-        :class:`mapjoin.association.drift_scale.DriftScale`, each join one observation); once the estimate moves, the
-        drift's sums take its share of the excess (docs/method.md#data-association, step 6). ``read`` (None: all):
-        the pairs whose join read the excess in its drift (a tree's drifted joins); the others tell nothing of it."""
-        noise = _pair_noise(self.covariances, right_covariances, left_ids, found.right)
-        drift = pair_drift(found.left, found.right, noise)
+        (``sigma_o^2 + p_phi |z|^2 / 2``) and their drift's posterior and ``excess`` parts (``excess(mask)``: the
+        masked pairs', at scale 1; :class:`mapjoin.association.drift_scale.DriftScale`, each join one observation);
+        once the estimate moves, the drift's sums take its share of the excess (docs/method.md#data-association, step
+        6). ``read`` (None: all): the pairs whose join read the excess in its drift (a tree's drifted joins); the
+        others tell nothing of it. A join without such pairs (most) is done here: the estimate observes nothing
+        (:meth:`~mapjoin.association.drift_scale.DriftScale.observe` of no pair changes nothing, as it estimates
+        only after pairs that grew its joins), so neither their excess nor their offsets are computed."""
         along = (drift >= noise) & (drift == direct) & (True if read is None else read)
+        if not along.any():
+            return
         join = right_join[found.right[along]]
         right_points = right[found.right[along]]
         offset2 = np.abs(left[found.left[along]] - link_xy[join] - np.exp(1j * link_phi[join]) * right_points) ** 2
         spread = noise[along] + link_variances[join, 0] + link_variances[join, 1] * np.abs(right_points) ** 2 / 2
-        if self.drift_scale.observe(offset2, spread, drift[along] - self.drift.scale[0] * excess[along],
-                                    excess[along], drift[along], join):
+        excess = excess(along)
+        if self.drift_scale.observe(offset2, spread, drift[along] - self.drift.scale[0] * excess, excess, drift[along],
+                                    join):
             self.drift.rescaled(self.drift_scale.scale)
 
     def _tie(self, found: Matches, left: np.ndarray, left_ids: np.ndarray, link_xy: np.ndarray, link_phi: np.ndarray,
-             right: np.ndarray, right_join: np.ndarray, right_covariances: np.ndarray,
-             pair_drift: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], junctions: np.ndarray
+             right: np.ndarray, right_join: np.ndarray, noise: np.ndarray, drift: np.ndarray, junctions: np.ndarray
              ) -> np.ndarray:
         """The strain of each of ``found``'s pairs (a quarter of its squared residual around the link as the join's
         pairs corrected it: a fused feature sits about halfway), and the chain's ties: a join whose pairs include
-        :data:`TIE_SUPPORT` drifted ones (``pair_drift``: each pair's before the join, at least its noise) measured its
-        link, at ``junctions[join]``, relative to the map that last saw their left features (``left_ids``, compact;
-        the median), strained by their strains' median (:meth:`mapjoin.association.feature_drift.SightingDrift.tie`)."""
+        :data:`TIE_SUPPORT` drifted ones (``drift``: each pair's before the join, at least its ``noise``; both asked
+        once per join, by the join's ``pair_drift`` and :func:`_pair_noise`, for this and :meth:`_drift_observed`)
+        measured its link, at ``junctions[join]``, relative to the map that last saw their left features
+        (``left_ids``, compact; the median), strained by their strains' median
+        (:meth:`mapjoin.association.feature_drift.SightingDrift.tie`)."""
         pair_join = right_join[found.right]
         strain = np.abs(left[found.left] - _corrected(found, link_xy, link_phi, right, right_join)) ** 2 / 4
-        noise = _pair_noise(self.covariances, right_covariances, left_ids, found.right)
-        drifted = pair_drift(found.left, found.right, noise) >= noise
+        drifted = drift >= noise
         for tying in np.flatnonzero(np.bincount(pair_join[drifted], minlength=len(junctions)) >= TIE_SUPPORT).tolist():
             pairs = drifted & (pair_join == tying)
             self.drift.tie(int(_median(self.drift.last_map[left_ids[pairs]])), int(junctions[tying]),
@@ -386,17 +396,19 @@ class _Associator:
                                          right_covariances, right_join)
         pair_left, pair_right = left_ids[found.left], right_ids[found.right]
         pair_map = link_map[right_join[found.right]]
-        self._drift_observed(found, pieces.features[left], pair_left, pieces.pose_xy[link], pieces.pose_phi[link],
-                             pieces.pose_variances[link], pieces.features[right], right_join, right_covariances,
+        noise = _pair_noise(self.covariances, right_covariances, pair_left, found.right)
+        drifts = pair_drift(found.left, found.right, noise)
+        self._drift_observed(found, pieces.features[left], pieces.pose_xy[link], pieces.pose_phi[link],
+                             pieces.pose_variances[link], pieces.features[right], right_join, noise, drifts,
                              (drift[0][found.left] + self.drift.strain[pair_left])
                              + (drift[2][found.right] + self.drift.strain[pair_right]),
-                             self.drift.excess_before(pair_left, pair_map) + self.drift.excess_after(pair_right, pair_map),
-                             pair_drift, far[right_join[found.right]])
+                             lambda along: self.drift.excess_before(pair_left[along], pair_map[along])
+                             + self.drift.excess_after(pair_right[along], pair_map[along]),
+                             far[right_join[found.right]])
         self.counts += [(ambiguous, rejected, 0) for ambiguous, rejected in zip(found.ambiguous.tolist(),
                                                                                 found.rejected.tolist())]
-        strain = self._tie(found, pieces.features[left], left_ids[found.left], pieces.pose_xy[link],
-                           pieces.pose_phi[link], pieces.features[right], right_join, right_covariances, pair_drift,
-                           link_map + 1)
+        strain = self._tie(found, pieces.features[left], pair_left, pieces.pose_xy[link], pieces.pose_phi[link],
+                           pieces.features[right], right_join, noise, drifts, link_map + 1)
         ids = pieces.feature_ids.copy()
         renamed = self._fresh(len(right))
         renamed[found.right] = ids[left[found.left]]
