@@ -118,7 +118,8 @@ def join_associated(maps: Sequence[LocalMap], covariance: CovarianceMode = DEFAU
     associator = _Associator([feature_covariances(m) for m in maps], points,
                              np.array([m.end_pose for m in maps]).reshape(-1, 3), gate, margin,
                              [m.covariance for m in maps], orders,
-                             np.array([m.pose_variances for m in maps]).reshape(-1, 2), [end_relative(m) for m in maps])
+                             np.array([m.pose_variances for m in maps]).reshape(-1, 2),
+                             [end_relative(m) for m in maps] if strategy == "sequential" else None)  # the link rule's
     # one map is no join: numbered as the sequential strategy's first map (the tree's hook runs per level)
     result = join(maps, covariance, solver, strategy if len(maps) > 1 else "sequential", 1, progress,
                   associate=associator)
