@@ -363,7 +363,7 @@ def unmet(name, strategy, measured):
     unmet("8240_data_50_local_maps", "tree", "recall 97.4 %, no false link (the 7 links of the lattice's tie at map 49)"),
     unmet("simulation", "sequential", "recall 83.5 %, no false link (old features met again after the chain drifted "
           "metres, beside other features: docs/method.md#data-association, steps 6 and 9)"),
-    unmet("simulation", "tree", "recall 84.6 %, no false link (tree joins whose pieces bent by metres: "
+    unmet("simulation", "tree", "recall 85.9 %, 2 false links (tree joins whose pieces bent by metres: "
           "docs/method.md#data-association, step 6)")])
 def test_target_recall_99_percent_without_false_links(data_dir, name, strategy, caplog):
     """Issue 13's target: at least 99 % of the true links recovered, no false one; then the global map equals

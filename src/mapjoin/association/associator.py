@@ -29,6 +29,7 @@ from .guard import Solve, Solved, inconsistent, kept_majority, outlying, widened
 from .junction import free_pairs, own_link_variances, undrifted
 from .junction_drift import fit_variances
 from .link_frame import LinkFrame
+from .link_pairs import linked_again
 from .loop_scope import voters_drift
 from .rounds import Matches, _median, _same, match_features
 
@@ -84,8 +85,9 @@ class _Associator:
     full covariance or None, ``orders`` the positions of its sorted ids in it, for the junctions' own drift
     (:mod:`mapjoin.association.junction_drift`); ``pose_variances`` the maps' marginal end-pose variances (their own
     dead reckoning, for the tree joins that drifted); ``end_relatives`` each map's features relative to its end pose
-    (:func:`mapjoin.association.covariance_blocks.end_relative`; None for a map without a full covariance), which the
-    next join compares in the link's frame (:mod:`mapjoin.association.link_frame`)."""
+    (:func:`mapjoin.association.covariance_blocks.end_relative`; None for a map without a full covariance or whose
+    are not read), which the next join (a sequential one, or the tree's first level's) compares in the link's frame
+    (:mod:`mapjoin.association.link_frame`)."""
 
     def __init__(self, covariances: Sequence[np.ndarray], points: Sequence[np.ndarray], end_poses: np.ndarray,
                  gate: float, margin: float, full_covariances: Sequence[np.ndarray | None],
@@ -100,10 +102,10 @@ class _Associator:
         self.row_covariances = np.concatenate([np.zeros((0, 3)), *covariances])  # in each map's frame
         self.row_maps = np.repeat(np.arange(len(covariances)), np.diff(self.offsets))
         ends = end_relatives if end_relatives is not None else [None] * len(covariances)
-        self.end_known = np.array([end is not None for end in ends], dtype=bool)  # each map's: a full covariance
+        self.end_known = np.array([end is not None for end in ends], dtype=bool)  # each map's, if read and known
         self.row_end_points = np.concatenate([np.zeros(0, complex), *(end[0] for end in ends if end is not None)])
         self.row_end_covariances = np.concatenate([np.zeros((0, 3)), *(end[1] for end in ends if end is not None)])
-        # each row's place among those (the maps without a full covariance have none)
+        # each row's place among those (the maps without them have none)
         self.row_end_index = np.cumsum(self.end_known[self.row_maps]) - 1
         # the chain's drift between sightings and links (each map's rows' positions in its frame: their sightings)
         self.drift = SightingDrift.of(end_poses, len(self.row_ids), pose_variances)
@@ -207,6 +209,14 @@ class _Associator:
         ids, at = self.row_ids[rows], self.row_end_index[rows]
         order = np.argsort(ids)
         return LinkFrame(ids[order], self.row_end_points[at[order]], self.row_end_covariances[at[order]])
+
+    def _first_level_frame(self, left: np.ndarray) -> LinkFrame:
+        """The tree's first level's left features (``left``: the level's rows, at this level the input rows,
+        ascending) relative to their map's end pose, their join's link, for the maps with them (a full covariance;
+        :meth:`_link_frame`'s for a sequential join; :mod:`mapjoin.association.link_frame`)."""
+        known = np.flatnonzero(self.end_known[self.row_maps[left]])
+        at = self.row_end_index[left[known]]
+        return LinkFrame(known, self.row_end_points[at], self.row_end_covariances[at])
 
     def next(self, k: int, positions: np.ndarray, variances: np.ndarray, link_xy: complex, link_phi: float,
              link_variances: tuple[float, float], z: np.ndarray, var: np.ndarray, solve: Solve
@@ -319,7 +329,8 @@ class _Associator:
     # tree strategy -----------------------------------------------------------------------
     def level(self, pieces: _Pieces, level: int) -> _Pieces:
         """Before a level of the tree: each right piece's features renamed to the ids of their matches in the left
-        piece, the others to new ids (``level`` joins have merged pieces of ``2^(level-1)`` maps)."""
+        piece, the others to new ids (``level`` joins have merged pieces of ``2^(level-1)`` maps; at level 1, single
+        maps, step 2's link rule as well: :func:`mapjoin.association.link_pairs.linked_again`)."""
         if self.count == 0:  # the maps' own (compact local) ids are not global: every row new
             ids = self.first(len(pieces.feature_ids))
             self.row_ids[:] = ids
@@ -350,6 +361,8 @@ class _Associator:
                      right_join)
         sightings = (self.sightings[left_ids], self.sightings[right_ids])
         found = match_features(*arguments, self.gate, self.margin, *sightings)
+        if level == 1:  # each left piece is one map, whose end pose is the link: step 2's link rule
+            found = linked_again(found, *arguments, self._first_level_frame(left), self.gate, self.margin, *sightings)
         # the joins whose pieces drifted beyond the junctions' posteriors take the maps' own dead reckoning as well
         far = drifting(found, *arguments, self.drift.first_map[right_ids] > link_map[right_join] + 1, self.gate)
         # (and the share of the junctions' excess the drifted joins bore out; the others the posteriors alone)

@@ -1,7 +1,8 @@
 """The left features the link's own map saw, in the link's frame (docs/method.md#data-association, steps 1-5).
 
-A sequential join's link is the end pose of the previous map, the map that saw some of the left features last. Those
-features and that end pose share the map's dead reckoning:
+A sequential join's link is the end pose of the previous map, the map that saw some of the left features last (the
+tree's first level's, its left piece's one map's end pose: that map saw every left feature). Those features and that
+end pose share the map's dead reckoning:
 relative to the end pose a feature the map saw near its end is known to centimetres, while its marginal covariance
 relative to the map's start and the end pose's variance are each metres (:func:`mapjoin.association.covariance_blocks.
 end_relative`). Such a feature is compared with a right feature in the link's own frame, ``g - z`` with covariance
