@@ -64,7 +64,7 @@ class AssociationCounts(NamedTuple):
         mapped twice). Measured (docs/joining.md, limits; seeds 0-1 of 30 maps): on VicPark 200, DLR 200 and the 8240
         simulation with local ids and on the default simulations, ambiguous features are 0.4-40 % of the matched ones
         (recall 66-99 %); sequentially with 15-20 steps per local map 25-48 % (recall 62-73 %); by the tree with 15-20
-        steps 66-200 % (recall 32-44 %), and with 30 steps either way 170-1800 % (recall 27 % down to 6 %)."""
+        steps 67-96 % (recall 41-50 %), and with 30 steps either way 170-550 % (recall 27 % down to 17 %)."""
         return self.ambiguous > 0 and 2 * self.ambiguous >= self.matched
 
 
