@@ -462,12 +462,7 @@ class _Associator:
         added = free_pairs(found.left, found.right, lefts[near.left], rights[near.right])
         if not added.any():
             return found
-        pairs_left = np.concatenate([found.left, lefts[near.left[added]]])
-        pairs_right = np.concatenate([found.right, rights[near.right[added]]])
-        order = np.argsort(pairs_right, kind="stable")
-        undecided = np.setdiff1d(found.undecided, pairs_right)
-        return Matches(pairs_left[order], pairs_right[order], np.bincount(right_join[undecided], minlength=len(link_xy)),
-                       found.rejected, undecided, found.correction)
+        return found.with_pairs(lefts[near.left[added]], rights[near.right[added]], right_join)
 
     def global_ids(self) -> tuple[np.ndarray, np.ndarray]:
         """Global ids numbered by first sighting: for each compact id (-1 if unused) and for each input row."""

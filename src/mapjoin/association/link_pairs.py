@@ -48,10 +48,4 @@ def linked_again(found: Matches, left: np.ndarray, left_covariances: np.ndarray,
     taken = np.isin(lefts[again.left], link_frame.rows)  # the pairs in the link's frame
     if not taken.any():
         return found
-    pairs_left = np.concatenate([found.left, lefts[again.left[taken]]])
-    pairs_right = np.concatenate([found.right, rights[again.right[taken]]])
-    order = np.argsort(pairs_right, kind="stable")
-    undecided = np.setdiff1d(found.undecided, pairs_right)
-    return Matches(pairs_left[order], pairs_right[order],
-                   np.bincount(right_join[undecided], minlength=len(link_xy)), found.rejected, undecided,
-                   found.correction)
+    return found.with_pairs(lefts[again.left[taken]], rights[again.right[taken]], right_join)

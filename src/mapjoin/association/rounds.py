@@ -47,6 +47,17 @@ class Matches:
     undecided: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
     correction: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
 
+    def with_pairs(self, left: np.ndarray, right: np.ndarray, right_join: np.ndarray) -> Matches:
+        """These matches with the pairs ``(left, right)`` of features they left free added (a later rule's pairs):
+        sorted by right row again, their right features no longer undecided nor counted ambiguous (``right_join``:
+        each right row's join)."""
+        pairs_left, pairs_right = np.concatenate([self.left, left]), np.concatenate([self.right, right])
+        order = np.argsort(pairs_right, kind="stable")
+        undecided = np.setdiff1d(self.undecided, pairs_right)
+        return Matches(pairs_left[order], pairs_right[order], np.bincount(right_join[undecided],
+                                                                          minlength=len(self.ambiguous)),
+                       self.rejected, undecided, self.correction)
+
 
 def _same(first: np.ndarray, second: np.ndarray) -> bool:
     """``np.array_equal`` of two 1-D arrays, without its wrapper's cost (a round compares its pairs two or three
