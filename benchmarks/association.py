@@ -17,11 +17,14 @@ LOCAL --associate -o g.csv`, LOCAL being the dataset's maps with ids local to ea
 temporary folder as MAT files, the two run in turn --repeat times (medians).
 
 A third table, always, is the case a user (or an outside check) tries first: `mapjoin simulate --local-ids` at its
-defaults, ``--seeds`` seeds (0, 1, ...) of 30, 50 and 100 maps, both strategies, against the simulation's true
-correspondence: totals of the links, the missed and the false ones, and how many runs made a false link.
+defaults, ``--seeds`` seeds (``--first-seed``, 0 by default, and on) of 30, 50 and 100 maps, both strategies, against
+the simulation's true correspondence: totals of the links, the missed and the false ones, and how many runs made a
+false link. The false-link counts of eight seeds move by several links with any change of one join's pairs: judge a
+change on a sample no rule was chosen on too (``--first-seed 16 --seeds 32``). ``--long-maps`` adds the same tables
+for local maps of 15, 20 and 30 steps (30 and 50 maps), where the association is weaker (docs/joining.md, limits).
 
     PYTHONPATH=src python benchmarks/association.py [DATASETS...] [--repeat N] [--non-target NAME ...] [--commands]
-        [--seeds K]
+        [--seeds K] [--first-seed S] [--long-maps]
 """
 
 from __future__ import annotations
@@ -47,6 +50,9 @@ from mapjoin.simulation import simulate  # noqa: E402
 DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "8240_data_50_local_maps")
 #: the simulations' sizes (maps) of the third table
 SIMULATED_MAPS = (30, 50, 100)
+#: ``--long-maps``: poses a local map (the simulator's default is 10) and the sizes of those runs
+LONG_MAP_STEPS = (15, 20, 30)
+LONG_MAP_SIZES = (30, 50)
 
 
 
@@ -90,15 +96,20 @@ def commands_table(data: Path, datasets: list[str], repeat: int) -> list[str]:
     return lines
 
 
-def simulations_table(seeds: int) -> list[str]:
-    """The default simulations' table: per size and strategy, the association of ``seeds`` seeded runs of
-    :func:`mapjoin.simulation.simulate` (its defaults, ids made local) against their true ids, summed."""
-    lines = ["", f"Default simulations (`simulate(maps, seed=s)`, s = 0..{seeds - 1}, ids local to each map; "
-             "totals over the seeds):", "",
+def simulations_table(seeds: int, first: int = 0, steps_per_map: int | None = None,
+                      sizes: tuple[int, ...] = SIMULATED_MAPS) -> list[str]:
+    """A table of simulations: per size and strategy, the association of seeded runs ``first .. first + seeds - 1``
+    of :func:`mapjoin.simulation.simulate` (its defaults, or ``steps_per_map`` poses a local map; ids made local)
+    against their true ids, summed."""
+    setting = "" if steps_per_map is None else f", steps_per_map={steps_per_map}"
+    title = "Default simulations" if steps_per_map is None else f"Longer local maps, {steps_per_map} steps each"
+    lines = ["", f"{title} (`simulate(maps, seed=s{setting})`, s = {first}..{first + seeds - 1}, ids local to each "
+             "map; totals over the seeds):", "",
              "| maps | strategy | true links | missed | recall | false links | runs with a false link |",
              "|---:|---|---:|---:|---:|---:|---:|"]
-    for count in SIMULATED_MAPS:
-        runs = [local_ids(simulate(count, seed=seed).maps) for seed in range(seeds)]
+    options = {} if steps_per_map is None else {"steps_per_map": steps_per_map}
+    for count in sizes:
+        runs = [local_ids(simulate(count, seed=seed, **options).maps) for seed in range(first, first + seeds)]
         for strategy in ("sequential", "tree"):
             errors = np.array([link_errors(local, truth, join_associated(local, strategy=strategy))
                                for local, truth in runs])
@@ -118,11 +129,18 @@ def main() -> None:
                             help="also time the whole commands, `join` against `join --associate` (a second table)")
         parser.add_argument("--seeds", type=int, default=8, metavar="K",
                             help="seeds of each default simulation in the third table (default 8)")
+        parser.add_argument("--first-seed", type=int, default=0, metavar="S",
+                            help="the simulations' seeds are S .. S + K - 1 (default 0; a sample no rule was "
+                                 "chosen on: 16)")
+        parser.add_argument("--long-maps", action="store_true",
+                            help="also tables of longer local maps: 15, 20 and 30 steps each, 30 and 50 maps")
 
     args = dataset_arguments(__doc__, DATASETS, options)
     also = "".join(f" --non-target {name}" for name in args.non_target)
     also += " --commands" if args.commands else ""
     also += f" --seeds {args.seeds}" if args.seeds != 8 else ""
+    also += f" --first-seed {args.first_seed}" if args.first_seed else ""
+    also += " --long-maps" if args.long_maps else ""
     lines = [f"Measured with `PYTHONPATH=src python benchmarks/association.py --repeat {args.repeat}{also}` "
              f"(load average {os.getloadavg()[0]:.2f} at the start; gate {DEFAULT_GATE}, default covariance mode).", "",
              "In one process, maps loaded (the association's own cost):", "",
@@ -148,7 +166,10 @@ def main() -> None:
         lines.append(row)
     if args.commands:
         lines += commands_table(args.data, list(args.datasets), args.repeat)
-    lines += simulations_table(args.seeds)
+    lines += simulations_table(args.seeds, args.first_seed)
+    if args.long_maps:
+        for steps in LONG_MAP_STEPS:
+            lines += simulations_table(args.seeds, args.first_seed, steps, LONG_MAP_SIZES)
     write_section("association", "\n".join(lines))
 
 
