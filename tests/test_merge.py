@@ -268,6 +268,58 @@ def test_maps_that_cannot_be_merged_are_refused_naming_the_map(case):
     assert case == "one map" or str(error.value).startswith("B: ")
 
 
+def lattice_views(seed: int, spacing: float, columns: int, rows: int, overlap: int, noise: float):
+    """Two maps of a lattice of features (``columns`` x ``rows``, ``spacing`` apart, errors of ``noise`` m): A its
+    left part, B its right part in a frame at a random pose, ``overlap`` columns seen by both; B's ids fresh."""
+    rng = np.random.default_rng(seed)
+    grid = np.stack(np.meshgrid(np.arange(columns), np.arange(rows), indexing="ij"), axis=-1).reshape(-1, 2)
+    world = grid * spacing
+    ids = np.arange(len(world)) + 1
+    cut = columns // 2
+    in_a = np.flatnonzero(grid[:, 0] < cut + overlap)
+    in_b = np.flatnonzero(grid[:, 0] >= cut)
+    frame = np.array([*rng.uniform(-20, 20, 2), rng.uniform(-math.pi, math.pi)])
+    var = noise**2 + 0.01**2
+    za = world[in_a] + noise * rng.normal(size=(len(in_a), 2))
+    zb = _to_frame(frame, world[in_b]) + noise * rng.normal(size=(len(in_b), 2))
+    poses = np.zeros((1, 3))
+    a = GlobalMap(ids[in_a], za, np.full(len(in_a), var), np.array([1]), poses, np.full((1, 2), 0.1), name="A")
+    b = GlobalMap(ids[in_b] + FRESH, zb, np.full(len(in_b), var), np.array([2]), poses, np.full((1, 2), 0.1),
+                  name="B")
+    return a, b
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spacing=st.floats(1.0, 5.0), columns=st.integers(6, 14),
+       rows=st.integers(3, 14), overlap=st.integers(1, 4), noise=st.floats(0.0, 0.05))
+def test_a_lattice_is_refused_without_ids_or_matched_truly(seed, spacing, columns, rows, overlap, noise):
+    """Features on a lattice repeat under its vectors: a transform shifted by one matches as many features as the
+    true one, so without ids the search must refuse (or, where it is sure, be right). (The case that was wrong,
+    the 8240 simulation's halves, is tested below: these synthetic lattices were refused before too.)"""
+    a, b = lattice_views(seed, spacing, columns, rows, overlap, noise)
+    found = consensus(as_complex(a.features), a.feature_variances, as_complex(b.features), b.feature_variances)
+    if found.sure:
+        np.testing.assert_array_equal(a.feature_ids[found.a], b.feature_ids[found.b] - FRESH)
+
+
+def test_a_lattice_shared_by_two_maps_is_refused_naming_the_map():
+    a, b = lattice_views(5, 3.0, 12, 10, 3, 0.02)
+    with pytest.raises(JoinError, match="^B: no sure overlap .* or the maps too self-similar"):
+        mapjoin.merge([a, b], associate=True)
+
+
+@pytest.mark.parametrize("cut", [25, 35])
+def test_8240_halves_are_refused_without_ids(data_dir, cut):
+    """The 8240 simulation's features lie on a 3 m lattice: its halves share 11-13 features, and transforms
+    shifted by the lattice's vectors match as many as any other, so the search refuses (it merged them falsely,
+    with 122-152 'common' features, before the shifted rivals were counted)."""
+    maps = mapio.read_maps(str(data_dir / "8240_data_50_local_maps"))
+    first = join(maps[:cut]).global_map
+    second = with_fresh_ids(dataclasses.replace(join(maps[cut:]).global_map, name="second"))
+    with pytest.raises(JoinError, match="^second: no sure overlap"):
+        mapjoin.merge([first, second], associate=True)
+
+
 def test_collinear_or_coincident_common_features_are_refused():
     a = GlobalMap([1, 2], [[0.0, 0.0], [0.0, 0.0]], [1.0, 1.0], [1], [[0, 0, 0]], [[1, 1]], name="A")
     b = dataclasses.replace(a, pose_ids=np.array([2]), poses=np.array([[1.0, 0, 0]]), name="B")
