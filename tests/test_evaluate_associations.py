@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from cli_runner import run as cli_run
 from test_outputs import run_with_stdout as run
 
 from mapjoin import io as mapio
@@ -84,18 +85,22 @@ def test_tables_of_different_maps_are_refused_naming_the_found_table():
         scored(table([0, 1, 2], [1, 1, 2], name="found.csv"), table([0, 1, 2], name="true.csv"))
 
 
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    """One simulated run twice, with global ids (p/) and with ids local to each map (s/), each joined: the known-id
-    join gp.csv and the associating join g.csv with its table a.csv."""
-    folder = tmp_path_factory.mktemp("evaluate")
-    for args in (["simulate", "-o", "p", "--maps", "12", "--seed", "3"],
-                 ["simulate", "-o", "s", "--maps", "12", "--seed", "3", "--local-ids"],
+def simulated_runs(folder, maps: str, seed: str):
+    """One simulated run twice in ``folder``, with global ids (p/) and with ids local to each map (s/), each joined:
+    the known-id join gp.csv and the associating join g.csv with its table a.csv."""
+    for args in (["simulate", "-o", "p", "--maps", maps, "--seed", seed],
+                 ["simulate", "-o", "s", "--maps", maps, "--seed", seed, "--local-ids"],
                  ["join", "p", "-o", "gp.csv"],
                  ["join", "s", "--associate", "--associations", "a.csv", "-o", "g.csv"]):
         code, _, stderr = run(folder, *args)
         assert code == 0, stderr
     return folder
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """:func:`simulated_runs` of 12 maps, seed 3."""
+    return simulated_runs(tmp_path_factory.mktemp("evaluate"), "12", "3")
 
 
 def evaluated(folder, *args) -> dict:
@@ -179,3 +184,46 @@ def test_option_misuse_is_a_usage_error(runs, args, message):
 def test_without_a_true_table_beside_the_truth_it_must_be_named(runs):
     code, _, stderr = run(runs, "evaluate", "gp.csv", "--truth", "p", "--associations", "a.csv")
     assert code == 2 and "no p/associations.csv beside --truth; give --true-associations" in stderr
+
+
+@pytest.fixture(scope="module")
+def longer_runs(tmp_path_factory):
+    """:func:`simulated_runs` of 30 maps, seed 4: the associating join's own numbering then differs from the truth's
+    for most features (in 12 maps many of its first-sighting ids happen to be the truth's)."""
+    return simulated_runs(tmp_path_factory.mktemp("evaluate30"), "30", "4")
+
+
+def test_ids_that_are_not_the_truths_are_warned_of_once_naming_the_map(longer_runs, monkeypatch):
+    """An associating join numbers its features itself: compared by id, its features meet unrelated true ones, and
+    evaluate says so once (their errors differ between neighbours as much as they are large); through its table,
+    and for the known-id join of the same run (whose errors, larger than the features' spacing, are a drift), it
+    says nothing."""
+    def evaluate(*args: str):
+        with monkeypatch.context() as patch:
+            patch.chdir(longer_runs)
+            result = cli_run("evaluate", *args)  # not -q: the warning is the point
+        assert result.exit_code == 0, result.output
+        return result
+
+    stderr = evaluate("g.csv", "--truth", "s").stderr
+    assert stderr.count("warning") == 1
+    assert "g.csv: " in stderr and "--associations" in stderr and "likely not the truth's" in stderr
+    for args in (["g.csv", "--truth", "s", "--associations", "a.csv"], ["gp.csv", "--truth", "p"]):
+        result = evaluate(*args, "--json")
+        assert "warning" not in result.stderr, result.stderr
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 40), extra=st.integers(0, 40))
+def test_features_nearer_another_true_one_are_counted_as_by_a_dense_search(seed, count, extra):
+    """``Evaluation.nearer_another`` against every distance computed: a compared feature counts when some true
+    feature lies strictly nearer to it than the one it is compared with."""
+    from mapjoin.evaluation import _nearer_another
+
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform(-10, 10, (count + extra, 2))
+    compared = rng.integers(0, len(truth), count)
+    features = truth[compared] + rng.normal(scale=rng.uniform(0.01, 5), size=(count, 2))
+    distances = np.hypot(*(features[:, None, :] - truth[None, :, :]).transpose(2, 0, 1))
+    expected = int(np.count_nonzero(distances.min(axis=1) < distances[np.arange(count), compared]))
+    assert _nearer_another(features, truth, compared) == (expected if len(truth) >= 2 else 0)
