@@ -48,7 +48,7 @@ variances) are related by an unknown SE(2) transform. The search is a consensus 
   ``MIN_COMMON`` of their vectors to their two nearest neighbours share within the gates' reach), counted by
   its matches the best one does not make: in a lattice it matches as many features, while the vote cells, as
   wide as the turn's error times B's radius, would hold it as the same transform (the 8240 simulation's halves,
-  features on a 3 m lattice along streets, merged 156 m and 1.7 rad from the truth before), and
+  features on a 3 m lattice along streets, merged 157 m and 1.7 rad from the truth before), and
 - at least ``chance + 4 sqrt(chance)`` matches, where ``chance`` is how many matches chance
   alone would give: the sum over B's features of the probability that one of A's features,
   spread uniformly over A's bounding box, falls in the feature's gate (A's density times the
