@@ -33,7 +33,8 @@ true feature than to their own *and* their errors are incoherent: the median dif
 its nearest compared neighbour's is at least ``INCOHERENT`` times their median size (measured: 0.01-0.09 for joins of
 the default simulations and of 8240 with the truth's ids or through their associations, 0.58-0.66 for associating
 joins and their merge compared by id). The warning says to compare through the association (``feature_truth``, the
-CLI's ``--associations``). Distances are computed densely for the sample (no k-d tree: evaluate imports no scipy).
+CLI's ``--associations``). Distances are computed densely for the sample (:mod:`mapjoin.neighbours`: evaluate
+imports no scipy).
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ import numpy as np
 from .consistency import chi2_quantile
 from .errors import InputError
 from .maps import GlobalMap, GroundTruth, locate
+from .neighbours import nearest
 from .se2 import compose, rotation, transform, wrap
 
 log = logging.getLogger("mapjoin")
@@ -212,7 +214,7 @@ def _warn_if_unrelated(name: str, features: np.ndarray, truth_features: np.ndarr
     nearer = _nearer_another(features[sample], truth_features, compared[sample])
     if 2 * nearer <= len(sample) or nearer < STRANGER_FEATURES:
         return
-    neighbour = _nearest(features[sample], features, exclude=sample)[0]
+    neighbour = nearest(_complex(features[sample]), _complex(features), exclude=sample)[0][:, 0]
     size = float(np.median(np.hypot(*errors[sample].T)))
     if not (size > 0 and np.median(np.hypot(*(errors[sample] - errors[neighbour]).T)) >= INCOHERENT * size):
         return
@@ -223,29 +225,16 @@ def _warn_if_unrelated(name: str, features: np.ndarray, truth_features: np.ndarr
                 "they are compared with" if through else "of their id")
 
 
-def _nearest(points: np.ndarray, candidates: np.ndarray, exclude: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Each point's nearest candidate (rows of n x 2 arrays): its index and distance, by dense distances in chunks
-    of rows; ``exclude[i]``: a candidate point i may not take (itself)."""
-    index, squared = np.empty(len(points), dtype=np.intp), np.empty(len(points))
-    step = max(1, (1 << 22) // max(len(candidates), 1))
-    for start in range(0, len(points), step):
-        rows = slice(start, start + step)
-        d = (points[rows, None, 0] - candidates[None, :, 0]) ** 2
-        d += (points[rows, None, 1] - candidates[None, :, 1]) ** 2
-        if exclude is not None:
-            d[np.arange(d.shape[0]), exclude[rows]] = np.inf
-        index[rows] = np.argmin(d, axis=1)
-        squared[rows] = d[np.arange(d.shape[0]), index[rows]]
-    return index, np.sqrt(squared)
+def _complex(xy: np.ndarray) -> np.ndarray:
+    return xy[:, 0] + 1j * xy[:, 1]
 
 
 def _nearer_another(features: np.ndarray, truth_features: np.ndarray, compared: np.ndarray) -> int:
     """How many of ``features`` lie strictly nearer to some row of ``truth_features`` than to
     ``truth_features[compared]``, the true feature each is compared with (a tie is none)."""
-    which, nearest = _nearest(features, truth_features)
+    which, squared = nearest(_complex(features), _complex(truth_features))
     own = np.hypot(*(features - truth_features[compared]).T)
-    return int(np.count_nonzero((which != compared) & (nearest < own * (1 - 1e-12))))
+    return int(np.count_nonzero((which[:, 0] != compared) & (np.sqrt(squared[:, 0]) < own * (1 - 1e-12))))
 
 
 def chi2_interval(dof: int | np.ndarray, confidence: float = CONFIDENCE

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..neighbours import nearest
+
 __all__ = ["DIFFERENT_CELLS", "RigidVotes", "rigid_votes"]
 
 #: every pair of right features votes up to this many features; above, each feature with its nearest ones
@@ -129,7 +131,7 @@ def _right_pairs(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _nearest(points: np.ndarray, k: int) -> np.ndarray:
     """Each of the complex ``points``' ``k`` nearest others (one row each, in no order; ties broken either way).
-    Up to :data:`BRUTE_FORCE` points by their squared distances, a block of rows at a time (a join's free right
+    Up to :data:`BRUTE_FORCE` points by their squared distances (:func:`mapjoin.neighbours.nearest`; a join's free right
     features are tens to hundreds: this spares scipy's import, 0.3 s of a command), beyond by scipy's k-d tree."""
     n = len(points)
     if n > BRUTE_FORCE:
@@ -137,14 +139,7 @@ def _nearest(points: np.ndarray, k: int) -> np.ndarray:
 
         xy = np.column_stack([points.real, points.imag])
         return cKDTree(xy).query(xy, k + 1)[1][:, 1:]  # the first: itself
-    near = np.empty((n, k), np.intp)
-    block = max(1, 2**20 // n)
-    for low in range(0, n, block):
-        rows = np.arange(low, min(low + block, n))
-        squared = np.abs(points[rows, None] - points[None, :]) ** 2
-        squared[np.arange(len(rows)), rows] = np.inf  # not itself
-        near[rows] = np.argpartition(squared, k - 1, axis=1)[:, :k]
-    return near
+    return nearest(points, points, k, exclude=np.arange(n))[0]  # not itself
 
 
 def rigid_votes(left: np.ndarray, right_points: np.ndarray, a: np.ndarray, b: np.ndarray, pair_join: np.ndarray,
